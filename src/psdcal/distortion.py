@@ -1,0 +1,212 @@
+"""The undistortion model and its inverse (MODEL.md 5, the paper's Eq 7-16).
+
+``undistort`` maps a measured impact point ``d`` to the ideal pinhole point
+``x``; ``distort`` solves ``undistort(d) = x`` for ``d`` by Newton's method.
+
+Conventions: points are (..., 2) arrays in mm on the sensor; ``c`` is the
+optical centre (2,) in mm; ``coeffs`` is (7,) in the order of
+:data:`psdcal.params.DISTORTION_NAMES` = (k1, k2, k3, p1, p2, l1, l2).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .params import Distortion
+
+
+def _as_coeffs(dist) -> np.ndarray:
+    if isinstance(dist, Distortion):
+        return dist.as_array()
+    a = np.asarray(dist, dtype=float)
+    if a.shape != (7,):
+        raise ValueError(f"distortion coefficients must have shape (7,), got {a.shape}")
+    return a
+
+
+def undistort(d_mm, dist, c_mm, *, jacobians: bool = False):
+    """Ideal pinhole point from a measured impact point (Eq 7-16, MODEL.md 5).
+
+    ``u = d (1 + l1 h^2 + l2 h^4)`` with ``h = |d|`` (PSD, Eq 7-10); then with
+    ``e = u - c``, ``r = |e|``:
+    ``x = u + e (k1 r^2 + k2 r^4 + k3 r^6) + tangential(e)`` (Eq 11-16).
+
+    Parameters
+    ----------
+    d_mm : (..., 2) array_like
+        Measured impact points, mm.
+    dist : Distortion or (7,) array_like
+    c_mm : (2,) array_like
+        Optical centre (cx, cy), mm.
+    jacobians : bool
+        Also return ``dx_dd`` (..., 2, 2), ``dx_dc`` (..., 2, 2) and
+        ``dx_dcoeffs`` (..., 2, 7).
+
+    Returns
+    -------
+    x : (..., 2) ndarray, ideal points in mm (and the Jacobians if asked).
+    """
+    k1, k2, k3, p1, p2, l1, l2 = _as_coeffs(dist)
+    d = np.asarray(d_mm, dtype=float)
+    c = np.asarray(c_mm, dtype=float)
+    h2 = np.einsum("...i,...i->...", d, d)
+    s = 1.0 + l1 * h2 + l2 * h2 * h2
+    u = d * s[..., None]
+    e = u - c
+    ex, ey = e[..., 0], e[..., 1]
+    r2 = ex * ex + ey * ey
+    rad = r2 * (k1 + r2 * (k2 + r2 * k3))
+    tx = p1 * (r2 + 2 * ex * ex) + 2 * p2 * ex * ey
+    ty = p2 * (r2 + 2 * ey * ey) + 2 * p1 * ex * ey
+    x = u + e * rad[..., None] + np.stack([tx, ty], axis=-1)
+    if not jacobians:
+        return x
+    eye = np.eye(2)
+    # G = d(lens correction)/de
+    drad_dr2 = k1 + r2 * (2 * k2 + 3 * k3 * r2)
+    G = rad[..., None, None] * eye + 2 * drad_dr2[..., None, None] * (e[..., :, None] * e[..., None, :])
+    G[..., 0, 0] += 6 * p1 * ex + 2 * p2 * ey
+    G[..., 0, 1] += 2 * p1 * ey + 2 * p2 * ex
+    G[..., 1, 0] += 2 * p2 * ex + 2 * p1 * ey
+    G[..., 1, 1] += 6 * p2 * ey + 2 * p1 * ex
+    dx_du = eye + G
+    ds_dh2 = l1 + 2 * l2 * h2
+    du_dd = s[..., None, None] * eye + 2 * ds_dh2[..., None, None] * (d[..., :, None] * d[..., None, :])
+    dx_dd = dx_du @ du_dd
+    dx_dc = -G
+    dx_dcoef = np.zeros(d.shape[:-1] + (2, 7))
+    dx_dcoef[..., :, 0] = e * r2[..., None]
+    dx_dcoef[..., :, 1] = e * (r2 * r2)[..., None]
+    dx_dcoef[..., :, 2] = e * (r2 * r2 * r2)[..., None]
+    dx_dcoef[..., 0, 3] = r2 + 2 * ex * ex
+    dx_dcoef[..., 1, 3] = 2 * ex * ey
+    dx_dcoef[..., 0, 4] = 2 * ex * ey
+    dx_dcoef[..., 1, 4] = r2 + 2 * ey * ey
+    du_dl1 = d * h2[..., None]
+    du_dl2 = d * (h2 * h2)[..., None]
+    dx_dcoef[..., :, 5] = np.einsum("...ij,...j->...i", dx_du, du_dl1)
+    dx_dcoef[..., :, 6] = np.einsum("...ij,...j->...i", dx_du, du_dl2)
+    return x, dx_dd, dx_dc, dx_dcoef
+
+
+@dataclass(frozen=True)
+class DistortResult:
+    """Result of :func:`distort`.
+
+    Attributes
+    ----------
+    d_mm : (..., 2) ndarray
+        Measured-plane points; NaN where the inverse did not converge.
+    converged : (...) bool ndarray
+    iterations : int
+        Newton iterations used by the slowest point.
+    """
+
+    d_mm: np.ndarray
+    converged: np.ndarray
+    iterations: int
+
+
+def _inv2(J):
+    det = J[..., 0, 0] * J[..., 1, 1] - J[..., 0, 1] * J[..., 1, 0]
+    inv = np.empty_like(J)
+    inv[..., 0, 0] = J[..., 1, 1]
+    inv[..., 1, 1] = J[..., 0, 0]
+    inv[..., 0, 1] = -J[..., 0, 1]
+    inv[..., 1, 0] = -J[..., 1, 0]
+    return inv / det[..., None, None], det
+
+
+def distort(x_mm, dist, c_mm, *, tol_mm: float = 1e-13, max_iter: int = 50) -> DistortResult:
+    """Measured point ``d`` with ``undistort(d) = x`` (MODEL.md 5), by Newton's method.
+
+    The start is a fixed-point estimate of the radial inverse; each Newton step
+    is halved while it does not reduce the residual.  A point is converged when
+    ``|undistort(d) - x| <= tol_mm * max(1, |x|)`` and the local Jacobian of
+    the model has a positive determinant (a fold of the model is not an
+    inverse).
+
+    Parameters
+    ----------
+    x_mm : (..., 2) array_like
+        Ideal pinhole points, mm.
+    dist : Distortion or (7,) array_like
+    c_mm : (2,) array_like
+
+    Returns
+    -------
+    DistortResult
+    """
+    coef = _as_coeffs(dist)
+    x = np.asarray(x_mm, dtype=float)
+    c = np.asarray(c_mm, dtype=float)
+    k1, k2, k3 = coef[:3]
+    # start: invert the lens radial part once about c, ignore PSD and tangential terms
+    e = x - c
+    r2 = np.einsum("...i,...i->...", e, e)
+    d = x.copy()
+    for _ in range(3):
+        e_d = d - c
+        rr = np.einsum("...i,...i->...", e_d, e_d)
+        rad = rr * (k1 + rr * (k2 + rr * k3))
+        with np.errstate(all="ignore"):
+            cand = c + e / (1.0 + rad)[..., None]
+        d = np.where(np.isfinite(cand), cand, d)
+    del r2
+    scale = np.maximum(1.0, np.linalg.norm(x, axis=-1))
+    it_used = 0
+    res = undistort(d, coef, c) - x
+    err = np.linalg.norm(res, axis=-1)
+    active = np.isfinite(err) & (err > tol_mm * scale)
+    for it in range(max_iter):
+        if not np.any(active):
+            break
+        it_used = it + 1
+        da = d[active]
+        _, J, _, _ = undistort(da, coef, c, jacobians=True)
+        Jinv, _ = _inv2(J)
+        step = np.einsum("...ij,...j->...i", Jinv, res[active])
+        xa = x[active]
+        erra = err[active]
+        lam = np.ones(da.shape[0])
+        new = da - step
+        new_err = np.linalg.norm(undistort(new, coef, c) - xa, axis=-1)
+        for _ in range(30):
+            worse = ~(new_err < erra)
+            if not np.any(worse):
+                break
+            lam = np.where(worse, lam * 0.5, lam)
+            new = np.where(worse[:, None], da - lam[:, None] * step, new)
+            new_err = np.where(worse, np.linalg.norm(undistort(new, coef, c) - xa, axis=-1), new_err)
+        improved = new_err < erra
+        da = np.where(improved[:, None], new, da)
+        d[active] = da
+        res_a = undistort(da, coef, c) - xa
+        res[active] = res_a
+        err_a = np.linalg.norm(res_a, axis=-1)
+        err[active] = err_a
+        still = (err_a > tol_mm * scale[active]) & improved & np.isfinite(err_a)
+        idx = np.flatnonzero(active)
+        active[idx] = still
+    _, J, _, _ = undistort(d, coef, c, jacobians=True)
+    det = J[..., 0, 0] * J[..., 1, 1] - J[..., 0, 1] * J[..., 1, 0]
+    ok = np.isfinite(err) & (err <= tol_mm * scale * 10) & (det > 0)
+    d = np.where(ok[..., None], d, np.nan)
+    return DistortResult(d_mm=d, converged=ok, iterations=it_used)
+
+
+def distort_jacobians(d_mm, dist, c_mm):
+    """Jacobians of the distortion map at its solution ``d`` (implicit function theorem).
+
+    From ``undistort(d; c, coeffs) = x``:
+    ``dd/dx = (dx/dd)^-1``, ``dd/dc = -(dx/dd)^-1 dx/dc``,
+    ``dd/dcoeffs = -(dx/dd)^-1 dx/dcoeffs``.
+
+    Returns
+    -------
+    dd_dx (..., 2, 2), dd_dc (..., 2, 2), dd_dcoeffs (..., 2, 7)
+    """
+    _, dx_dd, dx_dc, dx_dcoef = undistort(d_mm, dist, c_mm, jacobians=True)
+    inv, _ = _inv2(dx_dd)
+    return inv, -inv @ dx_dc, -inv @ dx_dcoef

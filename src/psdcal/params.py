@@ -1,0 +1,145 @@
+"""Frozen parameter records of the sensor model (MODEL.md 4, 5).
+
+Change them with :func:`dataclasses.replace`; they are never mutated.
+"""
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+
+DISTORTION_NAMES = ("k1", "k2", "k3", "p1", "p2", "l1", "l2")
+
+
+@dataclass(frozen=True)
+class Intrinsics:
+    """Pinhole intrinsics (Eq 4, 21), all in mm on the sensor.
+
+    ``x = f Xc/Zc + skew Yc/Zc + cx``, ``y = fy Yc/Zc + cy`` with ``fy = f``
+    unless a separate vertical focal length ``fy_mm`` is given.
+    """
+
+    f_mm: float
+    cx_mm: float = 0.0
+    cy_mm: float = 0.0
+    skew: float = 0.0
+    fy_mm: float | None = None
+
+    @property
+    def fy(self) -> float:
+        return self.f_mm if self.fy_mm is None else self.fy_mm
+
+    @property
+    def c(self) -> np.ndarray:
+        """Optical centre ``(cx_mm, cy_mm)``, shape (2,)."""
+        return np.array([self.cx_mm, self.cy_mm])
+
+    def matrix(self) -> np.ndarray:
+        """The intrinsic matrix A (3, 3) of Eq 4 (with skew in A[0, 1])."""
+        return np.array([[self.f_mm, self.skew, self.cx_mm], [0.0, self.fy, self.cy_mm], [0.0, 0.0, 1.0]])
+
+    def to_dict(self) -> dict:
+        d = {"f_mm": self.f_mm, "cx_mm": self.cx_mm, "cy_mm": self.cy_mm, "skew": self.skew}
+        if self.fy_mm is not None:
+            d["fy_mm"] = self.fy_mm
+        return d
+
+
+@dataclass(frozen=True)
+class Distortion:
+    """Undistortion coefficients (MODEL.md 5).
+
+    k1 [mm^-2], k2 [mm^-4], k3 [mm^-6]: lens radial about the optical centre;
+    p1, p2 [mm^-1]: lens tangential; l1 [mm^-2], l2 [mm^-4]: PSD radial about
+    the electrical centre (0, 0).
+    """
+
+    k1: float = 0.0
+    k2: float = 0.0
+    k3: float = 0.0
+    p1: float = 0.0
+    p2: float = 0.0
+    l1: float = 0.0
+    l2: float = 0.0
+
+    def as_array(self) -> np.ndarray:
+        """Coefficients in the order of :data:`DISTORTION_NAMES`, shape (7,)."""
+        return np.array([getattr(self, n) for n in DISTORTION_NAMES], dtype=float)
+
+    @classmethod
+    def from_array(cls, a) -> "Distortion":
+        return cls(**{n: float(v) for n, v in zip(DISTORTION_NAMES, np.asarray(a, dtype=float))})
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+@dataclass(frozen=True)
+class ModelSpec:
+    """Which parameters a calibration estimates (the model switches).
+
+    Attributes
+    ----------
+    radial : int
+        Number of lens radial terms k1..k3 (0-3).
+    tangential : bool
+        Estimate p1, p2.
+    psd_radial : int
+        Number of PSD radial terms l1, l2 (0-2).
+    skew : bool
+        Estimate the skew.
+    aspect : bool
+        Estimate a separate vertical focal length fy (general intrinsic matrix).
+    fit_gains : bool
+        Estimate three relative channel gains with the geometry (needs raw amplitudes).
+    """
+
+    radial: int = 2
+    tangential: bool = True
+    psd_radial: int = 0
+    skew: bool = False
+    aspect: bool = False
+    fit_gains: bool = False
+
+    def __post_init__(self):
+        if not 0 <= int(self.radial) <= 3:
+            raise ValueError(f"radial must be 0..3, got {self.radial}")
+        if not 0 <= int(self.psd_radial) <= 2:
+            raise ValueError(f"psd_radial must be 0..2, got {self.psd_radial}")
+
+    @property
+    def intrinsic_names(self) -> tuple[str, ...]:
+        names = ["f_mm", "cx_mm", "cy_mm"]
+        if self.skew:
+            names.append("skew")
+        if self.aspect:
+            names.append("fy_mm")
+        return tuple(names)
+
+    @property
+    def distortion_names(self) -> tuple[str, ...]:
+        names = [f"k{i + 1}" for i in range(self.radial)]
+        if self.tangential:
+            names += ["p1", "p2"]
+        names += [f"l{i + 1}" for i in range(self.psd_radial)]
+        return tuple(names)
+
+    @property
+    def gain_names(self) -> tuple[str, ...]:
+        return ("g_x2", "g_y1", "g_y2") if self.fit_gains else ()
+
+    @property
+    def global_names(self) -> tuple[str, ...]:
+        """Names of the free parameters shared by all images, in state order."""
+        return self.intrinsic_names + self.distortion_names + self.gain_names
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+@dataclass(frozen=True)
+class Pose:
+    """Pose of the template in the sensor frame: ``Pc = R(rvec) P + tvec_mm``."""
+
+    rvec: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    tvec_mm: np.ndarray = field(default_factory=lambda: np.array([0.0, 0.0, 1000.0]))
