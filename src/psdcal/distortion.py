@@ -118,7 +118,9 @@ def _inv2(J):
     return inv / det[..., None, None], det
 
 
-def distort(x_mm, dist, c_mm, *, tol_mm: float = 1e-13, max_iter: int = 50) -> DistortResult:
+def distort(
+    x_mm, dist, c_mm, *, tol_mm: float = 1e-13, max_iter: int = 50, d0_mm=None, keep_failed: bool = False
+) -> DistortResult:
     """Measured point ``d`` with ``undistort(d) = x`` (MODEL.md 5), by Newton's method.
 
     The start is a fixed-point estimate of the radial inverse; each Newton step
@@ -139,7 +141,9 @@ def distort(x_mm, dist, c_mm, *, tol_mm: float = 1e-13, max_iter: int = 50) -> D
     DistortResult
     """
     coef = _as_coeffs(dist)
-    x = np.asarray(x_mm, dtype=float)
+    x_in = np.asarray(x_mm, dtype=float)
+    shape = x_in.shape
+    x = x_in.reshape(-1, 2)
     c = np.asarray(c_mm, dtype=float)
     k1, k2, k3 = coef[:3]
     # start: invert the lens radial part once about c, ignore PSD and tangential terms
@@ -154,6 +158,9 @@ def distort(x_mm, dist, c_mm, *, tol_mm: float = 1e-13, max_iter: int = 50) -> D
             cand = c + e / (1.0 + rad)[..., None]
         d = np.where(np.isfinite(cand), cand, d)
     del r2
+    if d0_mm is not None:
+        d0 = np.broadcast_to(np.asarray(d0_mm, dtype=float), shape).reshape(-1, 2)
+        d = np.where(np.isfinite(d0), d0, d)
     scale = np.maximum(1.0, np.linalg.norm(x, axis=-1))
     it_used = 0
     res = undistort(d, coef, c) - x
@@ -192,8 +199,9 @@ def distort(x_mm, dist, c_mm, *, tol_mm: float = 1e-13, max_iter: int = 50) -> D
     _, J, _, _ = undistort(d, coef, c, jacobians=True)
     det = J[..., 0, 0] * J[..., 1, 1] - J[..., 0, 1] * J[..., 1, 0]
     ok = np.isfinite(err) & (err <= tol_mm * scale * 10) & (det > 0)
-    d = np.where(ok[..., None], d, np.nan)
-    return DistortResult(d_mm=d, converged=ok, iterations=it_used)
+    if not keep_failed:
+        d = np.where(ok[..., None], d, np.nan)
+    return DistortResult(d_mm=d.reshape(shape), converged=ok.reshape(shape[:-1]), iterations=it_used)
 
 
 def distort_jacobians(d_mm, dist, c_mm):

@@ -1,0 +1,130 @@
+"""Closed-form intrinsics and extrinsics from homographies (Zhang; the paper's Eq 19-28).
+
+With one focal length and no skew, ``B = A^-T A^-1`` has ``b12 = 0`` and
+``b11 = b22`` (Eq 21), so the unknown is ``b = [b11, b13, b23, b33]`` and each
+view gives two equations (Eq 19, 20, 22). The recovery below is the corrected
+one of MODEL.md 6.3 (the paper's Eq 23-25 are misprinted):
+
+    Cx = -b13 / b11,  Cy = -b23 / b11,
+    lambda = b33 - (b13^2 + b23^2) / b11,  f = sqrt(lambda / b11)
+
+With skew or a separate vertical focal length free, Zhang's general
+six-element ``b`` (Zhang, IEEE PAMI 22(11), 2000, Appendix B) is used.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from .errors import DegenerateViewsError
+from .params import Intrinsics
+from .projection import nearest_rotation, r_from_R
+
+
+def _v(H, i, j):
+    """Zhang's v_ij over the full b = [b11, b12, b22, b13, b23, b33] (Eq 22)."""
+    hi, hj = H[:, i], H[:, j]
+    return np.array(
+        [
+            hi[0] * hj[0],
+            hi[0] * hj[1] + hi[1] * hj[0],
+            hi[1] * hj[1],
+            hi[2] * hj[0] + hi[0] * hj[2],
+            hi[2] * hj[1] + hi[1] * hj[2],
+            hi[2] * hj[2],
+        ]
+    )
+
+
+def intrinsics_from_homographies(Hs, *, skew: bool = False, aspect: bool = False) -> Intrinsics:
+    """Closed-form intrinsics from n >= 2 (>= 3 with skew or aspect) homographies.
+
+    Parameters
+    ----------
+    Hs : sequence of (3, 3) arrays
+        Template -> sensor homographies (mm -> mm).
+    skew : bool
+        Leave the skew free (else 0).
+    aspect : bool
+        Leave a separate vertical focal length free (else fy = f).
+
+    Returns
+    -------
+    Intrinsics
+
+    Raises
+    ------
+    DegenerateViewsError
+        Too few views, or views that do not constrain the intrinsics (e.g. all
+        parallel to the sensor), or a solution that is not a real camera.
+    """
+    Hs = [np.asarray(H, dtype=float) / np.linalg.norm(H) for H in Hs]
+    need = 2 if not (skew or aspect) else 3
+    if len(Hs) < need:
+        raise DegenerateViewsError(f"{len(Hs)} usable views; the closed-form intrinsics need at least {need}")
+    rows = []
+    for H in Hs:
+        rows.append(_v(H, 0, 1))
+        rows.append(_v(H, 0, 0) - _v(H, 1, 1))
+    V = np.array(rows)
+    # Map the reduced unknown to the full b: columns of E (6, k).
+    cols = [np.array([1.0, 0, 1.0 if not aspect else 0.0, 0, 0, 0])]
+    if skew:
+        cols.append(np.array([0, 1.0, 0, 0, 0, 0]))
+    if aspect:
+        cols.append(np.array([0, 0, 1.0, 0, 0, 0]))
+    cols += [np.eye(6)[3], np.eye(6)[4], np.eye(6)[5]]
+    E = np.stack(cols, axis=1)
+    Vr = V @ E
+    # column scaling for conditioning
+    sc = np.linalg.norm(Vr, axis=0)
+    sc[sc == 0] = 1.0
+    _, s, Vt = np.linalg.svd(Vr / sc)
+    k = Vr.shape[1]
+    if s.size < k - 1 or s[k - 2] <= 1e-12 * s[0]:
+        raise DegenerateViewsError(
+            "the views do not determine the intrinsics (too few distinct orientations of the template)"
+        )
+    b = E @ (Vt[-1] / sc)
+    if b[0] < 0:
+        b = -b
+    b11, b12, b22, b13, b23, b33 = b
+    den = b11 * b22 - b12 * b12
+    if not (b11 > 0 and den > 0):
+        raise DegenerateViewsError("closed-form intrinsics: B is not positive definite (degenerate or noisy views)")
+    v0 = (b12 * b13 - b11 * b23) / den
+    lam = b33 - (b13 * b13 + v0 * (b12 * b13 - b11 * b23)) / b11
+    if not lam / b11 > 0:
+        raise DegenerateViewsError("closed-form intrinsics: negative focal length squared (degenerate views)")
+    alpha = np.sqrt(lam / b11)
+    beta = np.sqrt(lam * b11 / den)
+    gamma = -b12 * alpha * alpha * beta / lam
+    u0 = gamma * v0 / beta - b13 * alpha * alpha / lam
+    if aspect:
+        return Intrinsics(f_mm=float(alpha), cx_mm=float(u0), cy_mm=float(v0), skew=float(gamma) if skew else 0.0, fy_mm=float(beta))
+    # one focal length: alpha == beta exactly when b22 == b11 and b12 == 0 (then u0 = -b13/b11)
+    f = float(np.sqrt(alpha * beta))
+    return Intrinsics(f_mm=f, cx_mm=float(u0), cy_mm=float(v0), skew=float(gamma) if skew else 0.0)
+
+
+def extrinsics_from_homography(H, intr: Intrinsics):
+    """Pose of the template from its homography and the intrinsics (Eq 26-28, MODEL.md 6.4).
+
+    ``r1 = l A^-1 h1``, ``r2 = l A^-1 h2``, ``r3 = r1 x r2``, ``t = l A^-1 h3``,
+    ``l = 1/|A^-1 h1|``; R is then replaced by the nearest rotation and the
+    sign chosen so that ``t_z > 0`` (template in front of the sensor).
+
+    Returns
+    -------
+    rvec (3,), tvec_mm (3,)
+    """
+    Ainv = np.linalg.inv(intr.matrix())
+    H = np.asarray(H, dtype=float)
+    a1 = Ainv @ H[:, 0]
+    a2 = Ainv @ H[:, 1]
+    a3 = Ainv @ H[:, 2]
+    lam = 2.0 / (np.linalg.norm(a1) + np.linalg.norm(a2))
+    if a3[2] * lam < 0:
+        lam = -lam
+    r1, r2, t = lam * a1, lam * a2, lam * a3
+    R = nearest_rotation(np.column_stack([r1, r2, np.cross(r1, r2)]))
+    return r_from_R(R), t

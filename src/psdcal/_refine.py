@@ -1,0 +1,405 @@
+"""Levenberg-Marquardt refinement of intrinsics, distortion and all poses (Section 3.1).
+
+Two costs (MODEL.md 6.5):
+
+- ``image``: residual ``G(distort(project(P))) - d`` in mm on the sensor, the
+  maximum-likelihood estimate when the noise is on the measured points
+  (``G`` is the channel-gain readout map, identity unless gains are fitted);
+- ``template``: the paper's Eq 29, residual ``backproject(undistort(d)) - P``
+  in mm on the template plate.
+
+Both come with analytic Jacobians assembled per point from the chain rule:
+the pose columns of a point are non-zero only for its own image (the
+block-sparse structure), and the distortion map's Jacobian follows from the
+implicit function theorem (:func:`psdcal.distortion.distort_jacobians`).
+The dense problem is solved by MINPACK's LM (``scipy.optimize.least_squares``,
+``method="lm"``) with Jacobian-based column scaling.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.optimize import least_squares
+
+from .distortion import distort, distort_jacobians, undistort
+from .params import DISTORTION_NAMES, Distortion, Intrinsics, ModelSpec
+from .readout import LX_MM, LY_MM, gain_map
+
+_INTR_COLS = {"f_mm": 0, "cx_mm": 1, "cy_mm": 2, "skew": 3, "fy_mm": 4}
+_GAIN_IDX = {"g_x2": 1, "g_y1": 2, "g_y2": 3}
+
+
+@dataclass(frozen=True)
+class SolverOptions:
+    """Settings of the LM solver.
+
+    Attributes
+    ----------
+    ftol, xtol, gtol : float
+        MINPACK tolerances (relative reduction of the cost, relative step, gradient).
+    max_iterations : int
+        Maximum number of Jacobian evaluations (LM iterations).
+    """
+
+    ftol: float = 1e-15
+    xtol: float = 1e-15
+    gtol: float = 1e-15
+    max_iterations: int = 200
+
+
+def rodrigues_batch(r):
+    """Rotations R (n, 3, 3) and their derivatives dR (n, 3, 3, 3) (dR[:, k] = dR/dr_k)."""
+    r = np.asarray(r, dtype=float)
+    n = r.shape[0]
+    theta = np.linalg.norm(r, axis=1)
+    K = np.zeros((n, 3, 3))
+    K[:, 0, 1], K[:, 0, 2] = -r[:, 2], r[:, 1]
+    K[:, 1, 0], K[:, 1, 2] = r[:, 2], -r[:, 0]
+    K[:, 2, 0], K[:, 2, 1] = -r[:, 1], r[:, 0]
+    small = theta < 1e-12
+    th = np.where(small, 1.0, theta)
+    A = np.where(small, 1.0, np.sin(th) / th)
+    B = np.where(small, 0.5, (1 - np.cos(th)) / th**2)
+    R = np.eye(3) + A[:, None, None] * K + B[:, None, None] * (K @ K)
+    IR = np.eye(3) - R
+    dR = np.empty((n, 3, 3, 3))
+    for k in range(3):
+        w = np.cross(r, IR[:, :, k])
+        W = np.zeros((n, 3, 3))
+        W[:, 0, 1], W[:, 0, 2] = -w[:, 2], w[:, 1]
+        W[:, 1, 0], W[:, 1, 2] = w[:, 2], -w[:, 0]
+        W[:, 2, 0], W[:, 2, 1] = -w[:, 1], w[:, 0]
+        dR[:, k] = ((r[:, k, None, None] * K + W) / th[:, None, None] ** 2) @ R
+        if np.any(small):
+            E = np.zeros((3, 3))
+            e = np.eye(3)[k]
+            E[0, 1], E[0, 2], E[1, 0], E[1, 2], E[2, 0], E[2, 1] = -e[2], e[1], e[2], -e[0], -e[1], e[0]
+            dR[small, k] = E
+    return R, dR
+
+
+@dataclass(frozen=True)
+class Problem:
+    """A calibration problem in the solver's terms.
+
+    Attributes
+    ----------
+    template_mm : (M, 2)
+    points_mm : (n_images, M, 2), NaN where missing.
+    spec : ModelSpec
+    cost : "image" | "template"
+    fixed_intrinsics, fixed_distortion, fixed_gains :
+        Values of the parameters that are not free (and the start of the free ones).
+    """
+
+    template_mm: np.ndarray
+    points_mm: np.ndarray
+    spec: ModelSpec
+    cost: str = "image"
+    sensor_mm: tuple[float, float] = (LX_MM, LY_MM)
+    valid: np.ndarray = field(init=False, repr=False)
+
+    def __post_init__(self):
+        object.__setattr__(self, "valid", np.all(np.isfinite(self.points_mm), axis=-1))
+
+    @property
+    def n_images(self) -> int:
+        return self.points_mm.shape[0]
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        return self.spec.global_names
+
+    @property
+    def n_global(self) -> int:
+        return len(self.names)
+
+    # -- state vector ---------------------------------------------------------------
+    def pack(self, intr: Intrinsics, dist: Distortion, gains, rvecs, tvecs) -> np.ndarray:
+        vals = {**intr.to_dict(), **dist.to_dict()}
+        if "fy_mm" in self.names and intr.fy_mm is None:
+            vals["fy_mm"] = intr.f_mm
+        g = np.asarray(gains, dtype=float) / float(gains[0])
+        vals.update({"g_x2": g[1], "g_y1": g[2], "g_y2": g[3]})
+        head = np.array([vals[n] for n in self.names], dtype=float)
+        poses = np.concatenate([np.asarray(rvecs, float), np.asarray(tvecs, float)], axis=1).ravel()
+        return np.concatenate([head, poses])
+
+    def unpack(self, z, base_intr: Intrinsics, base_dist: Distortion, base_gains):
+        vals = dict(zip(self.names, z[: self.n_global]))
+        intr = Intrinsics(
+            f_mm=float(vals.get("f_mm", base_intr.f_mm)),
+            cx_mm=float(vals.get("cx_mm", base_intr.cx_mm)),
+            cy_mm=float(vals.get("cy_mm", base_intr.cy_mm)),
+            skew=float(vals.get("skew", base_intr.skew if self.spec.skew else 0.0)),
+            fy_mm=float(vals["fy_mm"]) if "fy_mm" in vals else None,
+        )
+        coef = base_dist.as_array().copy()
+        for i, n in enumerate(DISTORTION_NAMES):
+            if n in vals:
+                coef[i] = vals[n]
+        gains = np.asarray(base_gains, dtype=float).copy()
+        for n, i in _GAIN_IDX.items():
+            if n in vals:
+                gains[i] = vals[n]
+        poses = z[self.n_global :].reshape(self.n_images, 6)
+        return intr, coef, gains, poses[:, :3], poses[:, 3:]
+
+
+def _global_columns(names, d_dintr5, d_dcoef7, d_dgains4=None):
+    """Assemble (N, 2, n_global) from per-parameter derivative stacks."""
+    cols = []
+    for n in names:
+        if n in _INTR_COLS:
+            cols.append(d_dintr5[..., _INTR_COLS[n]])
+        elif n in _GAIN_IDX:
+            cols.append(d_dgains4[..., _GAIN_IDX[n]])
+        else:
+            cols.append(d_dcoef7[..., DISTORTION_NAMES.index(n)])
+    return np.stack(cols, axis=-1)
+
+
+class Evaluator:
+    """Residuals and Jacobian of a :class:`Problem` at a state vector (cached per state)."""
+
+    def __init__(self, prob: Problem, base_intr: Intrinsics, base_dist: Distortion, base_gains):
+        self.prob = prob
+        self.base = (base_intr, base_dist, np.asarray(base_gains, dtype=float))
+        self.img_idx, self.pt_idx = np.nonzero(prob.valid)
+        self.d_meas = prob.points_mm[self.img_idx, self.pt_idx]
+        self.P = prob.template_mm[self.pt_idx]
+        self._key = None
+        self._val = None
+        self._d_last = None
+
+    def unpack(self, z):
+        return self.prob.unpack(z, *self.base)
+
+    def evaluate(self, z):
+        key = z.tobytes()
+        if key == self._key:
+            return self._val
+        if self.prob.cost == "image":
+            val = self._image(z)
+        else:
+            val = self._template(z)
+        r, J = val
+        bad = ~np.isfinite(r)
+        if np.any(bad):
+            r = np.where(bad, 1e3, r)
+            J = np.where(bad[:, None], 0.0, J)
+            J = np.nan_to_num(J)
+            val = (r, J)
+        self._key, self._val = key, val
+        return val
+
+    def residuals(self, z):
+        return self.evaluate(z)[0]
+
+    def jacobian(self, z):
+        return self.evaluate(z)[1]
+
+    # -- image-plane cost --------------------------------------------------------------
+    def model_points(self, z):
+        """Modelled measured points (N, 2) of the valid observations, mm on the sensor."""
+        intr, coef, gains, rv, tv = self.unpack(z)
+        R, _ = rodrigues_batch(rv)
+        Pc = np.einsum("nij,nj->ni", R[self.img_idx][:, :, :2], self.P) + tv[self.img_idx]
+        x = np.stack([intr.f_mm * Pc[:, 0] / Pc[:, 2] + intr.skew * Pc[:, 1] / Pc[:, 2] + intr.cx_mm,
+                      intr.fy * Pc[:, 1] / Pc[:, 2] + intr.cy_mm], axis=1)
+        d = distort(x, coef, intr.c, d0_mm=self.d_meas, keep_failed=True).d_mm
+        if self.prob.spec.fit_gains:
+            d = gain_map(d, gains, *self.prob.sensor_mm)
+        return d
+
+    def _image(self, z):
+        prob = self.prob
+        intr, coef, gains, rv, tv = self.unpack(z)
+        R, dR = rodrigues_batch(rv)
+        ii = self.img_idx
+        P = self.P
+        Ri = R[ii]
+        Pc = np.einsum("nij,nj->ni", Ri[:, :, :2], P) + tv[ii]
+        X, Y, Z = Pc[:, 0], Pc[:, 1], Pc[:, 2]
+        xn, yn = X / Z, Y / Z
+        f, fy, s = intr.f_mm, intr.fy, intr.skew
+        x = np.stack([f * xn + s * yn + intr.cx_mm, fy * yn + intr.cy_mm], axis=1)
+        start = self._d_last if self._d_last is not None else self.d_meas
+        res = distort(x, coef, intr.c, d0_mm=start, keep_failed=True)
+        d = res.d_mm
+        self._d_last = d
+        dd_dx, dd_dc, dd_dcoef = distort_jacobians(d, coef, intr.c)
+        N = d.shape[0]
+        zero, one = np.zeros(N), np.ones(N)
+        separate_fy = intr.fy_mm is not None
+        # dx/d(f, cx, cy, skew, fy)  (Eq 4)
+        dx_dintr = np.stack(
+            [
+                np.stack([xn, zero if separate_fy else yn], 1),
+                np.stack([one, zero], 1),
+                np.stack([zero, one], 1),
+                np.stack([yn, zero], 1),
+                np.stack([zero, yn if separate_fy else zero], 1),
+            ],
+            axis=-1,
+        )
+        dd_dintr = dd_dx @ dx_dintr
+        dd_dintr[:, :, 1:3] += dd_dc
+        if prob.spec.fit_gains:
+            y, dy_dd, dy_dg = gain_map(d, gains, *prob.sensor_mm, jacobians=True)
+        else:
+            y, dy_dd, dy_dg = d, None, None
+        iz = 1.0 / Z
+        dx_dPc = np.empty((N, 2, 3))
+        dx_dPc[:, 0, 0] = f * iz
+        dx_dPc[:, 0, 1] = s * iz
+        dx_dPc[:, 0, 2] = -(f * xn + s * yn) * iz
+        dx_dPc[:, 1, 0] = 0.0
+        dx_dPc[:, 1, 1] = fy * iz
+        dx_dPc[:, 1, 2] = -fy * yn * iz
+        dd_dPc = dd_dx @ dx_dPc
+        dPc_dr = np.einsum("nkij,nj->nik", dR[ii][:, :, :, :2], P)
+        dd_dr = dd_dPc @ dPc_dr
+        G = _global_columns(prob.names, dd_dintr, dd_dcoef, dy_dg)
+        if prob.spec.fit_gains:
+            # chain through the readout map for everything upstream of d
+            nongain = [k for k, n in enumerate(prob.names) if n not in _GAIN_IDX]
+            G[:, :, nongain] = dy_dd @ G[:, :, nongain]
+            dd_dr = dy_dd @ dd_dr
+            dd_dPc = dy_dd @ dd_dPc
+        r = (y - self.d_meas).ravel()
+        J = self._assemble(G, dd_dr, dd_dPc)
+        return r, J
+
+    def _assemble(self, G, d_dr, d_dt):
+        prob = self.prob
+        N = G.shape[0]
+        ng = prob.n_global
+        J = np.zeros((N, 2, ng + 6 * prob.n_images))
+        J[:, :, :ng] = G
+        rows = np.arange(N)
+        base = ng + 6 * self.img_idx
+        for k in range(3):
+            J[rows, :, base + k] = d_dr[:, :, k]
+            J[rows, :, base + 3 + k] = d_dt[:, :, k]
+        return J.reshape(2 * N, -1)
+
+    # -- template-plane cost (Eq 29) ---------------------------------------------------
+    def _template(self, z):
+        prob = self.prob
+        intr, coef, gains, rv, tv = self.unpack(z)
+        R, dR = rodrigues_batch(rv)
+        ii = self.img_idx
+        x, _, dx_dc, dx_dcoef = undistort(self.d_meas, coef, intr.c, jacobians=True)
+        N = x.shape[0]
+        Mm = np.concatenate([R[:, :, :2], tv[:, :, None]], axis=2)  # (n, 3, 3) = [r1 r2 t]
+        A = intr.matrix()
+        Hinv = np.linalg.inv(A @ Mm)  # (n, 3, 3)
+        Minv = np.linalg.inv(Mm)
+        xt = np.concatenate([x, np.ones((N, 1))], axis=1)
+        q = np.einsum("nij,nj->ni", Hinv[ii], xt)
+        Phat = q[:, :2] / q[:, 2:3]
+        r = (Phat - self.P).ravel()
+        iq2 = 1.0 / q[:, 2]
+        dP_dq = np.zeros((N, 2, 3))
+        dP_dq[:, 0, 0] = iq2
+        dP_dq[:, 1, 1] = iq2
+        dP_dq[:, 0, 2] = -q[:, 0] * iq2 * iq2
+        dP_dq[:, 1, 2] = -q[:, 1] * iq2 * iq2
+        mq = np.einsum("nij,nj->ni", Mm[ii], q)  # M q, with A M q = x~
+        zero = np.zeros(N)
+        separate_fy = intr.fy_mm is not None
+        # d(x~)/dtheta - dA/dtheta (M q), for theta in (f, cx, cy, skew, fy)
+        v_f = np.stack([-mq[:, 0], zero if separate_fy else -mq[:, 1], zero], 1)
+        v_cx = np.stack([dx_dc[:, 0, 0] - mq[:, 2], dx_dc[:, 1, 0], zero], 1)
+        v_cy = np.stack([dx_dc[:, 0, 1], dx_dc[:, 1, 1] - mq[:, 2], zero], 1)
+        v_s = np.stack([-mq[:, 1], zero, zero], 1)
+        v_fy = np.stack([zero, -mq[:, 1] if separate_fy else zero, zero], 1)
+        V = np.stack([v_f, v_cx, v_cy, v_s, v_fy], axis=-1)  # (N, 3, 5)
+        Hi = Hinv[ii]
+        dq_dintr = Hi @ V
+        dxt_dcoef = np.concatenate([dx_dcoef, np.zeros((N, 1, 7))], axis=1)
+        dq_dcoef = Hi @ dxt_dcoef
+        G = _global_columns(prob.names, dP_dq @ dq_dintr, dP_dq @ dq_dcoef)
+        # poses: dq = -M^-1 (dM q)
+        Mi = Minv[ii]
+        dMq_dr = np.einsum("nkij,nj->nik", dR[ii][:, :, :, :2], q[:, :2])  # (N, 3, 3)
+        dq_dr = -Mi @ dMq_dr
+        dq_dt = -Mi * q[:, 2, None, None]
+        return r, self._assemble(G, dP_dq @ dq_dr, dP_dq @ dq_dt)
+
+
+@dataclass(frozen=True)
+class RefineResult:
+    """Raw output of :func:`refine`."""
+
+    z: np.ndarray
+    intrinsics: Intrinsics
+    coeffs: np.ndarray
+    gains: np.ndarray
+    rvecs: np.ndarray
+    tvecs: np.ndarray
+    covariance: np.ndarray  # (n_params, n_params) of the full state
+    sigma2: float  # residual variance of the minimised cost, its unit^2
+    cost_rms: float
+    iterations: int
+    converged: bool
+    message: str
+    jacobian: np.ndarray
+    residuals: np.ndarray
+
+
+def refine(prob: Problem, intr0: Intrinsics, dist0: Distortion, gains0, rvecs0, tvecs0, options: SolverOptions = SolverOptions()) -> RefineResult:
+    """Minimise the chosen cost over the free intrinsics, distortion, gains and all poses.
+
+    The covariance is ``sigma^2 (J^T J)^-1`` at the solution with
+    ``sigma^2 = |r|^2 / (m - n)`` (m residuals, n parameters), in the units of
+    the minimised cost.
+    """
+    ev = Evaluator(prob, intr0, dist0, gains0)
+    z0 = prob.pack(intr0, dist0, gains0, rvecs0, tvecs0)
+    m = 2 * len(ev.img_idx)
+    n = z0.size
+    if m < n:
+        from .errors import DegenerateViewsError
+
+        raise DegenerateViewsError(f"{m // 2} observed points give {m} equations for {n} unknowns: add images or points")
+    sol = least_squares(
+        ev.residuals,
+        z0,
+        jac=ev.jacobian,
+        method="lm",
+        x_scale="jac",
+        ftol=options.ftol,
+        xtol=options.xtol,
+        gtol=options.gtol,
+        max_nfev=4 * options.max_iterations,
+    )
+    r, J = ev.evaluate(sol.x)
+    dof = max(m - n, 1)
+    sigma2 = float(r @ r) / dof
+    JtJ = J.T @ J
+    try:
+        cov = sigma2 * np.linalg.inv(JtJ)
+    except np.linalg.LinAlgError:
+        cov = sigma2 * np.linalg.pinv(JtJ)
+    intr, coef, gains, rv, tv = ev.unpack(sol.x)
+    iterations = int(sol.njev) if sol.njev is not None else int(sol.nfev)
+    converged = bool(sol.status > 0) and bool(np.all(np.isfinite(sol.x))) and iterations <= options.max_iterations
+    return RefineResult(
+        z=sol.x,
+        intrinsics=intr,
+        coeffs=coef,
+        gains=gains,
+        rvecs=rv,
+        tvecs=tv,
+        covariance=cov,
+        sigma2=sigma2,
+        cost_rms=float(np.sqrt(np.mean(r**2)) * np.sqrt(2.0)),
+        iterations=iterations,
+        converged=converged,
+        message=str(sol.message),
+        jacobian=J,
+        residuals=r,
+    )
