@@ -171,7 +171,6 @@ class Evaluator:
         self.P = prob.template_mm[self.pt_idx]
         self._key = None
         self._val = None
-        self._d_last = None
 
     def unpack(self, z):
         return self.prob.unpack(z, *self.base)
@@ -225,11 +224,15 @@ class Evaluator:
         xn, yn = X / Z, Y / Z
         f, fy, s = intr.f_mm, intr.fy, intr.skew
         x = np.stack([f * xn + s * yn + intr.cx_mm, fy * yn + intr.cy_mm], axis=1)
-        start = self._d_last if self._d_last is not None else self.d_meas
-        res = distort(x, coef, intr.c, d0_mm=start, keep_failed=True)
+        res = distort(x, coef, intr.c, d0_mm=self.d_meas, keep_failed=True, jacobians=True)
         d = res.d_mm
-        self._d_last = d
-        dd_dx, dd_dc, dd_dcoef = distort_jacobians(d, coef, intr.c)
+        if np.all(res.converged):
+            dd_dx, dd_dc, dd_dcoef = distort_jacobians(d, coef, intr.c, undistort_jacobians=(res.dx_dd, res.dx_dc, res.dx_dcoeffs))
+        else:  # retry the failures from the default start
+            bad = ~res.converged
+            d = d.copy()
+            d[bad] = distort(x[bad], coef, intr.c, keep_failed=True).d_mm
+            dd_dx, dd_dc, dd_dcoef = distort_jacobians(d, coef, intr.c)
         N = d.shape[0]
         zero, one = np.zeros(N), np.ones(N)
         separate_fy = intr.fy_mm is not None

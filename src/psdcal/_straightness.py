@@ -21,11 +21,15 @@ from .distortion import undistort
 def find_lines(template_mm, *, min_points: int = 3, tol_rel: float = 1e-6) -> list[np.ndarray]:
     """All maximal sets of >= ``min_points`` collinear template points.
 
+    For each point, the directions to all later points are sorted by angle
+    and split where consecutive angles differ by more than the tolerance, so
+    the search is O(M^2 log M).
+
     Parameters
     ----------
     template_mm : (M, 2) array_like
     tol_rel : float
-        Distance tolerance as a fraction of the template's extent.
+        Collinearity tolerance as a fraction of the template's extent.
 
     Returns
     -------
@@ -33,23 +37,46 @@ def find_lines(template_mm, *, min_points: int = 3, tol_rel: float = 1e-6) -> li
     """
     P = np.asarray(template_mm, dtype=float)
     M = P.shape[0]
-    extent = float(np.ptp(P, axis=0).max()) if M else 0.0
-    tol = tol_rel * max(extent, 1e-12)
+    if M < min_points:
+        return []
+    extent = float(np.ptp(P, axis=0).max())
+    tol = tol_rel * max(extent, 1e-300)
     seen: set[tuple[int, ...]] = set()
     lines = []
-    for i in range(M - 1):
-        dirs = P[i + 1 :] - P[i]
-        norms = np.linalg.norm(dirs, axis=1)
-        for jj in np.flatnonzero(norms > tol):
-            j = i + 1 + jj
-            u = dirs[jj] / norms[jj]
-            n = np.array([-u[1], u[0]])
-            dist = np.abs((P - P[i]) @ n)
-            members = tuple(np.flatnonzero(dist <= tol))
-            if len(members) >= min_points and members not in seen:
-                seen.add(members)
-                lines.append(np.array(members))
-    return lines
+    for i in range(M - 2):
+        v = P[i + 1 :] - P[i]
+        dist = np.hypot(v[:, 0], v[:, 1])
+        keep = dist > tol
+        if keep.sum() < min_points - 1:
+            continue
+        js = np.flatnonzero(keep) + i + 1
+        ang = np.mod(np.arctan2(v[keep, 1], v[keep, 0]), np.pi)
+        order = np.argsort(ang)
+        a = ang[order]
+        # wrap-around: angles near pi equal angles near 0
+        angtol = tol / np.maximum(dist[keep][order], tol)
+        brk = np.flatnonzero(np.diff(a) > np.maximum(angtol[1:], angtol[:-1]))
+        groups = np.split(order, brk + 1)
+        if len(groups) > 1 and (a[-1] - np.pi) > -max(angtol[0], angtol[-1]) - (a[0]):
+            if np.pi - a[-1] + a[0] <= max(angtol[0], angtol[-1]):
+                groups[0] = np.concatenate([groups[-1], groups[0]])
+                groups = groups[:-1]
+        for g in groups:
+            if len(g) >= min_points - 1:
+                members = (i, *sorted(int(j) for j in js[g]))
+                if members not in seen:
+                    seen.add(members)
+                    lines.append(np.array(members))
+    # keep maximal sets only (a line found from a later point is a subset)
+    lines.sort(key=len, reverse=True)
+    out: list[np.ndarray] = []
+    sets: list[set] = []
+    for ln in lines:
+        s = set(ln.tolist())
+        if not any(s <= t for t in sets):
+            sets.append(s)
+            out.append(ln)
+    return out
 
 
 @dataclass(frozen=True)
@@ -63,17 +90,26 @@ class StraightnessResult:
     success: bool
 
 
-def _line_residuals(pts_list):
-    out = []
-    for pts in pts_list:
-        m = pts.mean(axis=0)
-        q = pts - m
-        # smallest principal direction of the 2x2 scatter = the line's normal
-        C = q.T @ q
-        w, V = np.linalg.eigh(C)
-        spread = np.sqrt(max(w[1], 1e-300) / len(pts))
-        out.append((q @ V[:, 0]) / spread)
-    return np.concatenate(out) if out else np.zeros(0)
+def _line_residuals(pts, group, n_groups):
+    """Straightness residual per group: sqrt(lambda_min / lambda_max) of its scatter.
+
+    ``lambda_min`` is the sum of squared distances to the total-least-squares
+    line, ``lambda_max`` the squared spread along it (closed-form eigenvalues
+    of the 2x2 scatter matrix).
+    """
+    cnt = np.bincount(group, minlength=n_groups)
+    mx = np.bincount(group, pts[:, 0], n_groups) / cnt
+    my = np.bincount(group, pts[:, 1], n_groups) / cnt
+    qx = pts[:, 0] - mx[group]
+    qy = pts[:, 1] - my[group]
+    a = np.bincount(group, qx * qx, n_groups)
+    b = np.bincount(group, qx * qy, n_groups)
+    c = np.bincount(group, qy * qy, n_groups)
+    half_tr = 0.5 * (a + c)
+    rad = np.sqrt((0.5 * (a - c)) ** 2 + b * b)
+    lmin = np.maximum(half_tr - rad, 0.0)
+    lmax = half_tr + rad
+    return np.sqrt(lmin / lmax)
 
 
 def estimate_radial(points_mm, lines, *, c_mm=(0.0, 0.0), n_terms: int = 2) -> StraightnessResult:
@@ -106,15 +142,14 @@ def estimate_radial(points_mm, lines, *, c_mm=(0.0, 0.0), n_terms: int = 2) -> S
     rmax2 = float(np.max(np.sum((allp - c) ** 2, axis=1)))
     # unknowns scaled so that k_i * rmax^(2i) is O(1)
     scale = np.array([rmax2 ** (i + 1) for i in range(n_terms)])
-    sizes = [len(g) for g in groups]
     flat = np.concatenate(groups)
-    splits = np.cumsum(sizes)[:-1]
+    group = np.repeat(np.arange(len(groups)), [len(g) for g in groups])
 
     def fun(z):
         coef = np.zeros(7)
         coef[:n_terms] = z / scale
         u = undistort(flat, coef, c)
-        return _line_residuals(np.split(u, splits))
+        return _line_residuals(u, group, len(groups))
 
     sol = least_squares(fun, np.zeros(n_terms), method="lm", xtol=1e-14, ftol=1e-14, gtol=1e-14)
     k = sol.x / scale

@@ -106,6 +106,9 @@ class DistortResult:
     d_mm: np.ndarray
     converged: np.ndarray
     iterations: int
+    dx_dd: np.ndarray | None = None
+    dx_dc: np.ndarray | None = None
+    dx_dcoeffs: np.ndarray | None = None
 
 
 def _inv2(J):
@@ -119,7 +122,15 @@ def _inv2(J):
 
 
 def distort(
-    x_mm, dist, c_mm, *, tol_mm: float = 1e-13, max_iter: int = 50, d0_mm=None, keep_failed: bool = False
+    x_mm,
+    dist,
+    c_mm,
+    *,
+    tol_mm: float = 1e-13,
+    max_iter: int = 50,
+    d0_mm=None,
+    keep_failed: bool = False,
+    jacobians: bool = False,
 ) -> DistortResult:
     """Measured point ``d`` with ``undistort(d) = x`` (MODEL.md 5), by Newton's method.
 
@@ -146,75 +157,111 @@ def distort(
     x = x_in.reshape(-1, 2)
     c = np.asarray(c_mm, dtype=float)
     k1, k2, k3 = coef[:3]
-    # start: invert the lens radial part once about c, ignore PSD and tangential terms
-    e = x - c
-    r2 = np.einsum("...i,...i->...", e, e)
-    d = x.copy()
-    for _ in range(3):
-        e_d = d - c
-        rr = np.einsum("...i,...i->...", e_d, e_d)
-        rad = rr * (k1 + rr * (k2 + rr * k3))
-        with np.errstate(all="ignore"):
-            cand = c + e / (1.0 + rad)[..., None]
-        d = np.where(np.isfinite(cand), cand, d)
-    del r2
     if d0_mm is not None:
         d0 = np.broadcast_to(np.asarray(d0_mm, dtype=float), shape).reshape(-1, 2)
-        d = np.where(np.isfinite(d0), d0, d)
-    scale = np.maximum(1.0, np.linalg.norm(x, axis=-1))
+        good0 = np.all(np.isfinite(d0), axis=1)
+    else:
+        good0 = np.zeros(x.shape[0], dtype=bool)
+    # start: invert the lens radial part about c by a few fixed-point steps
+    d = x.copy()
+    if not np.all(good0):
+        e = x - c
+        for _ in range(3):
+            e_d = d - c
+            rr = np.einsum("...i,...i->...", e_d, e_d)
+            rad = rr * (k1 + rr * (k2 + rr * k3))
+            with np.errstate(all="ignore"):
+                cand = c + e / (1.0 + rad)[..., None]
+            d = np.where(np.isfinite(cand), cand, d)
+    if d0_mm is not None:
+        d[good0] = d0[good0]
+    tol = tol_mm * np.maximum(1.0, np.hypot(x[:, 0], x[:, 1]))
+    n = x.shape[0]
+    idx = np.arange(n)  # points still iterating
+    step = np.zeros((n, 2))
+    prev_err = np.full(n, np.inf)
+    err = np.full(n, np.inf)
+    det = np.zeros(n)
     it_used = 0
-    res = undistort(d, coef, c) - x
-    err = np.linalg.norm(res, axis=-1)
-    active = np.isfinite(err) & (err > tol_mm * scale)
-    for it in range(max_iter):
-        if not np.any(active):
+    if jacobians:
+        Jd_all = np.zeros((n, 2, 2))
+        Jc_all = np.zeros((n, 2, 2))
+        Jk_all = np.zeros((n, 2, 7))
+    for it in range(max_iter + 1):
+        if idx.size == 0:
             break
+        xa, J, Jc, Jk = undistort(d[idx], coef, c, jacobians=True)
+        res = xa - x[idx]
+        e_new = np.hypot(res[:, 0], res[:, 1])
+        # backtrack where the last step made things worse
+        worse = ~(e_new < prev_err[idx]) & np.isfinite(prev_err[idx])
+        if np.any(worse):
+            w = idx[worse]
+            step[w] *= 0.5
+            d[w] += step[w]  # undo half of the step
+            keep_going = np.abs(step[w]).max(axis=1) > 1e-16
+            prev_err[w[~keep_going]] = np.inf  # give up backtracking, accept
+        ok = ~worse
+        i_ok = idx[ok]
+        err[i_ok] = e_new[ok]
+        Jo = J[ok]
+        det_o = Jo[:, 0, 0] * Jo[:, 1, 1] - Jo[:, 0, 1] * Jo[:, 1, 0]
+        det[i_ok] = det_o
+        if jacobians:
+            Jd_all[i_ok] = Jo
+            Jc_all[i_ok] = Jc[ok]
+            Jk_all[i_ok] = Jk[ok]
+        done = ok.copy()
+        done[ok] = (e_new[ok] <= tol[i_ok]) | ~np.isfinite(e_new[ok])
+        active_ok = ok & ~done
+        if it == max_iter:
+            break
+        ia = idx[active_ok]
+        Ja = J[active_ok]
+        ra = res[active_ok]
+        deta = Ja[:, 0, 0] * Ja[:, 1, 1] - Ja[:, 0, 1] * Ja[:, 1, 0]
+        sx = (Ja[:, 1, 1] * ra[:, 0] - Ja[:, 0, 1] * ra[:, 1]) / deta
+        sy = (-Ja[:, 1, 0] * ra[:, 0] + Ja[:, 0, 0] * ra[:, 1]) / deta
+        st = np.stack([sx, sy], axis=1)
+        prev_err[ia] = e_new[active_ok]
+        step[ia] = st
+        d[ia] -= st
+        idx = np.concatenate([ia, idx[worse]])
         it_used = it + 1
-        da = d[active]
-        _, J, _, _ = undistort(da, coef, c, jacobians=True)
-        Jinv, _ = _inv2(J)
-        step = np.einsum("...ij,...j->...i", Jinv, res[active])
-        xa = x[active]
-        erra = err[active]
-        lam = np.ones(da.shape[0])
-        new = da - step
-        new_err = np.linalg.norm(undistort(new, coef, c) - xa, axis=-1)
-        for _ in range(30):
-            worse = ~(new_err < erra)
-            if not np.any(worse):
-                break
-            lam = np.where(worse, lam * 0.5, lam)
-            new = np.where(worse[:, None], da - lam[:, None] * step, new)
-            new_err = np.where(worse, np.linalg.norm(undistort(new, coef, c) - xa, axis=-1), new_err)
-        improved = new_err < erra
-        da = np.where(improved[:, None], new, da)
-        d[active] = da
-        res_a = undistort(da, coef, c) - xa
-        res[active] = res_a
-        err_a = np.linalg.norm(res_a, axis=-1)
-        err[active] = err_a
-        still = (err_a > tol_mm * scale[active]) & improved & np.isfinite(err_a)
-        idx = np.flatnonzero(active)
-        active[idx] = still
-    _, J, _, _ = undistort(d, coef, c, jacobians=True)
-    det = J[..., 0, 0] * J[..., 1, 1] - J[..., 0, 1] * J[..., 1, 0]
-    ok = np.isfinite(err) & (err <= tol_mm * scale * 10) & (det > 0)
+    ok = np.isfinite(err) & (err <= tol * 10) & (det > 0)
     if not keep_failed:
-        d = np.where(ok[..., None], d, np.nan)
-    return DistortResult(d_mm=d.reshape(shape), converged=ok.reshape(shape[:-1]), iterations=it_used)
+        d = np.where(ok[:, None], d, np.nan)
+    out = DistortResult(d_mm=d.reshape(shape), converged=ok.reshape(shape[:-1]), iterations=it_used)
+    if jacobians:
+        lead = shape[:-1]
+        out = DistortResult(
+            out.d_mm,
+            out.converged,
+            it_used,
+            Jd_all.reshape(lead + (2, 2)),
+            Jc_all.reshape(lead + (2, 2)),
+            Jk_all.reshape(lead + (2, 7)),
+        )
+    return out
 
 
-def distort_jacobians(d_mm, dist, c_mm):
+def distort_jacobians(d_mm, dist, c_mm, *, undistort_jacobians=None):
     """Jacobians of the distortion map at its solution ``d`` (implicit function theorem).
 
     From ``undistort(d; c, coeffs) = x``:
     ``dd/dx = (dx/dd)^-1``, ``dd/dc = -(dx/dd)^-1 dx/dc``,
     ``dd/dcoeffs = -(dx/dd)^-1 dx/dcoeffs``.
 
+    ``undistort_jacobians`` may pass ``(dx_dd, dx_dc, dx_dcoeffs)`` already
+    computed at ``d`` (see ``distort(..., jacobians=True)``).
+
     Returns
     -------
     dd_dx (..., 2, 2), dd_dc (..., 2, 2), dd_dcoeffs (..., 2, 7)
     """
-    _, dx_dd, dx_dc, dx_dcoef = undistort(d_mm, dist, c_mm, jacobians=True)
+    if undistort_jacobians is None:
+        _, dx_dd, dx_dc, dx_dcoef = undistort(d_mm, dist, c_mm, jacobians=True)
+    else:
+        dx_dd, dx_dc, dx_dcoef = undistort_jacobians
     inv, _ = _inv2(dx_dd)
     return inv, -inv @ dx_dc, -inv @ dx_dcoef

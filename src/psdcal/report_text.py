@@ -1,0 +1,51 @@
+"""Plain-text (terminal) presentation of results; no numerics here."""
+from __future__ import annotations
+
+import numpy as np
+
+_FMT = {"f_mm": "{:.6f}", "cx_mm": "{:.6f}", "cy_mm": "{:.6f}", "skew": "{:.3e}", "fy_mm": "{:.6f}"}
+
+
+def _fmt(name, v):
+    if v is None or (isinstance(v, float) and not np.isfinite(v)):
+        return "-"
+    return _FMT.get(name, "{:.5e}").format(v)
+
+
+def print_calibration(res, truth: dict | None = None, console=None) -> None:
+    """Print a calibration's parameters (with standard errors) and residuals as a table.
+
+    ``truth`` (name -> value) adds the true values and the error in standard errors.
+    """
+    from rich.console import Console
+    from rich.table import Table
+
+    console = console or Console()
+    t = Table(title=f"psdcal calibration ({res.cost} cost, {len(res.image_ids)} images)")
+    t.add_column("parameter")
+    if truth is not None:
+        t.add_column("truth", justify="right")
+    t.add_column("estimate", justify="right")
+    t.add_column("std error", justify="right")
+    if truth is not None:
+        t.add_column("error / std", justify="right")
+    for name in res.param_names:
+        v = res.parameter(name)
+        s = res.std.get(name)
+        row = [name]
+        if truth is not None:
+            row.append(_fmt(name, truth.get(name)))
+        row += [_fmt(name, v), _fmt(name, s)]
+        if truth is not None:
+            tv = truth.get(name)
+            row.append("-" if tv is None or not s else f"{(v - tv) / s:+.2f}")
+        t.add_row(*row)
+    console.print(t)
+    console.print(
+        f"residual RMS {res.rms_mm * 1e3:.4f} um on the sensor (implied noise {res.sigma_mm * 1e3:.4f} um per coordinate); "
+        f"{res.iterations} iterations, {'converged' if res.converged else 'NOT converged'}"
+    )
+    worst = int(np.nanargmax(res.per_image_rms_mm)) if len(res.per_image_rms_mm) else None
+    if worst is not None:
+        console.print(f"per-image RMS {res.per_image_rms_mm.min() * 1e3:.4f}-{res.per_image_rms_mm.max() * 1e3:.4f} um "
+                      f"(worst: image {res.image_ids[worst]})")
