@@ -1,0 +1,271 @@
+"""Angles of arrival with their uncertainty (MODEL.md 7, the paper's Eq 39-42).
+
+The chain, for one measurement::
+
+    amplitudes a (4,) --(/ gains, Eq 1-2)--> d --(undistort, Eq 7-16)--> x
+       --(A^-1, Eq 4)--> n = (xn, yn) --(atan, Eq 39)--> alpha = (alpha_x, alpha_y)
+
+Every step is differentiated analytically, so the covariance of the result
+is first-order propagation (``J Sigma J^T``) of two independent sources:
+
+* the **calibration**: the covariance of the sensor's global parameters
+  (:attr:`psdcal.sensor_model.SensorModel.covariance`); this part is
+  systematic: it is the same error for every measurement of a sensor;
+* the **signal noise**: the covariance of the impact point ``d``, itself
+  propagated from the amplitude noise of the demodulation.
+
+The paper's Eq 40-42 are the special case ``alpha_x = atan(ex / f)`` with
+only ``x`` and ``f`` uncertain, added in absolute value; here the full
+covariance is propagated instead.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .distortion import undistort
+from .errors import ZeroSignalError
+from .params import DISTORTION_NAMES
+from .readout import impact_point
+from .sensor_model import GAIN_NAMES, SensorModel
+
+# Numerator signs of Eq 1 and Eq 2 over (vx1, vx2, vy1, vy2).
+_NUM_X = np.array([-1.0, 1.0, 1.0, -1.0])
+_NUM_Y = np.array([-1.0, 1.0, -1.0, 1.0])
+
+
+@dataclass(frozen=True)
+class ImpactResult:
+    """Impact points from carrier amplitudes (Eq 1-2), with their uncertainty.
+
+    Attributes
+    ----------
+    d_mm : (..., 2) ndarray
+        Measured impact points (after the channel-gain correction), mm; NaN
+        where the signal sum was not positive.
+    cov_d_mm2 : (..., 2, 2) ndarray
+        Covariance of ``d_mm`` from the amplitude noise, mm^2.
+    dd_dgains : (..., 2, 3) ndarray
+        Derivative of ``d_mm`` with respect to ``(g_x2, g_y1, g_y2)``, mm.
+    """
+
+    d_mm: np.ndarray
+    cov_d_mm2: np.ndarray
+    dd_dgains: np.ndarray
+
+
+def impact_from_amplitudes(a, model: SensorModel, var_a=None, *, on_zero: str = "raise") -> ImpactResult:
+    """Impact point, its noise covariance and gain derivatives from amplitudes.
+
+    The channels are divided by the sensor's relative gains, then Eq 1-2
+    (:func:`psdcal.readout.impact_point`) gives ``d``.
+
+    Parameters
+    ----------
+    a : (..., 4) array_like
+        Carrier amplitudes ``vx1, vx2, vy1, vy2`` (signal unit).
+    model : SensorModel
+    var_a : (..., 4) array_like, optional
+        Variances of the amplitudes (independent channels), signal unit^2.
+        Zero when omitted.
+    on_zero : {"raise", "nan"}
+        What to do where the sum of the (gain-corrected) amplitudes is not
+        positive: raise :class:`ZeroSignalError`, or return NaN there.
+
+    Returns
+    -------
+    ImpactResult
+    """
+    a = np.asarray(a, dtype=float)
+    g = model.gains
+    v = a / g
+    total = v.sum(axis=-1)
+    bad = ~(total > 1e-12 * np.max(np.abs(v), axis=-1, initial=0.0)) | ~np.all(np.isfinite(v), axis=-1)
+    if np.any(bad):
+        if on_zero == "raise":
+            idx = np.argwhere(np.atleast_1d(bad))[0]
+            raise ZeroSignalError(
+                f"sum of the four PSD amplitudes is not positive at index {tuple(int(i) for i in idx)}"
+            )
+        v = np.where(bad[..., None], 1.0, v)  # placeholder, set to NaN below
+    d = impact_point(v, model.lx_mm, model.ly_mm)  # Eq 1-2
+    s = v.sum(axis=-1)[..., None]
+    # dd/dv (..., 2, 4): Eq 1 x = Lx/2 * (N_x . v)/s -> Lx/2 * (N_x s - N_x . v)/s^2
+    dx_dv = 0.5 * model.lx_mm * (_NUM_X - (v @ _NUM_X)[..., None] / s) / s
+    dy_dv = 0.5 * model.ly_mm * (_NUM_Y - (v @ _NUM_Y)[..., None] / s) / s
+    dd_dv = np.stack([dx_dv, dy_dv], axis=-2)
+    dd_da = dd_dv / g  # v = a / g
+    # dv_i/dg_i = -a_i / g_i^2 = -v_i / g_i ; gains named g_x2, g_y1, g_y2 (g_x1 is the reference)
+    dd_dg = (dd_dv * (-v / g)[..., None, :])[..., 1:]
+    if var_a is None:
+        cov = np.zeros(d.shape + (2,))
+    else:
+        var_a = np.broadcast_to(np.asarray(var_a, dtype=float), a.shape)
+        cov = np.einsum("...ik,...k,...jk->...ij", dd_da, var_a, dd_da)
+    if np.any(bad):
+        d = np.where(bad[..., None], np.nan, d)
+        cov = np.where(bad[..., None, None], np.nan, cov)
+        dd_dg = np.where(bad[..., None, None], np.nan, dd_dg)
+    return ImpactResult(d_mm=d, cov_d_mm2=cov, dd_dgains=dd_dg)
+
+
+@dataclass(frozen=True)
+class AoAResult:
+    """Angles of arrival and their covariance (MODEL.md 7, Eq 39).
+
+    Attributes
+    ----------
+    x_mm : (..., 2) ndarray
+        Ideal (undistorted) image points, mm.
+    n : (..., 2) ndarray
+        Normalised coordinates ``(xn, yn)`` with ``(xn, yn, 1) = A^-1 (x, y, 1)``.
+    alpha_rad : (..., 2) ndarray
+        ``(alpha_x, alpha_y) = (atan xn, atan yn)``, rad.
+    cov_n_calib : (..., 2, 2) ndarray
+        Covariance of ``n`` from the calibration covariance (systematic).
+    cov_n_noise : (..., 2, 2) ndarray
+        Covariance of ``n`` from the impact-point noise (random).
+    dn_dp : (..., 2, n_params) ndarray
+        Derivative of ``n`` with respect to the calibration parameters
+        ``names`` (the order of the model's covariance).
+    dn_dd : (..., 2, 2) ndarray
+        Derivative of ``n`` with respect to the measured impact point.
+    names : tuple of str
+    """
+
+    x_mm: np.ndarray
+    n: np.ndarray
+    alpha_rad: np.ndarray
+    cov_n_calib: np.ndarray
+    cov_n_noise: np.ndarray
+    dn_dp: np.ndarray
+    dn_dd: np.ndarray
+    names: tuple
+
+    @property
+    def cov_n(self) -> np.ndarray:
+        """Total covariance of ``n`` (..., 2, 2)."""
+        return self.cov_n_calib + self.cov_n_noise
+
+    @property
+    def dalpha_dn(self) -> np.ndarray:
+        """Diagonal of ``d alpha / d n`` (..., 2): ``1 / (1 + n^2)``."""
+        return 1.0 / (1.0 + self.n * self.n)
+
+    @property
+    def cov_alpha_rad2(self) -> np.ndarray:
+        """Total covariance of ``alpha`` (..., 2, 2), rad^2."""
+        g = self.dalpha_dn
+        return self.cov_n * g[..., :, None] * g[..., None, :]
+
+    @property
+    def sigma_alpha_rad(self) -> np.ndarray:
+        """1-sigma of ``(alpha_x, alpha_y)`` (..., 2), rad."""
+        return np.sqrt(np.clip(np.diagonal(self.cov_n, axis1=-2, axis2=-1), 0.0, None)) * self.dalpha_dn
+
+    @property
+    def ray(self) -> np.ndarray:
+        """Unit ray direction (..., 3) in the camera frame."""
+        r = np.concatenate([self.n, np.ones(self.n.shape[:-1] + (1,))], axis=-1)
+        return r / np.linalg.norm(r, axis=-1, keepdims=True)
+
+
+def angles_from_points(d_mm, model: SensorModel, cov_d_mm2=None, dd_dgains=None) -> AoAResult:
+    """Angles of arrival of measured impact points, with their covariance.
+
+    ``x = undistort(d)`` (Eq 7-16), ``yn = (y - cy) / fy``,
+    ``xn = (x - cx - skew yn) / f`` (the inverse of Eq 4),
+    ``alpha = atan(n)`` (Eq 39).
+
+    Parameters
+    ----------
+    d_mm : (..., 2) array_like
+        Measured impact points (gain-corrected), mm.
+    model : SensorModel
+    cov_d_mm2 : (..., 2, 2) array_like, optional
+        Noise covariance of ``d_mm``, mm^2 (zero when omitted).
+    dd_dgains : (..., 2, 3) array_like, optional
+        Derivative of ``d_mm`` with respect to ``(g_x2, g_y1, g_y2)``; needed
+        for the gain part of the calibration covariance (zero when omitted,
+        e.g. for impact points that did not come from raw amplitudes).
+
+    Returns
+    -------
+    AoAResult
+    """
+    d = np.asarray(d_mm, dtype=float)
+    intr = model.intrinsics
+    f, fy, s = intr.f_mm, intr.fy, intr.skew
+    c = intr.c
+    x, dx_dd, dx_dc, dx_dcoef = undistort(d, model.distortion, c, jacobians=True)
+    yn = (x[..., 1] - c[1]) / fy
+    xn = (x[..., 0] - c[0] - s * yn) / f
+    n = np.stack([xn, yn], axis=-1)
+    # dn/dx (2, 2) of the inverse pinhole map
+    dn_dx = np.array([[1.0 / f, -s / (f * fy)], [0.0, 1.0 / fy]])
+    dn_dd = dn_dx @ dx_dd
+    names = model.names
+    dn_dp = np.zeros(d.shape[:-1] + (2, len(names)))
+    zero = np.zeros_like(xn)
+    separate_fy = intr.fy_mm is not None
+    for k, name in enumerate(names):
+        if name == "f_mm":
+            col = np.stack([-xn / f, zero if separate_fy else -yn / f], axis=-1)
+            if not separate_fy:  # fy = f also moves xn through yn
+                col[..., 0] += s * yn / (f * f)
+        elif name == "fy_mm":
+            dyn = -yn / fy
+            col = np.stack([-s * dyn / f, dyn], axis=-1)
+        elif name == "skew":
+            col = np.stack([-yn / f, zero], axis=-1)
+        elif name == "cx_mm":
+            col = dx_dc[..., :, 0] @ dn_dx.T + np.array([-1.0 / f, 0.0])
+        elif name == "cy_mm":
+            col = dx_dc[..., :, 1] @ dn_dx.T + np.array([s / (f * fy), -1.0 / fy])
+        elif name in DISTORTION_NAMES:
+            col = dx_dcoef[..., :, DISTORTION_NAMES.index(name)] @ dn_dx.T
+        elif name in GAIN_NAMES:
+            if dd_dgains is None:
+                continue
+            col = np.einsum("...ij,...j->...i", dn_dd, np.asarray(dd_dgains)[..., :, GAIN_NAMES.index(name)])
+        else:  # pragma: no cover - SensorModel validates names
+            raise KeyError(name)
+        dn_dp[..., :, k] = col
+    cov_calib = dn_dp @ model.covariance @ np.swapaxes(dn_dp, -1, -2)
+    if cov_d_mm2 is None:
+        cov_noise = np.zeros(d.shape + (2,))
+    else:
+        cov_noise = dn_dd @ np.asarray(cov_d_mm2, dtype=float) @ np.swapaxes(dn_dd, -1, -2)
+    alpha = np.arctan(n)  # Eq 39
+    return AoAResult(
+        x_mm=x,
+        n=n,
+        alpha_rad=alpha,
+        cov_n_calib=cov_calib,
+        cov_n_noise=cov_noise,
+        dn_dp=dn_dp,
+        dn_dd=dn_dd,
+        names=names,
+    )
+
+
+def angles_from_amplitudes(a, model: SensorModel, var_a=None, *, on_zero: str = "raise") -> AoAResult:
+    """Angles of arrival from the four carrier amplitudes (Eq 1-2, 7-16, 39).
+
+    Parameters
+    ----------
+    a : (..., 4) array_like
+        Amplitudes ``vx1, vx2, vy1, vy2``.
+    model : SensorModel
+    var_a : (..., 4) array_like, optional
+        Amplitude variances (independent channels).
+    on_zero : {"raise", "nan"}
+        See :func:`impact_from_amplitudes`.
+
+    Returns
+    -------
+    AoAResult
+    """
+    imp = impact_from_amplitudes(a, model, var_a, on_zero=on_zero)
+    return angles_from_points(imp.d_mm, model, imp.cov_d_mm2, imp.dd_dgains)

@@ -1,0 +1,191 @@
+"""``psdcal locate``, ``psdcal aoa`` and ``psdcal errormap``: a thin layer over
+:mod:`psdcal.locate` and :mod:`psdcal.positioning` (no numerics here)."""
+from __future__ import annotations
+
+import click
+
+from . import cli
+
+_PROGRESS_MIN_SAMPLES = 2_000_000
+
+
+def _channels(value):
+    if value is None:
+        return None
+    names = [v.strip() for v in value.split(",")]
+    if len(names) != 4 or not all(names):
+        raise click.BadParameter("give 4 comma-separated names (for vx1,vx2,vy1,vy2)")
+    return tuple(names)
+
+
+@cli.command("locate")
+@click.argument("recordings", nargs=-1, type=click.Path(dir_okay=False))
+@click.option("--calib", type=click.Path(dir_okay=False), help="Calibration JSON of the sensor (one sensor).")
+@click.option("--sensors", type=click.Path(dir_okay=False),
+              help="SENSORS.json: several calibrated sensors with poses (3D triangulation).")
+@click.option("--rate-hz", type=float, help="Sampling rate (when the file does not carry one).")
+@click.option("--carrier-hz", "carriers", type=float, multiple=True, required=True,
+              help="Carrier of an emitter; repeat for several emitters at once (frequency multiplexing).")
+@click.option("--emitter", "emitters", multiple=True, help="Name of each carrier's emitter (default '<f>Hz').")
+@click.option("--distance-mm", type=float, help="Plane distance S: also write X_mm, Y_mm on that plane.")
+@click.option("--window-s", type=float, default=0.01, show_default=True, help="Demodulation window: one output per window.")
+@click.option("--tdm", is_flag=True, help="Time multiplexing: one row per segment where one LED is on.")
+@click.option("--schedule", type=click.Path(dir_okay=False),
+              help="TDM schedule CSV emitter,t_start_s,t_end_s (implies --tdm).")
+@click.option("--n-emitters", type=int, help="TDM without schedule: emitters per cycle (names repeat).")
+@click.option("--min-snr", type=float, default=10.0, show_default=True,
+              help="Drop a window/segment whose total amplitude is below this many sigma.")
+@click.option("--channels", help="Names of vx1,vx2,vy1,vy2 in the file (CSV columns, HDF5 datasets, TDMS channels).")
+@click.option("--dataset", help="HDF5: an (n, 4) dataset.")
+@click.option("--group", help="HDF5 or TDMS group.")
+@click.option("--chunk-samples", type=int, default=1 << 16, show_default=True,
+              help="Samples per channel read at once (bounds memory).")
+@click.option("--progress/--no-progress", default=None, help="Progress bar (default: on for long files).")
+@click.option("-o", "--output", required=True, type=click.Path(dir_okay=False), help="Output CSV.")
+def locate_command(recordings, calib, sensors, rate_hz, carriers, emitters, distance_mm, window_s, tdm, schedule,
+                   n_emitters, min_snr, channels, dataset, group, chunk_samples, progress, output):
+    """Demodulate RECORDING(s) and write angles of arrival and positions.
+
+    \b
+    One sensor:
+      psdcal locate rec.npy --calib calib.json --rate-hz 125000 \\
+          --carrier-hz 1000 --carrier-hz 1300 --distance-mm 5000 -o out.csv
+    columns: t_s,emitter,x_mm,y_mm,alpha_x_deg,alpha_y_deg[,X_mm,Y_mm],
+             sigma_x_mm,sigma_y_mm,sigma_alpha_x_deg,sigma_alpha_y_deg[,sigma_X_mm,sigma_Y_mm]
+    \b
+    Several sensors (recordings from SENSORS.json or given in its order):
+      psdcal locate --sensors sensors.json --rate-hz 125000 --carrier-hz 1000 -o xyz.csv
+    columns: t_s,emitter,X_mm,Y_mm,Z_mm,sigma_X_mm,sigma_Y_mm,sigma_Z_mm,n_sensors,chi2
+
+    Recordings: .npy (n, 4), .csv (header vx1,vx2,vy1,vy2[,t_s]), .h5/.hdf5, .tdms.
+    Sigmas are 1-sigma, from the signal noise and the calibration covariance.
+    """
+    from ..errors import InputError
+    from ..locate import LocateConfig, locate_multi_to_csv, locate_to_csv
+    from ..recording import open_recording
+    from ..stream import load_schedule
+
+    if (calib is None) == (sensors is None):
+        raise InputError("give exactly one of --calib (one sensor) or --sensors (several)", field="calib")
+    sched = load_schedule(schedule) if schedule else None
+    config = LocateConfig(
+        carriers_hz=tuple(carriers),
+        window_s=window_s,
+        distance_mm=distance_mm,
+        emitters=tuple(emitters) or None,
+        min_snr=min_snr,
+        tdm=bool(tdm or sched is not None),
+        schedule=sched,
+        n_emitters=n_emitters,
+        chunk_samples=chunk_samples,
+    )
+    opts = dict(channels=_channels(channels), dataset=dataset, group=group)
+    if calib is not None:
+        from ..sensor_model import SensorModel
+
+        if len(recordings) != 1:
+            raise InputError(f"give one RECORDING with --calib, got {len(recordings)}", field="RECORDING")
+        model = SensorModel.load(calib)
+        recs = [open_recording(recordings[0], rate_hz, **opts)]
+    else:
+        from ..positioning import load_sensors
+
+        poses = load_sensors(sensors)
+        paths = list(recordings) or [p.recording for p in poses]
+        if len(paths) != len(poses) or any(p is None for p in paths):
+            raise InputError(
+                f"{len(poses)} sensors need {len(poses)} recordings (give them in order, or a 'recording' "
+                "key per sensor)", path=sensors, field="recording")
+        recs = [open_recording(p, rate_hz, **opts) for p in paths]
+
+    total = recs[0].n_samples
+    show = progress if progress is not None else (total is not None and total >= _PROGRESS_MIN_SAMPLES)
+    bar = _Bar(total, recs[0].path) if show else None
+    try:
+        cb = bar.update if bar else None
+        if calib is not None:
+            summary = locate_to_csv(recs[0], model, output, config, progress=cb)
+        else:
+            summary = locate_multi_to_csv(recs, poses, output, config, progress=cb)
+    finally:
+        if bar:
+            bar.close()
+    click.echo(
+        f"wrote {summary.n_rows} rows to {output} ({summary.duration_s:.6g} s of signal, "
+        f"{summary.n_windows} windows of {config.window_s:g} s, {summary.n_skipped} below --min-snr)"
+    )
+
+
+class _Bar:
+    """A rich progress bar over samples read (stderr)."""
+
+    def __init__(self, total, name):
+        from rich.console import Console
+        from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
+
+        self._p = Progress(TextColumn("[bold]locate[/] {task.description}"), BarColumn(),
+                           TextColumn("{task.percentage:>5.1f}%"), TimeRemainingColumn(),
+                           console=Console(stderr=True), transient=True)
+        self._p.start()
+        self._task = self._p.add_task(str(name)[-40:], total=total)
+
+    def update(self, done):
+        self._p.update(self._task, completed=done)
+
+    def close(self):
+        self._p.stop()
+
+
+@cli.command("aoa")
+@click.argument("points", type=click.Path(dir_okay=False))
+@click.option("--calib", required=True, type=click.Path(dir_okay=False), help="Calibration JSON.")
+@click.option("--distance-mm", type=float, help="Plane distance S: also write X_mm, Y_mm.")
+@click.option("--sigma-d-mm", type=float, default=0.0, show_default=True,
+              help="1-sigma noise of the impact points, mm (added to the calibration covariance).")
+@click.option("-o", "--output", required=True, type=click.Path(dir_okay=False), help="Output CSV.")
+def aoa_command(points, calib, distance_mm, sigma_d_mm, output):
+    """Convert impact points (x_mm,y_mm) or amplitudes (vx1..vy2) in POINTS.csv to angles.
+
+    Other columns (image_id, point_id, ...) are copied.  Output adds
+    x_mm,y_mm,alpha_x_deg,alpha_y_deg[,X_mm,Y_mm],sigma_alpha_x_deg,sigma_alpha_y_deg[,sigma_X_mm,sigma_Y_mm].
+    """
+    from ..locate import aoa_csv
+    from ..sensor_model import SensorModel
+
+    model = SensorModel.load(calib)
+    n = aoa_csv(points, model, output, distance_mm=distance_mm, sigma_d_mm=sigma_d_mm)
+    click.echo(f"wrote {n} rows to {output}")
+
+
+@cli.command("errormap")
+@click.option("--calib", required=True, type=click.Path(dir_okay=False), help="Calibration JSON (with covariance).")
+@click.option("--distance-mm", type=float, default=5000.0, show_default=True, help="Plane distance S.")
+@click.option("--mode", type=click.Choice(["sigma", "mean+2std"]), default="sigma", show_default=True,
+              help="1-sigma from the covariance, or the paper's Figure 9: parameters at mean + 2 std.")
+@click.option("--grid", type=int, default=61, show_default=True, help="Grid points per axis over the sensor.")
+@click.option("--sigma-d-mm", type=float, default=0.0, show_default=True,
+              help="Impact-point noise added in 'sigma' mode, mm.")
+@click.option("--csv", "csv_path", type=click.Path(dir_okay=False), help="Also write the grid as CSV.")
+@click.option("-o", "--output", default="errormap.png", show_default=True, type=click.Path(dir_okay=False),
+              help="Output PNG.")
+def errormap_command(calib, distance_mm, mode, grid, sigma_d_mm, csv_path, output):
+    """Draw the AoA and position error over the field of view (the paper's Figure 9).
+
+    Example: psdcal errormap --calib calib.json --distance-mm 5000 -o errormap.png
+    """
+    from ..errors import InputError
+    from ..positioning import error_map, plot_error_map, write_error_map_csv
+    from ..sensor_model import SensorModel
+
+    if grid < 3:
+        raise InputError(f"--grid must be at least 3, got {grid}", field="grid")
+    model = SensorModel.load(calib)
+    emap = error_map(model, distance_mm, mode=mode, grid=grid, sigma_d_mm=sigma_d_mm)
+    plot_error_map(emap, output)
+    if csv_path:
+        write_error_map_csv(emap, csv_path)
+    click.echo(
+        f"wrote {output}: AoA error {emap.aoa_error_deg.min():.4g}..{emap.aoa_error_deg.max():.4g} deg, "
+        f"position error {emap.position_error_mm.min():.4g}..{emap.position_error_mm.max():.4g} mm "
+        f"at S = {emap.distance_mm:g} mm ({mode})"
+    )

@@ -1,0 +1,440 @@
+"""From recordings to angles and positions: the ``psdcal locate`` pipeline.
+
+recording chunks (:mod:`psdcal.recording`) -> windowed joint lock-in
+(:mod:`psdcal.stream`) -> impact points and angles with uncertainty
+(:mod:`psdcal.aoa`) -> positions (:mod:`psdcal.positioning`) -> CSV rows
+written as they come.  Memory is bounded by the chunk size, whatever the
+length of the recording.
+
+Output columns (one row per window and emitter, or per time-multiplexed
+segment)::
+
+    t_s,emitter,x_mm,y_mm,alpha_x_deg,alpha_y_deg[,X_mm,Y_mm],
+    sigma_x_mm,sigma_y_mm,sigma_alpha_x_deg,sigma_alpha_y_deg[,sigma_X_mm,sigma_Y_mm]
+
+``x_mm, y_mm`` is the measured impact point (Eq 1-2, after the channel-gain
+correction) and its sigma the signal noise alone; the angle and position
+sigmas combine the signal noise and the calibration covariance.  With
+several sensors::
+
+    t_s,emitter,X_mm,Y_mm,Z_mm,sigma_X_mm,sigma_Y_mm,sigma_Z_mm,n_sensors,chi2
+"""
+from __future__ import annotations
+
+import csv
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from ._atomic import atomic_path
+from .aoa import angles_from_amplitudes, angles_from_points, impact_from_amplitudes
+from .errors import InputError, ZeroSignalError
+from .positioning import plane_position, triangulate
+from .recording import DEFAULT_CHUNK, Recording
+from .sensor_model import SensorModel
+from .stream import MultiCarrierLockin, TdmSegmenter
+
+_DEG = 180.0 / math.pi
+
+
+@dataclass(frozen=True)
+class LocateConfig:
+    """Options of the locate pipeline.
+
+    Attributes
+    ----------
+    carriers_hz : tuple of float
+        One carrier per emitter (frequency multiplexing); one carrier for
+        time multiplexing.
+    window_s : float
+        Demodulation window, s: one output per window (default 0.01 s).
+    distance_mm : float or None
+        Plane distance ``S`` for ``X_mm, Y_mm`` (single sensor).
+    emitters : tuple of str or None
+        Names of the carriers' emitters (default ``"<f>Hz"``).
+    min_snr : float
+        A window (or segment) whose total amplitude is below ``min_snr`` times
+        its 1-sigma gives no row (emitter off or out of view).
+    tdm : bool
+        Time multiplexing: one row per segment (found from the signal, or
+        from ``schedule``).
+    schedule : tuple of ScheduleEntry or None
+    n_emitters : int or None
+        TDM without schedule: emitters per cycle (segment names repeat).
+    chunk_samples : int
+        Samples per channel read at once (bounds the memory).
+    """
+
+    carriers_hz: tuple
+    window_s: float = 0.01
+    distance_mm: float | None = None
+    emitters: tuple | None = None
+    min_snr: float = 10.0
+    tdm: bool = False
+    schedule: tuple | None = None
+    n_emitters: int | None = None
+    chunk_samples: int = DEFAULT_CHUNK
+
+    def emitter_names(self) -> tuple[str, ...]:
+        if self.emitters is None:
+            return tuple(f"{f:g}Hz" for f in self.carriers_hz)
+        if len(self.emitters) != len(self.carriers_hz):
+            raise InputError(
+                f"{len(self.emitters)} emitter names for {len(self.carriers_hz)} carriers", field="emitter"
+            )
+        return tuple(self.emitters)
+
+
+@dataclass(frozen=True)
+class LocateSummary:
+    """What a locate run did.
+
+    Attributes
+    ----------
+    n_samples : int
+        Samples per channel read.
+    n_windows : int
+        Windows demodulated.
+    n_rows : int
+        Rows written.
+    n_skipped : int
+        Window/emitter pairs (or segments) without a row (below ``min_snr``).
+    duration_s : float
+        Signal duration processed.
+    columns : tuple of str
+    """
+
+    n_samples: int
+    n_windows: int
+    n_rows: int
+    n_skipped: int
+    duration_s: float
+    columns: tuple
+
+
+def single_columns(with_plane: bool) -> tuple[str, ...]:
+    """Output columns of a single-sensor run."""
+    cols = ["t_s", "emitter", "x_mm", "y_mm", "alpha_x_deg", "alpha_y_deg"]
+    if with_plane:
+        cols += ["X_mm", "Y_mm"]
+    cols += ["sigma_x_mm", "sigma_y_mm", "sigma_alpha_x_deg", "sigma_alpha_y_deg"]
+    if with_plane:
+        cols += ["sigma_X_mm", "sigma_Y_mm"]
+    return tuple(cols)
+
+
+MULTI_COLUMNS = ("t_s", "emitter", "X_mm", "Y_mm", "Z_mm", "sigma_X_mm", "sigma_Y_mm", "sigma_Z_mm", "n_sensors", "chi2")
+
+
+def _fmt(v) -> str:
+    if isinstance(v, str):
+        return v
+    if isinstance(v, (int, np.integer)):
+        return str(int(v))
+    return "nan" if not math.isfinite(v) else f"{v:.10g}"
+
+
+def _write_rows(fh, cols: dict, order) -> int:
+    n = len(cols["t_s"])
+    arrays = [cols[c] for c in order]
+    for i in range(n):
+        fh.write(",".join(_fmt(a[i]) for a in arrays))
+        fh.write("\n")
+    return n
+
+
+def _rows_single(t_s, names, a, var_a, model: SensorModel, distance_mm, min_snr):
+    """Columns for rows (t, emitter) of amplitudes a (n, 4); drops low-SNR rows."""
+    total = a.sum(-1)
+    sd = np.sqrt(var_a.sum(-1))
+    keep = total > min_snr * sd
+    keep &= np.all(np.isfinite(a), axis=-1)
+    t_s, names, a, var_a = t_s[keep], names[keep], a[keep], var_a[keep]
+    imp = impact_from_amplitudes(a, model, var_a, on_zero="nan")
+    res = angles_from_points(imp.d_mm, model, imp.cov_d_mm2, imp.dd_dgains)
+    d = imp.d_mm
+    res_d = np.sqrt(np.clip(np.diagonal(imp.cov_d_mm2, axis1=-2, axis2=-1), 0.0, None))
+    alpha = res.alpha_rad * _DEG
+    sa = res.sigma_alpha_rad * _DEG
+    cols = {
+        "t_s": t_s,
+        "emitter": names,
+        "x_mm": d[:, 0],
+        "y_mm": d[:, 1],
+        "alpha_x_deg": alpha[:, 0],
+        "alpha_y_deg": alpha[:, 1],
+        "sigma_x_mm": res_d[:, 0],
+        "sigma_y_mm": res_d[:, 1],
+        "sigma_alpha_x_deg": sa[:, 0],
+        "sigma_alpha_y_deg": sa[:, 1],
+    }
+    if distance_mm is not None:
+        pos = plane_position(res, distance_mm)
+        cols["X_mm"], cols["Y_mm"] = pos.xy_mm[:, 0], pos.xy_mm[:, 1]
+        sp = pos.sigma_xy_mm
+        cols["sigma_X_mm"], cols["sigma_Y_mm"] = sp[:, 0], sp[:, 1]
+    return cols, int((~keep).sum())
+
+
+def locate_to_csv(recording: Recording, model: SensorModel, out_path, config: LocateConfig,
+                  progress: Callable[[int], None] | None = None) -> LocateSummary:
+    """Demodulate a recording of one sensor and write angles (and positions) to CSV.
+
+    Parameters
+    ----------
+    recording : Recording
+        From :func:`psdcal.recording.open_recording`.
+    model : SensorModel
+    out_path : str or Path
+        Output CSV, written atomically (an existing file is untouched on error).
+    config : LocateConfig
+    progress : callable, optional
+        Called with the number of samples (per channel) read after each chunk.
+
+    Returns
+    -------
+    LocateSummary
+    """
+    if config.tdm and len(config.carriers_hz) != 1:
+        raise InputError("time multiplexing uses a single carrier", field="carrier_hz")
+    names = config.emitter_names()
+    lockin = MultiCarrierLockin(recording.rate_hz, config.carriers_hz, config.window_s)
+    if config.distance_mm is not None and not (config.distance_mm > 0):
+        raise InputError(f"--distance-mm must be positive, got {config.distance_mm}", field="distance_mm")
+    seg = None
+    if config.tdm:
+        seg = TdmSegmenter(lockin.window_s, min_snr=config.min_snr, schedule=config.schedule,
+                           n_emitters=config.n_emitters)
+    chunk = max(1, int(config.chunk_samples) // lockin.n_window) * lockin.n_window
+    order = single_columns(config.distance_mm is not None)
+    k = len(names)
+    names_arr = np.array(names, dtype=object)
+    n_samples = n_windows = n_rows = n_skipped = 0
+
+    def segment_rows(segments):
+        if not segments:
+            return None, 0
+        t = np.array([s.t_s for s in segments])
+        nm = np.array([s.emitter for s in segments], dtype=object)
+        a = np.stack([s.amplitude for s in segments])
+        v = np.stack([s.var_amplitude for s in segments])
+        return _rows_single(t, nm, a, v, model, config.distance_mm, config.min_snr)
+
+    with atomic_path(out_path, suffix=".csv") as tmp:
+        with open(tmp, "w", encoding="utf-8", newline="") as fh:
+            fh.write(",".join(order) + "\n")
+            for t0, block in recording.chunks(chunk):
+                n_samples += block.shape[1]
+                wb = lockin.process(t0, block)
+                n_windows += len(wb)
+                if len(wb):
+                    if seg is not None:
+                        cols, skipped = segment_rows(seg.feed(wb))
+                    else:
+                        t = np.repeat(wb.t_s, k)
+                        nm = np.tile(names_arr, len(wb))
+                        cols, skipped = _rows_single(
+                            t, nm, wb.amplitude.reshape(-1, 4), wb.var_amplitude.reshape(-1, 4), model,
+                            config.distance_mm, config.min_snr,
+                        )
+                    n_skipped += skipped
+                    if cols is not None:
+                        n_rows += _write_rows(fh, cols, order)
+                if progress is not None:
+                    progress(n_samples)
+            if seg is not None:
+                cols, skipped = segment_rows(seg.finish())
+                n_skipped += skipped
+                if cols is not None:
+                    n_rows += _write_rows(fh, cols, order)
+        if n_windows == 0:
+            raise InputError(
+                f"the recording is shorter than one {lockin.window_s:g} s window ({n_samples} samples)",
+                path=recording.path,
+            )
+    return LocateSummary(n_samples, n_windows, n_rows, n_skipped, n_samples / recording.rate_hz, order)
+
+
+def locate_multi_to_csv(recordings, sensors, out_path, config: LocateConfig,
+                        progress: Callable[[int], None] | None = None) -> LocateSummary:
+    """Triangulate emitters seen by several sensors; write 3D positions to CSV.
+
+    The recordings (one per sensor, same sampling rate, started together) are
+    demodulated in lockstep; for every window and emitter the rays of the
+    sensors that see it (total amplitude above ``min_snr`` sigma) are
+    intersected (:func:`psdcal.positioning.triangulate`).
+
+    Parameters
+    ----------
+    recordings : sequence of Recording
+    sensors : sequence of SensorPose
+    out_path : str or Path
+    config : LocateConfig
+        ``tdm`` and ``distance_mm`` are not used here.
+    progress : callable, optional
+
+    Returns
+    -------
+    LocateSummary
+    """
+    if len(recordings) != len(sensors) or len(sensors) < 2:
+        raise InputError("give one recording per sensor and at least two sensors", field="sensors")
+    if config.tdm:
+        raise InputError("time multiplexing is supported with one sensor only", field="tdm")
+    rates = {r.rate_hz for r in recordings}
+    if len(rates) != 1:
+        raise InputError(f"the recordings have different sampling rates {sorted(rates)}", field="rate_hz")
+    rate = rates.pop()
+    names = config.emitter_names()
+    k = len(names)
+    lockins = [MultiCarrierLockin(rate, config.carriers_hz, config.window_s) for _ in sensors]
+    nwin = lockins[0].n_window
+    chunk = max(1, int(config.chunk_samples) // nwin) * nwin
+    R = np.stack([s.R for s in sensors])
+    t = np.stack([np.asarray(s.tvec_mm, dtype=float) for s in sensors])
+    names_arr = np.array(names, dtype=object)
+    n_samples = n_windows = n_rows = n_skipped = 0
+    with atomic_path(out_path, suffix=".csv") as tmp:
+        with open(tmp, "w", encoding="utf-8", newline="") as fh:
+            fh.write(",".join(MULTI_COLUMNS) + "\n")
+            iters = [r.chunks(chunk) for r in recordings]
+            while True:
+                items = [next(it, None) for it in iters]
+                if any(item is None for item in items):
+                    break
+                m = min(item[1].shape[1] for item in items)
+                blocks = [lk.process(t0, b[:, :m]) for lk, (t0, b) in zip(lockins, items)]
+                n_samples += m
+                nw = len(blocks[0])
+                n_windows += nw
+                if nw:
+                    ns, covs = [], []
+                    for blk, sp in zip(blocks, sensors):
+                        a = blk.amplitude.reshape(-1, 4)
+                        v = blk.var_amplitude.reshape(-1, 4)
+                        seen = (a.sum(-1) > config.min_snr * np.sqrt(v.sum(-1))) & np.all(np.isfinite(a), -1)
+                        a_safe = np.where(seen[:, None], a, 1.0)
+                        res = angles_from_amplitudes(a_safe, sp.model, v, on_zero="nan")
+                        ns.append(np.where(seen[:, None], res.n, np.nan))
+                        covs.append(np.where(seen[:, None, None], res.cov_n, np.nan))
+                    tri = triangulate(np.stack(ns), np.stack(covs), R, t)
+                    ok = tri.n_sensors >= 2
+                    n_skipped += int((~ok).sum())
+                    sig = tri.sigma_p_mm
+                    cols = {
+                        "t_s": np.repeat(blocks[0].t_s, k)[ok],
+                        "emitter": np.tile(names_arr, nw)[ok],
+                        "X_mm": tri.p_w_mm[ok, 0],
+                        "Y_mm": tri.p_w_mm[ok, 1],
+                        "Z_mm": tri.p_w_mm[ok, 2],
+                        "sigma_X_mm": sig[ok, 0],
+                        "sigma_Y_mm": sig[ok, 1],
+                        "sigma_Z_mm": sig[ok, 2],
+                        "n_sensors": tri.n_sensors[ok],
+                        "chi2": tri.chi2[ok],
+                    }
+                    n_rows += _write_rows(fh, cols, MULTI_COLUMNS)
+                if progress is not None:
+                    progress(n_samples)
+        if n_windows == 0:
+            raise InputError("the recordings are shorter than one window", field="window_s")
+    return LocateSummary(n_samples, n_windows, n_rows, n_skipped, n_samples / rate, MULTI_COLUMNS)
+
+
+# --------------------------------------------------------------------------- impact points -> angles
+def aoa_csv(points_path, model: SensorModel, out_path, *, distance_mm: float | None = None,
+            sigma_d_mm: float = 0.0) -> int:
+    """Convert a points CSV to angles (``psdcal aoa``).
+
+    The input has ``x_mm,y_mm`` (measured impact points) or
+    ``vx1,vx2,vy1,vy2`` (amplitudes; the sensor's gains are applied); other
+    columns (``image_id``, ``point_id``, ...) are copied to the output, then
+    ``x_mm,y_mm,alpha_x_deg,alpha_y_deg[,X_mm,Y_mm]`` and the sigma columns.
+
+    Parameters
+    ----------
+    points_path, out_path : str or Path
+    model : SensorModel
+    distance_mm : float, optional
+    sigma_d_mm : float
+        1-sigma noise of the impact points (isotropic), mm.
+
+    Returns
+    -------
+    int, the number of rows written.
+    """
+    path = Path(points_path)
+    try:
+        fh = open(path, newline="", encoding="utf-8")
+    except FileNotFoundError:
+        raise InputError("points file not found", path=path) from None
+    with fh:
+        rows = list(csv.reader(fh))
+    if not rows:
+        raise InputError("empty file", path=path)
+    header = [h.strip() for h in rows[0]]
+    amp_cols = ("vx1", "vx2", "vy1", "vy2")
+    if all(c in header for c in ("x_mm", "y_mm")):
+        use = ("x_mm", "y_mm")
+    elif all(c in header for c in amp_cols):
+        use = amp_cols
+    else:
+        raise InputError("the header must name x_mm,y_mm or vx1,vx2,vy1,vy2", path=path, line=1)
+    idx = [header.index(c) for c in use]
+    keep_cols = [c for c in header if c not in ("x_mm", "y_mm", *amp_cols)]
+    keep_idx = [header.index(c) for c in keep_cols]
+    vals = np.empty((len(rows) - 1, len(use)))
+    extra = []
+    body = []
+    for lineno, row in enumerate(rows[1:], start=2):
+        if not row or not any(c.strip() for c in row):
+            continue
+        if len(row) != len(header):
+            raise InputError(f"expected {len(header)} fields, found {len(row)}", path=path, line=lineno)
+        for j, (c, i) in enumerate(zip(use, idx)):
+            try:
+                v = float(row[i])
+            except ValueError:
+                raise InputError(f"not a number: {row[i]!r}", path=path, line=lineno, field=c) from None
+            if not math.isfinite(v):
+                raise InputError("not a finite number", path=path, line=lineno, field=c)
+            vals[len(body), j] = v
+        body.append(lineno)
+        extra.append([row[i] for i in keep_idx])
+    vals = vals[: len(body)]
+    if use == amp_cols:
+        try:
+            imp = impact_from_amplitudes(vals, model)
+        except ZeroSignalError:
+            bad = np.flatnonzero(~((vals / model.gains).sum(-1) > 0))
+            line = body[int(bad[0])] if bad.size else None
+            raise InputError("the sum of the four amplitudes is not positive", path=path, line=line) from None
+        d, dd_dg = imp.d_mm, imp.dd_dgains
+    else:
+        d, dd_dg = vals, None
+    cov_d = np.broadcast_to(float(sigma_d_mm) ** 2 * np.eye(2), d.shape + (2,))
+    res = angles_from_points(d, model, cov_d, dd_dg)
+    alpha = res.alpha_rad * _DEG
+    sa = res.sigma_alpha_rad * _DEG
+    cols = {c: np.array([e[j] for e in extra], dtype=object) for j, c in enumerate(keep_cols)}
+    cols.update({"x_mm": d[:, 0], "y_mm": d[:, 1], "alpha_x_deg": alpha[:, 0], "alpha_y_deg": alpha[:, 1]})
+    order = [*keep_cols, "x_mm", "y_mm", "alpha_x_deg", "alpha_y_deg"]
+    if distance_mm is not None:
+        pos = plane_position(res, distance_mm)
+        cols["X_mm"], cols["Y_mm"] = pos.xy_mm[:, 0], pos.xy_mm[:, 1]
+        order += ["X_mm", "Y_mm"]
+    cols["sigma_alpha_x_deg"], cols["sigma_alpha_y_deg"] = sa[:, 0], sa[:, 1]
+    order += ["sigma_alpha_x_deg", "sigma_alpha_y_deg"]
+    if distance_mm is not None:
+        sp = pos.sigma_xy_mm
+        cols["sigma_X_mm"], cols["sigma_Y_mm"] = sp[:, 0], sp[:, 1]
+        order += ["sigma_X_mm", "sigma_Y_mm"]
+    cols["t_s"] = np.zeros(len(body))  # _write_rows counts rows from t_s
+    with atomic_path(out_path, suffix=".csv") as tmp:
+        with open(tmp, "w", encoding="utf-8", newline="") as out:
+            out.write(",".join(order) + "\n")
+            n = _write_rows(out, cols, order)
+    return n

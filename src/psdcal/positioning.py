@@ -1,0 +1,408 @@
+"""Positions from angles of arrival (MODEL.md 7; the paper's Section 3.4 and Introduction).
+
+* One sensor and a known plane: a transmitter moving on a plane parallel to
+  the sensor at distance ``S`` sits at ``X = S xn``, ``Y = S yn`` in the
+  camera frame (MODEL.md 7; ``X = S ex / f`` without skew and distortion).
+* Two or more sensors with known poses: the 3D point is the weighted
+  least-squares intersection of their rays (AoA positioning needs two
+  receivers, the paper's Introduction).
+
+Pose convention (the same as the calibration's extrinsics): a sensor's pose
+``(rvec, tvec_mm)`` maps **world** points into its camera frame,
+``Pc = R(rvec) Pw + tvec``; hence ``Pw = R^T (Pc - tvec)`` and the sensor's
+projection centre is at ``-R^T tvec`` in the world frame.
+"""
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .aoa import AoAResult, angles_from_points
+from .errors import DegenerateViewsError, InputError
+from .projection import R_from_r
+from .sensor_model import SensorModel
+
+
+# --------------------------------------------------------------------------- plane
+@dataclass(frozen=True)
+class PlanePosition:
+    """Position on a plane parallel to the sensor (MODEL.md 7).
+
+    Attributes
+    ----------
+    xy_mm : (..., 2) ndarray
+        ``(X, Y)`` in the camera frame, mm, at ``Z = distance_mm``.
+    cov_xy_mm2 : (..., 2, 2) ndarray
+        Covariance (calibration + noise), mm^2.
+    distance_mm : float
+    """
+
+    xy_mm: np.ndarray
+    cov_xy_mm2: np.ndarray
+    distance_mm: float
+
+    @property
+    def sigma_xy_mm(self) -> np.ndarray:
+        """1-sigma of ``(X, Y)`` (..., 2), mm."""
+        return np.sqrt(np.clip(np.diagonal(self.cov_xy_mm2, axis1=-2, axis2=-1), 0.0, None))
+
+
+def plane_position(aoa: AoAResult, distance_mm: float) -> PlanePosition:
+    """Transmitter position on the plane ``Zc = distance_mm`` (MODEL.md 7).
+
+    ``X = S xn``, ``Y = S yn`` (the paper's ``X = S ex / f``); the covariance is
+    ``S^2 cov(n)``.  ``S`` is taken as exact.
+    """
+    s = float(distance_mm)
+    if not np.isfinite(s) or s <= 0:
+        raise InputError(f"the plane distance must be a positive number of mm, got {distance_mm}", field="distance_mm")
+    return PlanePosition(xy_mm=s * aoa.n, cov_xy_mm2=(s * s) * aoa.cov_n, distance_mm=s)
+
+
+# --------------------------------------------------------------------------- several sensors
+@dataclass(frozen=True)
+class SensorPose:
+    """A calibrated sensor placed in the world frame: ``Pc = R(rvec) Pw + tvec_mm``."""
+
+    name: str
+    model: SensorModel
+    rvec: np.ndarray
+    tvec_mm: np.ndarray
+    recording: str | None = None
+
+    @property
+    def R(self) -> np.ndarray:
+        """Rotation world -> camera (3, 3)."""
+        return R_from_r(self.rvec)
+
+    @property
+    def center_w_mm(self) -> np.ndarray:
+        """Projection centre of the sensor in the world frame (3,), mm."""
+        return -self.R.T @ np.asarray(self.tvec_mm, dtype=float)
+
+
+def load_sensors(path) -> list[SensorPose]:
+    """Read SENSORS.json: a list of ``{name, calib, rvec, tvec_mm[, recording]}``.
+
+    ``calib`` and ``recording`` are paths relative to the JSON file.  Also
+    accepted: ``{"sensors": [...]}``.
+
+    Raises
+    ------
+    InputError
+        Naming the file and the key (``sensors[i].key``).
+    """
+    path = Path(path)
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise InputError("sensors file not found", path=path) from None
+    except json.JSONDecodeError as exc:
+        raise InputError(f"not valid JSON: {exc.msg}", path=path, line=exc.lineno) from None
+    if isinstance(data, dict):
+        data = data.get("sensors")
+    if not isinstance(data, list) or len(data) < 2:
+        raise InputError("expected a list of at least two sensors", path=path, field="sensors")
+    out = []
+    names = set()
+    for i, item in enumerate(data):
+        where = f"sensors[{i}]"
+        if not isinstance(item, dict):
+            raise InputError("each sensor must be an object", path=path, field=where)
+        for key in ("calib", "rvec", "tvec_mm"):
+            if key not in item:
+                raise InputError(f"missing key '{key}'", path=path, field=f"{where}.{key}")
+        name = str(item.get("name", f"s{i + 1}"))
+        if name in names:
+            raise InputError(f"repeated sensor name {name!r}", path=path, field=f"{where}.name")
+        names.add(name)
+        vecs = {}
+        for key in ("rvec", "tvec_mm"):
+            try:
+                vec = np.asarray(item[key], dtype=float)
+            except (TypeError, ValueError):
+                vec = np.zeros(0)
+            if vec.shape != (3,) or not np.all(np.isfinite(vec)):
+                raise InputError(f"'{key}' must be 3 finite numbers, got {item[key]!r}", path=path, field=f"{where}.{key}")
+            vecs[key] = vec
+        calib = path.parent / str(item["calib"])
+        model = SensorModel.load(calib)
+        rec = item.get("recording")
+        out.append(
+            SensorPose(
+                name=name,
+                model=model,
+                rvec=vecs["rvec"],
+                tvec_mm=vecs["tvec_mm"],
+                recording=None if rec is None else str(path.parent / str(rec)),
+            )
+        )
+    return out
+
+
+@dataclass(frozen=True)
+class Triangulation:
+    """Least-squares intersection of rays from several sensors.
+
+    Attributes
+    ----------
+    p_w_mm : (..., 3) ndarray
+        Point in the world frame, mm (NaN where fewer than two rays were valid).
+    cov_p_mm2 : (..., 3, 3) ndarray
+        Its covariance, mm^2 (inverse of the Gauss-Newton information matrix).
+    chi2 : (...) ndarray
+        Weighted sum of squared ray residuals at the solution (about
+        ``2 n_sensors - 3`` for consistent rays).
+    n_sensors : (...) int ndarray
+        Number of rays used.
+    """
+
+    p_w_mm: np.ndarray
+    cov_p_mm2: np.ndarray
+    chi2: np.ndarray
+    n_sensors: np.ndarray
+
+    @property
+    def sigma_p_mm(self) -> np.ndarray:
+        """1-sigma of ``(X, Y, Z)`` (..., 3), mm."""
+        return np.sqrt(np.clip(np.diagonal(self.cov_p_mm2, axis1=-2, axis2=-1), 0.0, None))
+
+
+def triangulate(n, cov_n, R, t_mm, *, iterations: int = 8) -> Triangulation:
+    """3D point from the normalised image coordinates seen by several sensors.
+
+    Minimises ``sum_i r_i^T W_i r_i`` with ``r_i = n_i - pi(R_i P + t_i)``,
+    ``pi(X, Y, Z) = (X/Z, Y/Z)`` and ``W_i = cov_n_i^-1`` (maximum likelihood
+    for Gaussian ray errors) by Gauss-Newton, started from the unweighted
+    midpoint (the point closest to all rays).  The covariance of the point is
+    ``(sum_i J_i^T W_i J_i)^-1`` at the solution.
+
+    Parameters
+    ----------
+    n : (k, ..., 2) array_like
+        Normalised coordinates ``(xn, yn)`` of each of ``k`` sensors; NaN marks
+        a sensor that did not see the point.
+    cov_n : (k, ..., 2, 2) array_like
+        Their covariances.
+    R : (k, 3, 3) array_like
+        Rotations world -> camera.
+    t_mm : (k, 3) array_like
+        Translations, ``Pc = R Pw + t``.
+
+    Returns
+    -------
+    Triangulation
+    """
+    n = np.asarray(n, dtype=float)
+    cov_n = np.asarray(cov_n, dtype=float)
+    R = np.asarray(R, dtype=float)
+    t = np.asarray(t_mm, dtype=float)
+    k = n.shape[0]
+    batch = n.shape[1:-1]
+    ok = np.all(np.isfinite(n), axis=-1) & np.all(np.isfinite(cov_n), axis=(-1, -2))  # (k, ...)
+    n0 = np.where(ok[..., None], n, 0.0)
+    # weights: inverse covariances with a floor so a perfectly known ray stays finite
+    cov = np.where(ok[..., None, None], cov_n, np.eye(2))
+    scale = np.maximum(np.trace(cov, axis1=-2, axis2=-1) / 2, 1e-30)
+    cov = cov + (1e-12 * scale)[..., None, None] * np.eye(2)
+    W = np.linalg.inv(cov) * ok[..., None, None]
+    expand = (slice(None),) + (None,) * len(batch)
+    Rb = R[expand]  # (k, 1.., 3, 3)
+    tb = t[expand]  # (k, 1.., 3)
+    # start: midpoint of the rays in the world frame
+    ray_c = np.concatenate([n0, np.ones(n0.shape[:-1] + (1,))], axis=-1)
+    u = np.einsum("k...ji,k...j->k...i", Rb, ray_c)  # R^T ray
+    u /= np.linalg.norm(u, axis=-1, keepdims=True)
+    o = -np.einsum("k...ji,k...j->k...i", Rb, tb)  # centres
+    proj = (np.eye(3) - u[..., :, None] * u[..., None, :]) * ok[..., None, None]
+    A = proj.sum(0)
+    b = np.einsum("k...ij,k...j->...i", proj, o)
+    n_used = ok.sum(0)
+    good = n_used >= 2
+    A_safe = np.where(good[..., None, None], A, np.eye(3))
+    p = np.linalg.solve(A_safe, b[..., None])[..., 0]
+    info = np.broadcast_to(np.eye(3), batch + (3, 3))
+    chi2 = np.zeros(batch)
+    for it in range(iterations + 1):
+        pc = np.einsum("k...ij,...j->k...i", Rb, p) + tb
+        z = pc[..., 2]
+        z = np.where(np.abs(z) > 1e-9, z, 1e-9)
+        pred = pc[..., :2] / z[..., None]
+        r = n0 - pred
+        # d pred / d pc (k, ..., 2, 3), then d pred / d p = that @ R
+        zero = np.zeros_like(z)
+        dpred_dpc = np.stack(
+            [
+                np.stack([1 / z, zero, -pred[..., 0] / z], axis=-1),
+                np.stack([zero, 1 / z, -pred[..., 1] / z], axis=-1),
+            ],
+            axis=-2,
+        )
+        J = dpred_dpc @ Rb
+        JtW = np.swapaxes(J, -1, -2) @ W
+        info = (JtW @ J).sum(0)
+        grad = np.einsum("k...ij,k...j->...i", JtW, r)  # sums over the sensors k
+        chi2 = np.einsum("k...i,k...ij,k...j->...", r, W, r)
+        if it == iterations:
+            break
+        info_safe = np.where(good[..., None, None], info, np.eye(3))
+        p = p + np.linalg.solve(info_safe, grad[..., None])[..., 0]
+    info_safe = np.where(good[..., None, None], info, np.eye(3))
+    try:
+        cov_p = np.linalg.inv(info_safe)
+    except np.linalg.LinAlgError:
+        raise DegenerateViewsError("the rays are parallel: the point cannot be triangulated") from None
+    p = np.where(good[..., None], p, np.nan)
+    cov_p = np.where(good[..., None, None], cov_p, np.nan)
+    chi2 = np.where(good, chi2, np.nan)
+    return Triangulation(p_w_mm=p, cov_p_mm2=cov_p, chi2=chi2, n_sensors=n_used)
+
+
+def triangulate_aoa(results, sensors) -> Triangulation:
+    """Triangulate from one :class:`AoAResult` per sensor (same leading shape).
+
+    Parameters
+    ----------
+    results : sequence of AoAResult
+    sensors : sequence of SensorPose
+    """
+    if len(results) != len(sensors) or len(sensors) < 2:
+        raise InputError("triangulation needs one AoA result per sensor and at least two sensors")
+    n = np.stack([r.n for r in results])
+    cov = np.stack([r.cov_n for r in results])
+    R = np.stack([s.R for s in sensors])
+    t = np.stack([np.asarray(s.tvec_mm, dtype=float) for s in sensors])
+    return triangulate(n, cov, R, t)
+
+
+# --------------------------------------------------------------------------- error maps
+@dataclass(frozen=True)
+class ErrorMap:
+    """AoA and position error over the sensor (the paper's Figure 9).
+
+    Attributes
+    ----------
+    d_x_mm, d_y_mm : (nx,), (ny,) ndarrays
+        Grid of impact points on the sensor, mm.
+    aoa_error_deg : (ny, nx) ndarray
+        Norm of the angle error ``|(d alpha_x, d alpha_y)|``, degrees.
+    position_error_mm : (ny, nx) ndarray
+        Norm of the position error on the plane, mm.
+    distance_mm : float
+    mode : str
+        ``"sigma"`` (1-sigma from the covariance) or ``"mean+2std"``.
+    """
+
+    d_x_mm: np.ndarray
+    d_y_mm: np.ndarray
+    aoa_error_deg: np.ndarray
+    position_error_mm: np.ndarray
+    distance_mm: float
+    mode: str
+
+
+def error_map(model: SensorModel, distance_mm: float, *, mode: str = "sigma", grid: int = 61,
+              sigma_d_mm: float = 0.0, extent: float = 0.98) -> ErrorMap:
+    """AoA and position error over the field of view at distance ``S``.
+
+    Parameters
+    ----------
+    model : SensorModel
+    distance_mm : float
+        Plane distance ``S``, mm (the paper: 5000).
+    mode : {"sigma", "mean+2std"}
+        ``"sigma"``: the 1-sigma norm ``sqrt(var_x + var_y)`` propagated from
+        the calibration covariance (and ``sigma_d_mm``).  ``"mean+2std"``:
+        as the paper's Figure 9, the difference between the angles computed
+        with every free parameter moved by ``+2`` standard errors and with the
+        calibrated values.
+    grid : int
+        Points per axis over the active area.
+    sigma_d_mm : float
+        Impact-point noise (isotropic, 1-sigma, mm) added in ``"sigma"`` mode.
+    extent : float
+        Fraction of the half-size of the active area covered.
+
+    Returns
+    -------
+    ErrorMap
+    """
+    if mode not in ("sigma", "mean+2std"):
+        raise InputError(f"unknown error-map mode {mode!r}; use 'sigma' or 'mean+2std'", field="mode")
+    s = float(distance_mm)
+    if not np.isfinite(s) or s <= 0:
+        raise InputError(f"the plane distance must be a positive number of mm, got {distance_mm}", field="distance_mm")
+    gx = np.linspace(-extent * model.lx_mm / 2, extent * model.lx_mm / 2, int(grid))
+    gy = np.linspace(-extent * model.ly_mm / 2, extent * model.ly_mm / 2, int(grid))
+    d = np.stack(np.meshgrid(gx, gy), axis=-1)  # (ny, nx, 2)
+    if mode == "sigma":
+        cov_d = np.broadcast_to(sigma_d_mm**2 * np.eye(2), d.shape + (2,))
+        res = angles_from_points(d, model, cov_d)
+        sig_a = res.sigma_alpha_rad
+        aoa_err = np.degrees(np.hypot(sig_a[..., 0], sig_a[..., 1]))
+        cov_xy = plane_position(res, s).cov_xy_mm2
+        pos_err = np.sqrt(np.clip(np.trace(cov_xy, axis1=-2, axis2=-1), 0.0, None))
+    else:
+        res = angles_from_points(d, model)
+        shifted = model.with_values({nm: model.value(nm) + 2 * sd for nm, sd in zip(model.names, model.std())})
+        # the shifted gains act on the signals: re-read the same signals through them
+        res2 = angles_from_points(_regain(d, model, shifted), shifted)
+        da = res2.alpha_rad - res.alpha_rad
+        aoa_err = np.degrees(np.hypot(da[..., 0], da[..., 1]))
+        dn = (res2.n - res.n) * s
+        pos_err = np.hypot(dn[..., 0], dn[..., 1])
+    return ErrorMap(d_x_mm=gx, d_y_mm=gy, aoa_error_deg=aoa_err, position_error_mm=pos_err, distance_mm=s, mode=mode)
+
+
+def _regain(d_mm, model: SensorModel, shifted: SensorModel):
+    """Impact points read through ``shifted``'s gains from the signals that give ``d_mm`` under ``model``."""
+    if np.array_equal(model.gains, shifted.gains):
+        return d_mm
+    from .aoa import impact_from_amplitudes
+    from .readout import photocurrents
+
+    v = photocurrents(d_mm, 1.0, model.lx_mm, model.ly_mm) * model.gains
+    return impact_from_amplitudes(v, shifted).d_mm
+
+
+def plot_error_map(emap: ErrorMap, path, *, title: str | None = None) -> None:
+    """Draw an :class:`ErrorMap` as two colour maps in one PNG (written atomically)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from ._atomic import atomic_path
+
+    what = "1-sigma" if emap.mode == "sigma" else "parameters at mean + 2 std"
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4.6), constrained_layout=True)
+    for ax, z, label in (
+        (axes[0], emap.aoa_error_deg, "AoA error (deg)"),
+        (axes[1], emap.position_error_mm, f"position error at S = {emap.distance_mm:g} mm (mm)"),
+    ):
+        im = ax.pcolormesh(emap.d_x_mm, emap.d_y_mm, z, shading="auto", cmap="viridis")
+        cs = ax.contour(emap.d_x_mm, emap.d_y_mm, z, colors="w", linewidths=0.6)
+        ax.clabel(cs, fontsize=7, fmt="%.3g")
+        ax.set_aspect("equal")
+        ax.set_xlabel("impact point x (mm)")
+        ax.set_ylabel("impact point y (mm)")
+        ax.set_title(label)
+        fig.colorbar(im, ax=ax, shrink=0.85)
+    fig.suptitle(title or f"AoA and position error over the field of view ({what})")
+    with atomic_path(path, suffix=".png") as tmp:
+        fig.savefig(tmp, dpi=120, format="png")
+    plt.close(fig)
+
+
+def write_error_map_csv(emap: ErrorMap, path) -> None:
+    """Write an :class:`ErrorMap` as CSV ``d_x_mm,d_y_mm,aoa_error_deg,position_error_mm`` (atomically)."""
+    from ._atomic import write_text_atomic
+
+    xx, yy = np.meshgrid(emap.d_x_mm, emap.d_y_mm)
+    lines = ["d_x_mm,d_y_mm,aoa_error_deg,position_error_mm"]
+    for x, y, a, p in zip(xx.ravel(), yy.ravel(), emap.aoa_error_deg.ravel(), emap.position_error_mm.ravel()):
+        lines.append(f"{x:.6g},{y:.6g},{a:.6g},{p:.6g}")
+    write_text_atomic(path, "\n".join(lines) + "\n")

@@ -1,0 +1,440 @@
+"""Recordings of the four PSD channels, read in chunks (constant memory).
+
+A recording holds the four amplified anode signals ``vx1, vx2, vy1, vy2``
+sampled at ``rate_hz``.  :func:`open_recording` picks a reader from the file
+extension; every reader's :meth:`Recording.chunks` yields
+``(t0_s, block)`` with ``block`` a float64 array of shape ``(4, n_chunk)``
+(rows in channel order) and ``t0_s`` the time of its first sample, so that a
+recording larger than memory streams through.
+
+Formats
+-------
+``.npy``
+    A ``(n, 4)`` array (columns vx1, vx2, vy1, vy2), or ``(4, n)``; memory
+    mapped.  No rate metadata: give ``rate_hz``.
+``.csv``
+    A header naming ``vx1,vx2,vy1,vy2`` (any order, other columns ignored),
+    optionally ``t_s`` (the rate and the start time are then taken from it).
+``.h5`` / ``.hdf5`` (needs ``h5py``: ``pip install psdcal[hdf5]``)
+    Four 1-D datasets ``vx1, vx2, vy1, vy2`` (in the root or in ``group``), or
+    one ``(n, 4)`` dataset named by ``dataset`` (default: ``signals``, or the
+    only 2-D dataset).  The rate from an attribute ``rate_hz`` (or
+    ``sample_rate``) of the dataset, its group or the file.
+``.tdms`` (needs ``npTDMS``: ``pip install psdcal[tdms]``)
+    A group (``group``, default: the first one holding the four channels)
+    with channels ``vx1, vx2, vy1, vy2``; the rate from the channel property
+    ``wf_increment`` (or ``rate_hz``), the start time from ``wf_start_offset``.
+
+Channel names can be changed with ``channels=(name_vx1, name_vx2, name_vy1,
+name_vy2)`` (CSV columns, HDF5 datasets, TDMS channels).
+"""
+from __future__ import annotations
+
+import csv
+import io
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Iterator
+
+import numpy as np
+
+from .errors import InputError
+from .readout import CHANNELS
+
+DEFAULT_CHUNK = 1 << 16
+
+
+class MissingDependencyError(InputError):
+    """An optional package needed for a file format is not installed."""
+
+
+def _check_finite(block: np.ndarray, path, first_sample: int, *, line_offset: int | None = None) -> None:
+    if np.all(np.isfinite(block)):
+        return
+    ch, i = np.argwhere(~np.isfinite(block))[0]
+    sample = first_sample + int(i)
+    line = None if line_offset is None else line_offset + sample
+    raise InputError(
+        f"sample {sample} of channel {CHANNELS[ch]} is not a finite number",
+        path=path,
+        line=line,
+        field=CHANNELS[ch],
+    )
+
+
+@dataclass(frozen=True)
+class Recording:
+    """A four-channel recording on disk.
+
+    Attributes
+    ----------
+    path : str
+    rate_hz : float
+        Sampling rate.
+    n_samples : int or None
+        Samples per channel (None when unknown before reading, e.g. CSV).
+    t0_s : float
+        Time of the first sample, s.
+    kind : str
+        ``"npy"``, ``"csv"``, ``"hdf5"`` or ``"tdms"``.
+    options : dict
+        Reader options (channel names, dataset, group).
+    """
+
+    path: str
+    rate_hz: float
+    n_samples: int | None
+    t0_s: float = 0.0
+    kind: str = "npy"
+    options: dict = field(default_factory=dict)
+
+    @property
+    def duration_s(self) -> float | None:
+        """Length of the recording, s (None when unknown)."""
+        return None if self.n_samples is None else self.n_samples / self.rate_hz
+
+    def chunks(self, chunk_samples: int = DEFAULT_CHUNK) -> Iterator[tuple[float, np.ndarray]]:
+        """Yield ``(t0_s, block)``, ``block`` float64 (4, <= chunk_samples).
+
+        Raises
+        ------
+        InputError
+            On a non-finite sample (naming the file, the sample or CSV line,
+            and the channel) or a malformed CSV row.
+        """
+        chunk_samples = int(chunk_samples)
+        if chunk_samples < 1:
+            raise InputError(f"chunk size must be positive, got {chunk_samples}", field="chunk_samples")
+        reader = {"npy": _chunks_npy, "csv": _chunks_csv, "hdf5": _chunks_hdf5, "tdms": _chunks_tdms}[self.kind]
+        yield from reader(self, chunk_samples)
+
+
+# --------------------------------------------------------------------------- open
+def open_recording(path, rate_hz: float | None = None, *, channels=None, dataset: str | None = None,
+                   group: str | None = None) -> Recording:
+    """Open a recording and read its metadata (not its samples).
+
+    Parameters
+    ----------
+    path : str or Path
+        ``.npy``, ``.csv``, ``.h5``/``.hdf5`` or ``.tdms``.
+    rate_hz : float, optional
+        Sampling rate; needed when the file does not carry one.  When both are
+        given they must agree (to 1e-6 relative).
+    channels : 4 str, optional
+        Names of the channels in the file, in the order vx1, vx2, vy1, vy2.
+    dataset, group : str, optional
+        HDF5 dataset / group, TDMS group.
+
+    Returns
+    -------
+    Recording
+
+    Raises
+    ------
+    InputError
+        Unknown extension, missing file, channel or rate;
+        :class:`MissingDependencyError` when ``h5py`` / ``npTDMS`` is missing.
+    """
+    path = Path(path)
+    if not path.exists():
+        raise InputError("recording not found", path=path)
+    names = tuple(channels) if channels is not None else CHANNELS
+    if len(names) != 4:
+        raise InputError(f"give exactly 4 channel names (vx1, vx2, vy1, vy2), got {list(names)}", field="channels")
+    ext = path.suffix.lower()
+    opts = {"channels": names, "dataset": dataset, "group": group}
+    if ext == ".npy":
+        rec = _open_npy(path, opts)
+    elif ext == ".csv":
+        rec = _open_csv(path, opts)
+    elif ext in (".h5", ".hdf5"):
+        rec = _open_hdf5(path, opts)
+    elif ext == ".tdms":
+        rec = _open_tdms(path, opts)
+    else:
+        raise InputError(
+            f"unknown recording format '{ext or '(no extension)'}'; use .npy, .csv, .h5/.hdf5 or .tdms", path=path
+        )
+    file_rate = rec.rate_hz
+    if file_rate is None or not np.isfinite(file_rate):
+        if rate_hz is None:
+            raise InputError("the file gives no sampling rate: pass --rate-hz", path=path, field="rate_hz")
+        final = float(rate_hz)
+    else:
+        final = float(file_rate)
+        if rate_hz is not None and not math.isclose(final, float(rate_hz), rel_tol=1e-6):
+            raise InputError(
+                f"--rate-hz {float(rate_hz):g} disagrees with the file's sampling rate {final:g} Hz",
+                path=path,
+                field="rate_hz",
+            )
+    if not (final > 0 and np.isfinite(final)):
+        raise InputError(f"sampling rate must be positive, got {final}", path=path, field="rate_hz")
+    return Recording(path=rec.path, rate_hz=final, n_samples=rec.n_samples, t0_s=rec.t0_s, kind=rec.kind,
+                     options=rec.options)
+
+
+# --------------------------------------------------------------------------- npy
+def _npy_array(path):
+    try:
+        arr = np.load(path, mmap_mode="r", allow_pickle=False)
+    except (ValueError, OSError) as exc:
+        raise InputError(f"not a readable .npy array: {exc}", path=path) from None
+    if arr.ndim != 2 or 4 not in arr.shape or not np.issubdtype(arr.dtype, np.number):
+        raise InputError(
+            f"expected a numeric (n, 4) array of channels vx1, vx2, vy1, vy2, got shape {arr.shape} {arr.dtype}",
+            path=path,
+        )
+    return arr
+
+
+def _open_npy(path, opts):
+    arr = _npy_array(path)
+    n = arr.shape[0] if arr.shape[1] == 4 else arr.shape[1]
+    return Recording(path=str(path), rate_hz=None, n_samples=int(n), kind="npy", options=opts)
+
+
+def _chunks_npy(rec: Recording, chunk: int):
+    arr = _npy_array(rec.path)
+    by_rows = arr.shape[1] == 4
+    n = rec.n_samples
+    for start in range(0, n, chunk):
+        stop = min(n, start + chunk)
+        part = arr[start:stop] if by_rows else arr[:, start:stop]
+        block = np.empty((4, stop - start))
+        block[...] = part.T if by_rows else part
+        _check_finite(block, rec.path, start)
+        yield rec.t0_s + start / rec.rate_hz, block
+
+
+# --------------------------------------------------------------------------- csv
+def _csv_header(path, names):
+    with open(path, newline="", encoding="utf-8") as fh:
+        first = fh.readline()
+    header = [h.strip() for h in next(csv.reader([first]), [])]
+    missing = [c for c in names if c not in header]
+    if missing:
+        raise InputError(f"missing column(s) {missing}; the header must name {list(names)}", path=path, line=1,
+                         field=missing[0])
+    cols = [header.index(c) for c in names]
+    tcol = header.index("t_s") if "t_s" in header else None
+    return header, cols, tcol
+
+
+def _parse_rows(lines, ncol, usecols, path, first_line):
+    """Parse CSV lines; on failure find the bad line with the csv module."""
+    try:
+        data = np.loadtxt(io.StringIO("".join(lines)), delimiter=",", usecols=usecols, ndmin=2, dtype=float)
+    except ValueError:
+        for k, row in enumerate(csv.reader(lines)):
+            if len(row) != ncol:
+                raise InputError(f"expected {ncol} fields, found {len(row)}", path=path, line=first_line + k) from None
+            for j in usecols:
+                try:
+                    float(row[j])
+                except ValueError:
+                    raise InputError(f"not a number: {row[j]!r}", path=path, line=first_line + k, field=None) from None
+        raise InputError("malformed rows", path=path, line=first_line) from None
+    return data
+
+
+def _open_csv(path, opts):
+    header, cols, tcol = _csv_header(path, opts["channels"])
+    rate, t0 = None, 0.0
+    if tcol is not None:
+        with open(path, newline="", encoding="utf-8") as fh:
+            fh.readline()
+            lines = [fh.readline() for _ in range(2)]
+        lines = [ln for ln in lines if ln.strip()]
+        if lines:
+            t = _parse_rows(lines, len(header), [tcol], path, 2)[:, 0]
+            t0 = float(t[0])
+            if len(t) == 2:
+                if not t[1] > t[0]:
+                    raise InputError("t_s must increase", path=path, line=3, field="t_s")
+                rate = 1.0 / (t[1] - t[0])
+    opts = dict(opts, header=header, cols=cols, tcol=tcol)
+    return Recording(path=str(path), rate_hz=rate, n_samples=None, t0_s=t0, kind="csv", options=opts)
+
+
+def _chunks_csv(rec: Recording, chunk: int):
+    opts = rec.options
+    header, cols = opts["header"], opts["cols"]
+    n_done = 0
+    with open(rec.path, newline="", encoding="utf-8") as fh:
+        fh.readline()
+        while True:
+            lines = []
+            for line in fh:
+                if line.strip():
+                    lines.append(line)
+                    if len(lines) == chunk:
+                        break
+            if not lines:
+                return
+            data = _parse_rows(lines, len(header), cols, rec.path, 2 + n_done)
+            block = np.ascontiguousarray(data.T)
+            _check_finite(block, rec.path, n_done, line_offset=2)
+            yield rec.t0_s + n_done / rec.rate_hz, block
+            n_done += len(lines)
+            if len(lines) < chunk:
+                return
+
+
+# --------------------------------------------------------------------------- hdf5
+def _import_h5py(path):
+    try:
+        import h5py
+    except ImportError:
+        raise MissingDependencyError(
+            "reading HDF5 recordings needs h5py: install psdcal[hdf5] (pip install 'psdcal[hdf5]')", path=path
+        ) from None
+    return h5py
+
+
+def _rate_attr(*objs):
+    for obj in objs:
+        for key in ("rate_hz", "sample_rate", "sampling_rate_hz"):
+            if key in obj.attrs:
+                return float(np.asarray(obj.attrs[key]).ravel()[0])
+    return None
+
+
+def _h5_locate(f, rec_path, opts):
+    """(datasets, is_matrix, rate) of an open HDF5 file."""
+    h5py = _import_h5py(rec_path)
+    grp = f
+    if opts.get("group"):
+        if opts["group"] not in f:
+            raise InputError(f"no group '{opts['group']}'", path=rec_path, field=opts["group"])
+        grp = f[opts["group"]]
+    names = opts["channels"]
+    if opts.get("dataset"):
+        if opts["dataset"] not in grp:
+            raise InputError(f"no dataset '{opts['dataset']}'", path=rec_path, field=opts["dataset"])
+        ds = grp[opts["dataset"]]
+        if ds.ndim != 2 or 4 not in ds.shape:
+            raise InputError(f"dataset must be (n, 4), got shape {ds.shape}", path=rec_path, field=opts["dataset"])
+        return [ds], True, _rate_attr(ds, grp, f)
+    if all(n in grp for n in names):
+        dss = [grp[n] for n in names]
+        lens = {d.shape for d in dss}
+        if len(lens) != 1 or dss[0].ndim != 1:
+            raise InputError(f"datasets {list(names)} must be 1-D and of equal length", path=rec_path)
+        return dss, False, _rate_attr(dss[0], grp, f)
+    two_d = [k for k, v in grp.items() if isinstance(v, h5py.Dataset) and v.ndim == 2 and 4 in v.shape]
+    if "signals" in grp and "signals" in two_d:
+        two_d = ["signals"]
+    if len(two_d) == 1:
+        ds = grp[two_d[0]]
+        return [ds], True, _rate_attr(ds, grp, f)
+    missing = [n for n in names if n not in grp]
+    raise InputError(
+        f"no datasets {missing} and no single (n, 4) dataset; name one with --dataset", path=rec_path,
+        field=missing[0] if missing else None,
+    )
+
+
+def _open_hdf5(path, opts):
+    h5py = _import_h5py(path)
+    try:
+        with h5py.File(path, "r") as f:
+            dss, matrix, rate = _h5_locate(f, path, opts)
+            ds = dss[0]
+            n = (ds.shape[0] if ds.shape[1] == 4 else ds.shape[1]) if matrix else ds.shape[0]
+    except OSError as exc:
+        raise InputError(f"not a readable HDF5 file: {exc}", path=path) from None
+    return Recording(path=str(path), rate_hz=rate, n_samples=int(n), kind="hdf5", options=opts)
+
+
+def _chunks_hdf5(rec: Recording, chunk: int):
+    h5py = _import_h5py(rec.path)
+    with h5py.File(rec.path, "r") as f:
+        dss, matrix, _ = _h5_locate(f, rec.path, rec.options)
+        n = rec.n_samples
+        for start in range(0, n, chunk):
+            stop = min(n, start + chunk)
+            block = np.empty((4, stop - start))
+            if matrix:
+                ds = dss[0]
+                if ds.shape[1] == 4:
+                    block[...] = ds[start:stop].T
+                else:
+                    block[...] = ds[:, start:stop]
+            else:
+                for i, ds in enumerate(dss):
+                    block[i] = ds[start:stop]
+            _check_finite(block, rec.path, start)
+            yield rec.t0_s + start / rec.rate_hz, block
+
+
+# --------------------------------------------------------------------------- tdms
+def _import_nptdms(path):
+    try:
+        import nptdms
+    except ImportError:
+        raise MissingDependencyError(
+            "reading TDMS recordings needs npTDMS: install psdcal[tdms] (pip install 'psdcal[tdms]')", path=path
+        ) from None
+    return nptdms
+
+
+def _tdms_channels(f, path, opts):
+    names = opts["channels"]
+    groups = f.groups()
+    if opts.get("group"):
+        sel = [g for g in groups if g.name == opts["group"]]
+        if not sel:
+            raise InputError(f"no group '{opts['group']}' (groups: {[g.name for g in groups]})", path=path,
+                             field=opts["group"])
+    else:
+        sel = [g for g in groups if all(n in [c.name for c in g.channels()] for n in names)]
+        if not sel:
+            have = [c.name for g in groups for c in g.channels()]
+            missing = [n for n in names if n not in have]
+            raise InputError(f"no group holds the channels {list(names)} (missing {missing})", path=path,
+                             field=(missing or [None])[0])
+    grp = sel[0]
+    have = {c.name: c for c in grp.channels()}
+    missing = [n for n in names if n not in have]
+    if missing:
+        raise InputError(f"group '{grp.name}' has no channel(s) {missing}", path=path, field=missing[0])
+    chans = [have[n] for n in names]
+    lens = {len(c) for c in chans}
+    if len(lens) != 1:
+        raise InputError(f"channels {list(names)} have different lengths {sorted(lens)}", path=path)
+    return chans
+
+
+def _open_tdms(path, opts):
+    nptdms = _import_nptdms(path)
+    try:
+        with nptdms.TdmsFile.open(path) as f:
+            chans = _tdms_channels(f, path, opts)
+            props = chans[0].properties
+            rate = None
+            if "wf_increment" in props and float(props["wf_increment"]) > 0:
+                rate = 1.0 / float(props["wf_increment"])
+            elif "rate_hz" in props:
+                rate = float(props["rate_hz"])
+            t0 = float(props.get("wf_start_offset", 0.0))
+            n = len(chans[0])
+    except (OSError, ValueError, KeyError) as exc:
+        raise InputError(f"not a readable TDMS file: {exc}", path=path) from None
+    return Recording(path=str(path), rate_hz=rate, n_samples=int(n), t0_s=t0, kind="tdms", options=opts)
+
+
+def _chunks_tdms(rec: Recording, chunk: int):
+    nptdms = _import_nptdms(rec.path)
+    with nptdms.TdmsFile.open(rec.path) as f:
+        chans = _tdms_channels(f, rec.path, rec.options)
+        n = rec.n_samples
+        for start in range(0, n, chunk):
+            stop = min(n, start + chunk)
+            block = np.empty((4, stop - start))
+            for i, ch in enumerate(chans):
+                block[i] = ch.read_data(start, stop - start)
+            _check_finite(block, rec.path, start)
+            yield rec.t0_s + start / rec.rate_hz, block

@@ -1,0 +1,447 @@
+"""Streaming demodulation of four-channel recordings (MODEL.md 3).
+
+* :class:`MultiCarrierLockin`: windowed synchronous demodulation of several
+  carriers at once (frequency multiplexing).  Every window of ``n_window``
+  samples is fitted by least squares with ``sin`` and ``cos`` of **all**
+  carriers plus an offset.  Solving the carriers jointly (instead of one
+  lock-in per carrier) removes the cross-talk between carriers even when the
+  window is not a whole number of periods of each.  The basis is built on the
+  window's own time axis, so one pre-computed projection serves every window;
+  the phases are referred back to the recording's time axis (``t0_s`` of the
+  chunks), so they stay coherent across chunks.
+* The four channels of one emitter share the carrier phase (the light spot
+  splits one photocurrent), so each channel's amplitude is the projection of
+  its complex amplitude on the common phase: a signed, unbiased estimate with
+  Gaussian noise (``hypot(i, q)`` would be biased upwards at low SNR).
+* The residual of each window's fit gives the noise of each channel, and the
+  least-squares covariance ``sigma^2 (B^T B)^-1`` the noise of the amplitudes.
+* :class:`TdmSegmenter`: time multiplexing (LEDs on one at a time, as on the
+  calibration template), with segments found from the signal (windows whose
+  total amplitude is significant) or given by a schedule.
+
+The single-record functions of :mod:`psdcal.demod` remain the reference;
+``MultiCarrierLockin`` with one carrier gives the same amplitude as
+:func:`psdcal.demod.lockin_amplitude` on each window.
+"""
+from __future__ import annotations
+
+import csv
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .errors import InputError
+
+#: A window must hold at least this many periods of the lowest carrier.
+MIN_PERIODS = 3.0
+
+
+@dataclass(frozen=True)
+class WindowBlock:
+    """Demodulated windows (a batch produced from one chunk).
+
+    Attributes
+    ----------
+    index : (n_w,) int ndarray
+        Window number since the start of the recording.
+    t_start_s, t_s : (n_w,) ndarrays
+        Start and centre time of each window, s.
+    amplitude : (n_w, n_carriers, 4) ndarray
+        Amplitude (peak) of each carrier on each channel, projected on the
+        carrier's common phase (signed; signal unit).
+    var_amplitude : (n_w, n_carriers, 4) ndarray
+        Its variance from the fit residual, signal unit^2.
+    phase_rad : (n_w, n_carriers) ndarray
+        Common phase ``theta`` of each carrier, ``v ~ A sin(2 pi f t + theta)``
+        in the recording's time.
+    noise_sigma : (n_w, 4) ndarray
+        RMS residual of each channel's fit (the noise), signal unit.
+    """
+
+    index: np.ndarray
+    t_start_s: np.ndarray
+    t_s: np.ndarray
+    amplitude: np.ndarray
+    var_amplitude: np.ndarray
+    phase_rad: np.ndarray
+    noise_sigma: np.ndarray
+
+    def __len__(self) -> int:
+        return int(self.index.shape[0])
+
+
+def check_carriers(rate_hz: float, carriers_hz, window_s: float) -> tuple[int, tuple[float, ...]]:
+    """Validate a demodulation set-up; returns ``(n_window, carriers)``.
+
+    Raises
+    ------
+    InputError
+        A carrier at or above Nyquist, repeated carriers, a window shorter than
+        :data:`MIN_PERIODS` periods of the lowest carrier, or carriers closer
+        than ``1 / window_s`` (they cannot be told apart in one window).
+    """
+    rate = float(rate_hz)
+    if not (rate > 0 and math.isfinite(rate)):
+        raise InputError(f"sampling rate must be positive, got {rate_hz}", field="rate_hz")
+    carriers = tuple(float(f) for f in carriers_hz)
+    if not carriers:
+        raise InputError("give at least one carrier frequency", field="carrier_hz")
+    for f in carriers:
+        if not (f > 0 and math.isfinite(f)):
+            raise InputError(f"carrier frequency must be positive, got {f}", field="carrier_hz")
+        if f >= rate / 2:
+            raise InputError(f"carrier {f:g} Hz is at or above the Nyquist frequency {rate / 2:g} Hz", field="carrier_hz")
+    if len(set(carriers)) != len(carriers):
+        raise InputError(f"repeated carrier frequency in {list(carriers)}", field="carrier_hz")
+    w = float(window_s)
+    if not (w > 0 and math.isfinite(w)):
+        raise InputError(f"window must be positive, got {window_s} s", field="window_s")
+    n = int(round(w * rate))
+    w_eff = n / rate
+    fmin = min(carriers)
+    if w_eff * fmin < MIN_PERIODS:
+        raise InputError(
+            f"window {w_eff:g} s is shorter than {MIN_PERIODS:g} periods of the {fmin:g} Hz carrier "
+            f"(use --window-s >= {MIN_PERIODS / fmin:g})",
+            field="window_s",
+        )
+    if len(carriers) > 1:
+        fs = sorted(carriers)
+        df = min(b - a for a, b in zip(fs, fs[1:]))
+        if w_eff * df < 1.0:
+            raise InputError(
+                f"carriers {df:g} Hz apart cannot be separated in a {w_eff:g} s window "
+                f"(use --window-s >= {1.0 / df:g})",
+                field="window_s",
+            )
+    return n, carriers
+
+
+class MultiCarrierLockin:
+    """Windowed joint lock-in over a stream of chunks (frequency multiplexing).
+
+    Window ``j`` holds samples ``[j n, (j + 1) n)`` counted from the first
+    sample given; a last partial window is dropped.
+
+    Parameters
+    ----------
+    rate_hz : float
+    carriers_hz : sequence of float
+        One carrier per emitter.
+    window_s : float
+        Window length, s (rounded to a whole number of samples).
+
+    Examples
+    --------
+    >>> lk = MultiCarrierLockin(100e3, [1000.0, 1300.0], 0.01)
+    >>> for t0, block in recording.chunks():          # doctest: +SKIP
+    ...     windows = lk.process(t0, block)
+    """
+
+    def __init__(self, rate_hz: float, carriers_hz, window_s: float):
+        n, carriers = check_carriers(rate_hz, carriers_hz, window_s)
+        self.rate_hz = float(rate_hz)
+        self.carriers_hz = carriers
+        self.n_window = n
+        k = len(carriers)
+        tau = np.arange(n) / self.rate_hz
+        cols = []
+        for f in carriers:
+            w = 2 * np.pi * f * tau
+            cols += [np.sin(w), np.cos(w)]
+        cols.append(np.ones(n))
+        basis = np.stack(cols, axis=1)  # (n, 2k + 1)
+        gram = basis.T @ basis
+        if np.linalg.cond(gram) > 1e10:
+            raise InputError("the carriers are not separable in this window (ill-conditioned fit)", field="window_s")
+        self._gram = gram
+        self._ginv = np.linalg.inv(gram)
+        self._proj = np.ascontiguousarray(basis @ self._ginv)  # coef = x @ proj
+        self._omega = 2 * np.pi * np.asarray(carriers)
+        self._dof = n - (2 * k + 1)
+        self._buf = np.empty((4, 0))
+        self._origin_s = None
+        self._consumed = 0  # samples received
+        self._next_window = 0
+
+    @property
+    def window_s(self) -> float:
+        """Effective window length, s."""
+        return self.n_window / self.rate_hz
+
+    def process(self, t0_s: float, block) -> WindowBlock:
+        """Feed the next chunk ``block`` (4, m) starting at ``t0_s``; return the windows it completes."""
+        block = np.asarray(block, dtype=float)
+        if block.ndim != 2 or block.shape[0] != 4:
+            raise InputError(f"a chunk must have shape (4, n), got {block.shape}")
+        if self._origin_s is None:
+            self._origin_s = float(t0_s)
+        else:
+            expected = self._origin_s + self._consumed / self.rate_hz
+            if abs(float(t0_s) - expected) > 0.5 / self.rate_hz:
+                raise InputError(f"gap in the recording: chunk at {t0_s:.9g} s, expected {expected:.9g} s")
+        self._consumed += block.shape[1]
+        x = block if self._buf.shape[1] == 0 else np.concatenate([self._buf, block], axis=1)
+        n = self.n_window
+        nw = x.shape[1] // n
+        used = nw * n
+        self._buf = x[:, used:].copy() if used < x.shape[1] else np.empty((4, 0))
+        return self._demodulate(x[:, :used].reshape(4, nw, n))
+
+    def _demodulate(self, xw: np.ndarray) -> WindowBlock:
+        n = self.n_window
+        k = len(self.carriers_hz)
+        nw = xw.shape[1]
+        j0 = self._next_window
+        self._next_window += nw
+        index = np.arange(j0, j0 + nw)
+        t_start = self._origin_s + index * n / self.rate_hz
+        if nw == 0:
+            e = np.zeros((0, k, 4))
+            return WindowBlock(index, t_start, t_start, e, e, np.zeros((0, k)), np.zeros((0, 4)))
+        coef = xw @ self._proj  # (4, nw, 2k+1)
+        xx = np.einsum("cwn,cwn->cw", xw, xw)
+        fit = np.einsum("cwi,ij,cwj->cw", coef, self._gram, coef)
+        var = np.clip(xx - fit, 0.0, None) / max(self._dof, 1)  # (4, nw)
+        iq = coef[..., : 2 * k].reshape(4, nw, k, 2)  # (i, q) per carrier
+        z = iq[..., 0] + 1j * iq[..., 1]  # x ~ i sin + q cos on the window's own time
+        zsum = z.sum(axis=0)  # (nw, k): common phase of the four channels
+        mag = np.abs(zsum)
+        u = np.where(mag > 0, zsum / np.where(mag > 0, mag, 1.0), 1.0)
+        amp = (z * np.conj(u)).real  # (4, nw, k), signed
+        # Var of the projection: u^T Ginv_k u sigma^2 with u = (Re u, Im u) over (i, q)
+        gi = np.stack([self._ginv[2 * m : 2 * m + 2, 2 * m : 2 * m + 2] for m in range(k)])  # (k, 2, 2)
+        ur, ui = u.real, u.imag
+        quad = ur * ur * gi[:, 0, 0] + 2 * ur * ui * gi[:, 0, 1] + ui * ui * gi[:, 1, 1]  # (nw, k)
+        var_amp = var[:, :, None] * quad[None]
+        # common phase in the recording's time: x = A sin(w tau + th_l) = A sin(w t + th_l - w t_start)
+        phase = np.angle(zsum) - self._omega[None, :] * (t_start - self._origin_s)[:, None]
+        phase = np.angle(np.exp(1j * phase))
+        return WindowBlock(
+            index=index,
+            t_start_s=t_start,
+            t_s=t_start + 0.5 * (n - 1) / self.rate_hz,
+            amplitude=np.moveaxis(amp, 0, -1),
+            var_amplitude=np.moveaxis(var_amp, 0, -1),
+            phase_rad=phase,
+            noise_sigma=np.sqrt(var).T,
+        )
+
+
+# --------------------------------------------------------------------------- time multiplexing
+@dataclass(frozen=True)
+class ScheduleEntry:
+    """One line of a schedule: ``emitter`` is on during ``[t_start_s, t_end_s]``."""
+
+    emitter: str
+    t_start_s: float
+    t_end_s: float
+
+
+def load_schedule(path) -> tuple[ScheduleEntry, ...]:
+    """Read a schedule CSV with header ``emitter,t_start_s,t_end_s``.
+
+    Raises
+    ------
+    InputError
+        Naming the file, the line and the field.
+    """
+    path = Path(path)
+    try:
+        fh = open(path, newline="", encoding="utf-8")
+    except FileNotFoundError:
+        raise InputError("schedule file not found", path=path) from None
+    out = []
+    with fh:
+        rows = csv.reader(fh)
+        header = [h.strip() for h in next(rows, [])]
+        for col in ("emitter", "t_start_s", "t_end_s"):
+            if col not in header:
+                raise InputError(f"missing column '{col}' (header must be emitter,t_start_s,t_end_s)", path=path,
+                                 line=1, field=col)
+        ie, i0, i1 = (header.index(c) for c in ("emitter", "t_start_s", "t_end_s"))
+        for lineno, row in enumerate(rows, start=2):
+            if not row or not any(c.strip() for c in row):
+                continue
+            if len(row) != len(header):
+                raise InputError(f"expected {len(header)} fields, found {len(row)}", path=path, line=lineno)
+            vals = {}
+            for col, i in (("t_start_s", i0), ("t_end_s", i1)):
+                try:
+                    vals[col] = float(row[i])
+                except ValueError:
+                    raise InputError(f"not a number: {row[i]!r}", path=path, line=lineno, field=col) from None
+                if not math.isfinite(vals[col]):
+                    raise InputError("not a finite number", path=path, line=lineno, field=col)
+            if not vals["t_end_s"] > vals["t_start_s"]:
+                raise InputError("t_end_s must be after t_start_s", path=path, line=lineno, field="t_end_s")
+            out.append(ScheduleEntry(row[ie].strip(), vals["t_start_s"], vals["t_end_s"]))
+    if not out:
+        raise InputError("the schedule has no entries", path=path)
+    return tuple(sorted(out, key=lambda e: e.t_start_s))
+
+
+@dataclass(frozen=True)
+class Segment:
+    """An emitter's on-time, its windows averaged.
+
+    Attributes
+    ----------
+    emitter : str
+    t_start_s, t_end_s : float
+        Span of the windows used, s.
+    n_windows : int
+    amplitude : (4,) ndarray
+        Mean amplitude per channel.
+    var_amplitude : (4,) ndarray
+        Variance of that mean (from the windows' residual noise).
+    """
+
+    emitter: str
+    t_start_s: float
+    t_end_s: float
+    n_windows: int
+    amplitude: np.ndarray
+    var_amplitude: np.ndarray
+
+    @property
+    def t_s(self) -> float:
+        """Centre of the segment, s."""
+        return 0.5 * (self.t_start_s + self.t_end_s)
+
+
+class _Acc:
+    __slots__ = ("t0", "t1", "n", "sa", "sv")
+
+    def __init__(self):
+        self.t0, self.t1, self.n = math.inf, -math.inf, 0
+        self.sa = np.zeros(4)
+        self.sv = np.zeros(4)
+
+    def add(self, t0, t1, a, v):
+        self.t0 = min(self.t0, t0)
+        self.t1 = max(self.t1, t1)
+        self.n += a.shape[0]
+        self.sa = self.sa + a.sum(0)
+        self.sv = self.sv + v.sum(0)
+
+    def segment(self, name):
+        return Segment(name, self.t0, self.t1, self.n, self.sa / self.n, self.sv / self.n**2)
+
+
+class TdmSegmenter:
+    """Time multiplexing: one emitter on at a time on one carrier.
+
+    Without a schedule, a window is *on* when its total amplitude exceeds
+    ``min_snr`` times its standard deviation; each run of on-windows is a
+    segment, its first and last windows (which may straddle the switching)
+    are dropped when the run is longer than two windows.  Segments are named
+    ``1, 2, ...`` (modulo ``n_emitters`` when the emitters repeat in cycles).
+    With a schedule, the windows lying entirely inside an entry's interval
+    are that entry's segment.
+
+    Parameters
+    ----------
+    window_s : float
+        Window length (to know each window's end).
+    carrier_index : int
+        Which carrier of the :class:`WindowBlock` to use.
+    min_snr : float
+        Detection threshold (amplitude / its 1-sigma).
+    schedule : sequence of ScheduleEntry, optional
+    n_emitters : int, optional
+        Number of emitters in a cycle (names repeat modulo it).
+    """
+
+    def __init__(self, window_s: float, *, carrier_index: int = 0, min_snr: float = 20.0, schedule=None,
+                 n_emitters: int | None = None):
+        self.window_s = float(window_s)
+        self.k = int(carrier_index)
+        self.min_snr = float(min_snr)
+        self.schedule = None if schedule is None else tuple(schedule)
+        self.n_emitters = None if n_emitters is None else int(n_emitters)
+        self._count = 0
+        self._run: _Acc | None = None
+        self._run_len = 0
+        self._first = None  # held-back first window of the run
+        self._pending = None  # held-back latest window of the run
+        self._sched_acc: dict[int, _Acc] = {}
+        self._sched_next = 0
+
+    def _name(self) -> str:
+        self._count += 1
+        if self.n_emitters:
+            return str((self._count - 1) % self.n_emitters + 1)
+        return str(self._count)
+
+    def feed(self, block: WindowBlock) -> list[Segment]:
+        """Consume a :class:`WindowBlock`; return the segments it completes."""
+        a = block.amplitude[:, self.k, :]
+        v = block.var_amplitude[:, self.k, :]
+        t0 = block.t_start_s
+        t1 = t0 + self.window_s
+        if self.schedule is not None:
+            return self._feed_schedule(t0, t1, a, v)
+        total = a.sum(-1)
+        sd = np.sqrt(v.sum(-1))
+        on = total > self.min_snr * sd
+        out = []
+        for i in range(len(on)):  # a few windows per chunk: a Python loop is cheap here
+            w = (t0[i], t1[i], a[i : i + 1], v[i : i + 1])
+            if on[i]:
+                if self._run is None:
+                    self._run, self._run_len, self._first, self._pending = _Acc(), 1, w, None
+                else:
+                    self._run_len += 1
+                    if self._pending is not None:
+                        self._run.add(*self._pending)
+                    self._pending = w
+            elif self._run is not None:
+                out.extend(self._close_run())
+        return out
+
+    def _close_run(self) -> list[Segment]:
+        run, n = self._run, self._run_len
+        self._run = None
+        if n <= 2:  # too short to drop edges: keep what there is
+            for w in (self._first, self._pending):
+                if w is not None:
+                    run.add(*w)
+        return [run.segment(self._name())]
+
+    def _feed_schedule(self, t0, t1, a, v) -> list[Segment]:
+        out = []
+        if len(t0) == 0:
+            return out
+        eps = 1e-9
+        sched = self.schedule
+        for j in range(self._sched_next, len(sched)):
+            e = sched[j]
+            if e.t_start_s > t1[-1]:
+                break
+            m = (t0 >= e.t_start_s - eps) & (t1 <= e.t_end_s + eps)
+            if np.any(m):
+                self._sched_acc.setdefault(j, _Acc()).add(t0[m].min(), t1[m].max(), a[m], v[m])
+        # entries that can receive no more windows
+        t_now = t0[-1] if len(t0) else -math.inf
+        while self._sched_next < len(sched) and sched[self._sched_next].t_end_s < t_now + self.window_s:
+            j = self._sched_next
+            acc = self._sched_acc.pop(j, None)
+            if acc is not None:
+                out.append(acc.segment(sched[j].emitter))
+            self._sched_next += 1
+        return out
+
+    def finish(self) -> list[Segment]:
+        """Segments still open at the end of the recording."""
+        out = []
+        if self.schedule is not None:
+            for j in sorted(self._sched_acc):
+                out.append(self._sched_acc[j].segment(self.schedule[j].emitter))
+            self._sched_acc.clear()
+            self._sched_next = len(self.schedule)
+        elif self._run is not None:
+            out.extend(self._close_run())
+        return out
