@@ -138,11 +138,14 @@ def test_errormap_command(tmp_path, calib, capsys):
         (["locate", "{tmp}/rec.bin", "--calib", "{calib}", "--rate-hz", "125000", "--carrier-hz", "1000",
           "-o", "{out}"], "unknown recording format"),
         (["aoa", "{tmp}/zero.csv", "--calib", "{calib}", "-o", "{out}"], "zero.csv:3"),
+        (["locate", "{tmp}/quiet.npy", "--calib", "{calib}", "--rate-hz", "125000", "--carrier-hz", "1000",
+          "-o", "{out}"], "no window has a carrier"),
     ],
 )
 def test_bad_input_exits_2_with_one_line(tmp_path, calib, capsys, args, message):
     np.save(tmp_path / "rec.npy", signals(RATE, 5000, [(np.ones(4), 1000.0, 0.0)]).T)
     (tmp_path / "rec.bin").write_bytes(b"x")
+    np.save(tmp_path / "quiet.npy", 0.01 + 1e-3 * np.random.default_rng(0).standard_normal((5000, 4)))
     (tmp_path / "zero.csv").write_text("vx1,vx2,vy1,vy2\n1,1,1,1\n0,0,0,0\n")
     out = tmp_path / "out.csv"
     out.write_text("old\n")

@@ -129,20 +129,24 @@ def single_columns(with_plane: bool) -> tuple[str, ...]:
 MULTI_COLUMNS = ("t_s", "emitter", "X_mm", "Y_mm", "Z_mm", "sigma_X_mm", "sigma_Y_mm", "sigma_Z_mm", "n_sensors", "chi2")
 
 
-def _fmt(v) -> str:
-    if isinstance(v, str):
-        return v
-    if isinstance(v, (int, np.integer)):
-        return str(int(v))
-    return "nan" if not math.isfinite(v) else f"{v:.10g}"
-
-
 def _write_rows(fh, cols: dict, order) -> int:
+    """Write columns (equal-length arrays) as CSV rows; floats with 10 significant digits."""
     n = len(cols["t_s"])
-    arrays = [cols[c] for c in order]
-    for i in range(n):
-        fh.write(",".join(_fmt(a[i]) for a in arrays))
-        fh.write("\n")
+    if n == 0:
+        return 0
+    parts, lists = [], []
+    for c in order:
+        a = np.asarray(cols[c])
+        if a.dtype.kind in "OUS":
+            parts.append("%s")
+        elif a.dtype.kind in "iub":
+            parts.append("%d")
+        else:
+            parts.append("%.10g")
+        lists.append(a.tolist())
+    fmt = ",".join(parts)
+    fh.write("\n".join([fmt % row for row in zip(*lists)]))
+    fh.write("\n")
     return n
 
 
@@ -255,6 +259,11 @@ def locate_to_csv(recording: Recording, model: SensorModel, out_path, config: Lo
                 f"the recording is shorter than one {lockin.window_s:g} s window ({n_samples} samples)",
                 path=recording.path,
             )
+        if n_rows == 0:
+            raise ZeroSignalError(
+                f"{recording.path}: no window has a carrier of {list(config.carriers_hz)} Hz above "
+                f"--min-snr {config.min_snr:g} (emitter off, wrong carrier, or dead channels)"
+            )
     return LocateSummary(n_samples, n_windows, n_rows, n_skipped, n_samples / recording.rate_hz, order)
 
 
@@ -341,6 +350,11 @@ def locate_multi_to_csv(recordings, sensors, out_path, config: LocateConfig,
                     progress(n_samples)
         if n_windows == 0:
             raise InputError("the recordings are shorter than one window", field="window_s")
+        if n_rows == 0:
+            raise ZeroSignalError(
+                f"no window has a carrier of {list(config.carriers_hz)} Hz seen by two sensors above "
+                f"--min-snr {config.min_snr:g}"
+            )
     return LocateSummary(n_samples, n_windows, n_rows, n_skipped, n_samples / rate, MULTI_COLUMNS)
 
 
