@@ -167,6 +167,8 @@ def test_predicted_noise_closed_form():
     assert sc.amplitude_noise_factor(s) == pytest.approx(2.0 / n, rel=1e-12)
     # band-pass keeps m = 500 of 1000 samples: about 2 / m
     assert sc.amplitude_noise_factor(replace(s, method="bandpass")) * 500 / 2 == pytest.approx(1.0, abs=0.1)
+    long = replace(s, method="bandpass", duration_s=0.5)  # beyond the exact computation
+    assert sc.amplitude_noise_factor(long) == pytest.approx(2.0 / 24_500, rel=1e-12)
 
 
 def test_noise_with_gains_and_distortion_matches_prediction():
@@ -232,6 +234,20 @@ def test_unequal_gains_reproduce_gain_map(method):
     np.testing.assert_allclose(got, gain_map(xy, gains), rtol=0, atol=1e-12)
     h = gain_homography(gains) @ np.c_[xy, np.ones(len(xy))].T
     np.testing.assert_allclose(got, (h[:2] / h[2]).T, rtol=0, atol=1e-12)
+
+
+@hsettings(max_examples=25, deadline=None)
+@given(
+    gains=st.lists(st.floats(0.5, 2.0), min_size=4, max_size=4),
+    x=st.floats(-HALF, HALF),
+    y=st.floats(-HALF, HALF),
+)
+def test_gains_property_projective_readout(gains, x, y):
+    got = sc.measure_points(np.array([x, y]), sc.ChainSettings(), gains=gains)
+    np.testing.assert_allclose(got, gain_map([x, y], gains), rtol=0, atol=1e-11)
+    # a common factor of the gains cancels
+    got2 = sc.measure_points(np.array([x, y]), sc.ChainSettings(), gains=7.5 * np.asarray(gains))
+    np.testing.assert_allclose(got2, got, rtol=0, atol=1e-12)
 
 
 @pytest.mark.parametrize("snr_db", [None, 40.0])

@@ -307,15 +307,14 @@ def _is_setting(value) -> bool:
     return isinstance(value, (bool, int, float, str, np.integer, np.floating, np.bool_))
 
 
-def _progress_bar(enabled: bool, total: int):
+def _progress_bar(enabled: bool):
     if not (enabled and sys.stderr.isatty()):
         return None
     from rich.console import Console
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
-    bar = Progress(TextColumn("trials"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn(),
-                   console=Console(stderr=True), transient=True)
-    return bar
+    return Progress(TextColumn("trials"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn(),
+                    console=Console(stderr=True), transient=True)
 
 
 def run_trials(
@@ -357,7 +356,8 @@ def run_trials(
         Show a progress bar (rich) on stderr; never when stderr is not a terminal.
     on_error : {"record", "raise"}
         A failing trial: record NaN and its error message in the table and
-        warn (:class:`TrialFailureWarning`), or raise :class:`TrialError`.
+        warn (:class:`TrialFailureWarning`), or raise :class:`TrialError`
+        for the lowest failing trial index once all trials have run.
     **kwargs
         Passed to every trial.  Scalar ones (numbers, strings, bools) also
         become constant columns of the table.
@@ -401,7 +401,7 @@ def run_trials(
     starts = list(range(0, n_trials, chunksize))
 
     results: list = []
-    bar = _progress_bar(progress, n_trials)
+    bar = _progress_bar(progress)
     task = bar.add_task("trials", total=n_trials) if bar is not None else None
     try:
         if bar is not None:
