@@ -62,6 +62,10 @@ def test_csv_with_and_without_time(tmp_path, sig):
         open_recording(tmp_path / "n.csv")
     with pytest.raises(InputError, match="disagrees"):
         open_recording(tmp_path / "t.csv", 1000.0)
+    # time stamps rounded to 1 us at 48 kS/s: the rate still comes out right
+    t48 = np.round(np.arange(5000) / 48_000.0, 6)
+    _write_csv(tmp_path / "r.csv", np.ones((4, 5000)), t48)
+    assert open_recording(tmp_path / "r.csv", 48_000.0).rate_hz == pytest.approx(48_000.0, rel=1e-5)
 
 
 def test_hdf5_layouts(tmp_path, sig):

@@ -43,6 +43,9 @@ from .errors import InputError
 from .readout import CHANNELS
 
 DEFAULT_CHUNK = 1 << 16
+_CSV_RATE_ROWS = 10_001
+#: Relative tolerance between --rate-hz and a rate read from a file (CSV time stamps may be rounded).
+RATE_RTOL = 1e-4
 
 
 class MissingDependencyError(InputError):
@@ -121,7 +124,7 @@ def open_recording(path, rate_hz: float | None = None, *, channels=None, dataset
         ``.npy``, ``.csv``, ``.h5``/``.hdf5`` or ``.tdms``.
     rate_hz : float, optional
         Sampling rate; needed when the file does not carry one.  When both are
-        given they must agree (to 1e-6 relative).
+        given they must agree (to :data:`RATE_RTOL` relative).
     channels : 4 str, optional
         Names of the channels in the file, in the order vx1, vx2, vy1, vy2.
     dataset, group : str, optional
@@ -164,7 +167,7 @@ def open_recording(path, rate_hz: float | None = None, *, channels=None, dataset
         final = float(rate_hz)
     else:
         final = float(file_rate)
-        if rate_hz is not None and not math.isclose(final, float(rate_hz), rel_tol=1e-6):
+        if rate_hz is not None and not math.isclose(final, float(rate_hz), rel_tol=RATE_RTOL):
             raise InputError(
                 f"--rate-hz {float(rate_hz):g} disagrees with the file's sampling rate {final:g} Hz",
                 path=path,
@@ -244,17 +247,23 @@ def _open_csv(path, opts):
     header, cols, tcol = _csv_header(path, opts["channels"])
     rate, t0 = None, 0.0
     if tcol is not None:
+        # the rate from the span of the first rows (robust to rounded time stamps)
         with open(path, newline="", encoding="utf-8") as fh:
             fh.readline()
-            lines = [fh.readline() for _ in range(2)]
-        lines = [ln for ln in lines if ln.strip()]
+            lines = []
+            for ln in fh:
+                if ln.strip():
+                    lines.append(ln)
+                if len(lines) == _CSV_RATE_ROWS:
+                    break
         if lines:
             t = _parse_rows(lines, len(header), [tcol], path, 2)[:, 0]
             t0 = float(t[0])
-            if len(t) == 2:
-                if not t[1] > t[0]:
-                    raise InputError("t_s must increase", path=path, line=3, field="t_s")
-                rate = 1.0 / (t[1] - t[0])
+            if len(t) >= 2:
+                dt = np.diff(t)
+                if not np.all(dt > 0):
+                    raise InputError("t_s must increase", path=path, line=3 + int(np.argmin(dt > 0)), field="t_s")
+                rate = (len(t) - 1) / (t[-1] - t[0])
     opts = dict(opts, header=header, cols=cols, tcol=tcol)
     return Recording(path=str(path), rate_hz=rate, n_samples=None, t0_s=t0, kind="csv", options=opts)
 
