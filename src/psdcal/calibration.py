@@ -112,6 +112,12 @@ def initial_estimate(
         Hs.append(homography(T[ok], img[ok], normalize=normalize, label=f"image {ids[i]}"))
     Hs = np.array(Hs)
     intr = intrinsics_from_homographies(Hs, skew=skew, aspect=aspect)
+    extent = float(np.nanmax(np.abs(X))) * 2 if np.any(np.isfinite(X)) else 1.0
+    if not (intr.f_mm < 1e3 * extent and np.hypot(intr.cx_mm, intr.cy_mm) < 10 * extent):
+        raise DegenerateViewsError(
+            f"the views do not determine the intrinsics (closed form gives f = {intr.f_mm:.3g} mm, "
+            f"C = ({intr.cx_mm:.3g}, {intr.cy_mm:.3g}) mm): tilt the template differently between views"
+        )
     poses = [extrinsics_from_homography(H, intr) for H in Hs]
     return InitialEstimate(k, n_lines, Hs, intr, np.array([p[0] for p in poses]), np.array([p[1] for p in poses]))
 
@@ -414,7 +420,31 @@ def calibrate(
     intr0 = start.intrinsics
     if aspect and intr0.fy_mm is None:
         intr0 = replace(intr0, fy_mm=intr0.f_mm)
-    ref = refine(prob, intr0, dist0, g0, start.rvecs, start.tvecs_mm, solver)
+    rv0, tv0 = start.rvecs, start.tvecs_mm
+    staged = staged_start(spec)
+    if staged is not None:
+        # Stage 1: the core model (f, C, lens radial) from the linear start; the
+        # PSD, tangential, skew, aspect and gain terms are then freed from its
+        # solution. Freed all at once from the linear start, k1 and l1 (nearly
+        # interchangeable when C is near the electrical centre) can drift into a
+        # false minimum.
+        p1 = Problem(T, X, staged, cost=cost, sensor_mm=tuple(sensor_mm))
+        r1 = refine(p1, replace(intr0, fy_mm=None, skew=0.0), dist0, g0, rv0, tv0, solver)
+        if r1.converged and np.isfinite(r1.cost_rms):
+            intr0 = replace(r1.intrinsics, fy_mm=r1.intrinsics.f_mm if aspect else None)
+            dist0 = Distortion.from_array(r1.coeffs)
+            rv0, tv0 = r1.rvecs, r1.tvecs
+    if cost == "template":
+        # The plate-plane cost (Eq 29) is poorly conditioned far from the solution
+        # (its residuals scale with each view's distance); start it from the
+        # sensor-plane solution, which it then moves by O(noise).
+        pimg = Problem(T, X, spec, cost="image", sensor_mm=tuple(sensor_mm))
+        ri = refine(pimg, intr0, dist0, g0, rv0, tv0, solver)
+        if ri.converged and np.isfinite(ri.cost_rms):
+            intr0 = ri.intrinsics
+            dist0 = Distortion.from_array(ri.coeffs)
+            rv0, tv0 = ri.rvecs, ri.tvecs
+    ref = refine(prob, intr0, dist0, g0, rv0, tv0, solver)
     result = _make_result(prob, ref, start, ids, pids, spec, cost, g0, preliminary, normalize, solver)
     if not ref.converged:
         raise ConvergenceError(
@@ -423,6 +453,13 @@ def calibrate(
             result=result,
         )
     return result
+
+
+def staged_start(spec: ModelSpec) -> ModelSpec | None:
+    """The core model refined first when ``spec`` has terms beyond it (None otherwise)."""
+    core = ModelSpec(radial=min(spec.radial, 2), tangential=False, psd_radial=0, skew=False, aspect=False, fit_gains=False)
+    extra = spec.psd_radial > 0 or spec.skew or spec.aspect or spec.fit_gains or spec.radial > 2
+    return core if extra else None
 
 
 def _make_result(prob, ref, start, ids, pids, spec, cost, g0, preliminary, normalize, solver):

@@ -228,7 +228,7 @@ def distort(
         d[ia] -= st
         idx = np.concatenate([ia, idx[worse]])
         it_used = it + 1
-    ok = np.isfinite(err) & (err <= tol * 10) & (det > 0)
+    ok = np.isfinite(err) & (err <= tol * 10) & (det > 0) & _on_monotone_branch(d, coef, c)
     if not keep_failed:
         d = np.where(ok[:, None], d, np.nan)
     out = DistortResult(d_mm=d.reshape(shape), converged=ok.reshape(shape[:-1]), iterations=it_used)
@@ -243,6 +243,26 @@ def distort(
             Jk_all.reshape(lead + (2, 7)),
         )
     return out
+
+
+def _on_monotone_branch(d, coef, c):
+    """True where ``d`` lies on the branch of the model that starts at the centre.
+
+    Both radial maps (PSD about (0, 0), lens about c) must scale by a positive
+    factor and grow with the radius there; otherwise a Newton solution is a
+    point folded through the centre, not the physical pre-image.
+    """
+    k1, k2, k3, _, _, l1, l2 = coef
+    h2 = np.einsum("...i,...i->...", d, d)
+    s_psd = 1 + h2 * (l1 + l2 * h2)
+    ds_psd = 1 + h2 * (3 * l1 + 5 * l2 * h2)
+    u = d * s_psd[..., None]
+    e = u - c
+    r2 = np.einsum("...i,...i->...", e, e)
+    s_lens = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    ds_lens = 1 + r2 * (3 * k1 + r2 * (5 * k2 + 7 * r2 * k3))
+    with np.errstate(invalid="ignore"):
+        return (s_psd > 0) & (ds_psd > 0) & (s_lens > 0) & (ds_lens > 0)
 
 
 def distort_jacobians(d_mm, dist, c_mm, *, undistort_jacobians=None):
