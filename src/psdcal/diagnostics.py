@@ -1,0 +1,149 @@
+"""Numbers behind the calibration report: where the data are, and which points to trust.
+
+Plain functions over a :class:`psdcal.calibration.CalibrationResult`; the
+figures are in :mod:`psdcal.plots`, the page in :mod:`psdcal.report`.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .errors import InputError
+
+
+def align_to_problem(result):
+    """The result with its residual columns in the order of its problem record's template.
+
+    A calibration read back from JSON orders its point ids as the residual
+    rows list them; the problem record keeps the template's order. Reports
+    and refits index both the same way, so this puts the residuals
+    (n_images, M, 2) in the template's order (NaN for a point with no
+    residual anywhere). Returns the result itself when they already agree.
+    """
+    import dataclasses
+
+    try:
+        pids = tuple(result.problem["template"]["point_ids"])
+    except (KeyError, TypeError):
+        return result
+    if pids == tuple(result.point_ids):
+        return result
+    index = {p: j for j, p in enumerate(result.point_ids)}
+    R0 = np.asarray(result.residuals_mm, dtype=float)
+    R = np.full((R0.shape[0], len(pids), 2), np.nan)
+    for j, p in enumerate(pids):
+        if p in index:
+            R[:, j] = R0[:, index[p]]
+    return dataclasses.replace(result, point_ids=pids, residuals_mm=R)
+
+
+def measured_points_mm(result) -> np.ndarray:
+    """The measured impact points the calibration used, (n_images, M, 2) mm, NaN where missing.
+
+    Read from the problem record saved in the calibration (``problem.points.xy_mm``).
+
+    Raises
+    ------
+    InputError
+        When the calibration holds no points (pass the points file instead).
+    """
+    try:
+        xy = result.problem["points"]["xy_mm"]
+    except (KeyError, TypeError):
+        raise InputError("the calibration holds no measured points (problem.points); pass --points and --template",
+                         field="problem.points") from None
+    X = np.array([[[np.nan if v is None else v for v in pt] for pt in img] for img in xy], dtype=float)
+    if X.ndim != 3 or X.shape[:2] != np.asarray(result.residuals_mm).shape[:2]:
+        raise InputError(f"problem.points has shape {X.shape}, the residuals {np.shape(result.residuals_mm)}",
+                         field="problem.points")
+    return X
+
+
+@dataclass(frozen=True)
+class Coverage:
+    """Occupancy of the sensor by calibration points.
+
+    Attributes
+    ----------
+    x_edges_mm, y_edges_mm : (n + 1,) ndarray
+        Cell edges, mm.
+    counts : (n, n) int ndarray
+        Points per cell; ``counts[iy, ix]``.
+    in_region : (n, n) bool ndarray
+        Cells whose centre lies in the measurement region.
+    region_mm : (x0, x1, y0, y1)
+        The measurement region, mm.
+    """
+
+    x_edges_mm: np.ndarray
+    y_edges_mm: np.ndarray
+    counts: np.ndarray
+    in_region: np.ndarray
+    region_mm: tuple
+
+    @property
+    def empty(self) -> np.ndarray:
+        """(n, n) bool: cells in the measurement region with no calibration point."""
+        return self.in_region & (self.counts == 0)
+
+    @property
+    def fraction_covered(self) -> float:
+        """Fraction of the measurement region's cells that hold at least one point."""
+        n = int(self.in_region.sum())
+        return float(((self.counts > 0) & self.in_region).sum() / n) if n else float("nan")
+
+    def empty_cells_mm(self) -> list:
+        """The empty cells of the region as ``(x0, x1, y0, y1)`` tuples in mm."""
+        out = []
+        for iy, ix in zip(*np.nonzero(self.empty)):
+            out.append((float(self.x_edges_mm[ix]), float(self.x_edges_mm[ix + 1]),
+                        float(self.y_edges_mm[iy]), float(self.y_edges_mm[iy + 1])))
+        return out
+
+    def warnings(self) -> list:
+        """Sentences for the report: one per problem found (empty list when none)."""
+        cells = self.empty_cells_mm()
+        if not cells:
+            return []
+        w = (self.x_edges_mm[1] - self.x_edges_mm[0])
+        txt = ", ".join(f"x {c[0]:+.1f}..{c[1]:+.1f}, y {c[2]:+.1f}..{c[3]:+.1f}" for c in cells[:12])
+        more = f" and {len(cells) - 12} more" if len(cells) > 12 else ""
+        return [f"{len(cells)} cell(s) of {w:.2g} mm in the measurement region hold no calibration point "
+                f"({txt}{more} mm): the distortion there is extrapolated; add views that image the template there"]
+
+
+def coverage(points_mm, sensor_mm=(9.0, 9.0), *, n_cells: int = 6, region_mm=None) -> Coverage:
+    """Where on the sensor a calibration has data.
+
+    Parameters
+    ----------
+    points_mm : (..., 2) array_like
+        Measured impact points, mm (NaN rows ignored).
+    sensor_mm : (Lx, Ly), mm
+    n_cells : int
+        Cells per side over the sensor.
+    region_mm : (x0, x1, y0, y1), optional
+        The part of the sensor used for measurement (default: all of it).
+
+    Returns
+    -------
+    Coverage
+    """
+    if n_cells < 1:
+        raise InputError(f"n_cells must be >= 1, got {n_cells}", field="n_cells")
+    hx, hy = sensor_mm[0] / 2, sensor_mm[1] / 2
+    region = (-hx, hx, -hy, hy) if region_mm is None else tuple(float(v) for v in region_mm)
+    if len(region) != 4 or not (region[0] < region[1] and region[2] < region[3]):
+        raise InputError(f"region must be x0 x1 y0 y1 with x0 < x1, y0 < y1; got {region}", field="region_mm")
+    P = np.asarray(points_mm, dtype=float).reshape(-1, 2)
+    P = P[np.all(np.isfinite(P), axis=1)]
+    xe = np.linspace(-hx, hx, n_cells + 1)
+    ye = np.linspace(-hy, hy, n_cells + 1)
+    H, _, _ = np.histogram2d(P[:, 1], P[:, 0], bins=[ye, xe])
+    xc, yc = 0.5 * (xe[1:] + xe[:-1]), 0.5 * (ye[1:] + ye[:-1])
+    inside = ((xc[None, :] >= region[0]) & (xc[None, :] <= region[1]) & (yc[:, None] >= region[2]) & (yc[:, None] <= region[3]))
+    return Coverage(xe, ye, H.astype(int), inside, region)
+
+
+__all__ = ["Coverage", "align_to_problem", "coverage", "measured_points_mm"]
