@@ -41,9 +41,11 @@ def model_options(f):
 @model_options
 @click.option("--fit-gains", is_flag=True, default=False,
               help="Estimate the three relative channel gains jointly (POINTS must carry raw amplitudes vx1,vx2,vy1,vy2).")
+@click.option("--reject", "reject_k", type=click.FloatRange(min=0.0, min_open=True), default=None, metavar="K",
+              help="Remove points whose residual exceeds K robust noise sigmas, refit, and list them (e.g. 5).")
 @click.option("--quiet", "-q", is_flag=True, help="Print nothing but errors.")
 def calibrate_command(points, template, output, cost, radial, tangential, psd_radial, skew, aspect, preliminary,
-                      normalize, sensor_mm, max_iterations, fit_gains, quiet):
+                      normalize, sensor_mm, max_iterations, fit_gains, quiet, reject_k=None):
     """Calibrate a PSD + lens sensor from views of a planar LED template.
 
     POINTS is a CSV of impact points, `image_id,point_id,x_mm,y_mm` (a missing
@@ -73,6 +75,19 @@ def calibrate_command(points, template, output, cost, radial, tangential, psd_ra
         )
     except DegenerateViewsError as exc:
         raise DegenerateViewsError(f"{points}: {exc}") from None
+    if reject_k is not None:
+        from ..outliers import reject_outliers
+
+        rej = reject_outliers(res, reject_k, line_numbers=pf.line_numbers)
+        res = rej.result
+        if not quiet:
+            click.echo(f"--reject {reject_k:g}: removed {len(rej.removed)} point(s) above {reject_k:g} x "
+                       f"{rej.sigma_mm * 1e3:.3f} um (robust noise sigma), {rej.rounds} refit(s)")
+            for p in rej.removed:
+                click.echo(f"  {points}:{p.line}: image {p.image_id}, point {p.point_id} at ({p.x_mm:.4f}, {p.y_mm:.4f}) mm, "
+                           f"residual {p.residual_mm * 1e3:.2f} um = {p.ratio:.1f} sigma")
+            for iid, pid in rej.kept_flagged:
+                click.echo(f"  kept (too few points left to remove it): image {iid}, point {pid}")
     res = _with_inputs(res, template, points)
     if output is not None:
         save_calibration(output, res)
