@@ -97,8 +97,11 @@ def test_tdms(tmp_path, sig):
     rec = open_recording(tmp_path / "a.tdms", channels=("ax1", "ax2", "ay1", "ay2"))
     assert rec.rate_hz == pytest.approx(RATE) and rec.n_samples == sig.shape[1]
     np.testing.assert_array_equal(_collect(rec, 2048)[0], sig)
-    with pytest.raises(InputError, match="vx1"):
+    with pytest.raises(InputError, match=r"a\.tdms, field 'vx1': no group holds the channels"):
         open_recording(tmp_path / "a.tdms")
+    (tmp_path / "bad.tdms").write_bytes(b"not a tdms file at all")
+    with pytest.raises(InputError, match="not a readable TDMS"):
+        open_recording(tmp_path / "bad.tdms", RATE)
 
 
 def test_bad_recordings(tmp_path, sig, monkeypatch):

@@ -393,6 +393,8 @@ def _import_nptdms(path):
 def _tdms_channels(f, path, opts):
     names = opts["channels"]
     groups = f.groups()
+    if not groups:
+        raise InputError("no data groups: not a readable TDMS recording, or an empty one", path=path)
     if opts.get("group"):
         sel = [g for g in groups if g.name == opts["group"]]
         if not sel:
@@ -430,6 +432,8 @@ def _open_tdms(path, opts):
                 rate = float(props["rate_hz"])
             t0 = float(props.get("wf_start_offset", 0.0))
             n = len(chans[0])
+    except InputError:
+        raise
     except (OSError, ValueError, KeyError) as exc:
         raise InputError(f"not a readable TDMS file: {exc}", path=path) from None
     return Recording(path=str(path), rate_hz=rate, n_samples=int(n), t0_s=t0, kind="tdms", options=opts)
