@@ -162,3 +162,23 @@ def test_help_texts(capsys):
         assert main([cmd, "--help"]) == 0
     out = capsys.readouterr().out
     assert "--carrier-hz" in out and "Figure" in out and "POINTS.csv" in out
+
+
+def test_amplitudes_command_writes_a_calibration_points_csv(tmp_path):
+    amp = [np.array([0.2, 0.3, 0.25, 0.15]), np.array([0.1, 0.2, 0.3, 0.4])]
+    parts, t = [np.zeros((4, 3000))], 3000 / RATE
+    for a in amp:
+        parts += [signals(RATE, 10_000, [(a, 1000.0, 0.0)], t0_s=t, offset=(0, 0, 0, 0)), np.zeros((4, 3000))]
+        t += 13_000 / RATE
+    x = np.concatenate(parts, 1) + 0.02 + 1e-3 * np.random.default_rng(2).standard_normal((4, 29_000))
+    np.save(tmp_path / "view.npy", x.T)
+    out = tmp_path / "pts.csv"
+    assert main(["amplitudes", str(tmp_path / "view.npy"), "--rate-hz", "125000", "--carrier-hz", "1000",
+                 "--tdm", "--image-id", "7", "-o", str(out)]) == 0
+    r = read(out)
+    assert r.dtype.names == ("image_id", "point_id", "vx1", "vx2", "vy1", "vy2")
+    assert list(r["image_id"]) == [7, 7] and list(r["point_id"]) == [1, 2]
+    np.testing.assert_allclose(np.stack([r[c] for c in ("vx1", "vx2", "vy1", "vy2")], 1), amp, atol=1e-3)
+    assert main(["amplitudes", str(tmp_path / "view.npy"), "--rate-hz", "125000", "--carrier-hz", "1000",
+                 "-o", str(out)]) == 0
+    assert out.read_text().splitlines()[0] == "t_s,emitter,vx1,vx2,vy1,vy2,sigma_vx1,sigma_vx2,sigma_vy1,sigma_vy2"

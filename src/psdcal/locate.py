@@ -183,24 +183,11 @@ def _rows_single(t_s, names, a, var_a, model: SensorModel, distance_mm, min_snr)
     return cols, int((~keep).sum())
 
 
-def locate_to_csv(recording: Recording, model: SensorModel, out_path, config: LocateConfig,
-                  progress: Callable[[int], None] | None = None) -> LocateSummary:
-    """Demodulate a recording of one sensor and write angles (and positions) to CSV.
+def _stream_single(recording: Recording, config: LocateConfig, out_path, order, make_cols, progress):
+    """Shared streaming loop of one recording: chunks -> windows (or TDM segments) -> rows -> CSV.
 
-    Parameters
-    ----------
-    recording : Recording
-        From :func:`psdcal.recording.open_recording`.
-    model : SensorModel
-    out_path : str or Path
-        Output CSV, written atomically (an existing file is untouched on error).
-    config : LocateConfig
-    progress : callable, optional
-        Called with the number of samples (per channel) read after each chunk.
-
-    Returns
-    -------
-    LocateSummary
+    ``make_cols(t_s, emitter, a, var_a)`` turns amplitude rows into output
+    columns and returns ``(cols, n_skipped)``.
     """
     if config.tdm and len(config.carriers_hz) != 1:
         raise InputError("time multiplexing uses a single carrier", field="carrier_hz")
@@ -213,7 +200,6 @@ def locate_to_csv(recording: Recording, model: SensorModel, out_path, config: Lo
         seg = TdmSegmenter(lockin.window_s, min_snr=config.min_snr, schedule=config.schedule,
                            n_emitters=config.n_emitters)
     chunk = max(1, int(config.chunk_samples) // lockin.n_window) * lockin.n_window
-    order = single_columns(config.distance_mm is not None)
     k = len(names)
     names_arr = np.array(names, dtype=object)
     n_samples = n_windows = n_rows = n_skipped = 0
@@ -225,7 +211,7 @@ def locate_to_csv(recording: Recording, model: SensorModel, out_path, config: Lo
         nm = np.array([s.emitter for s in segments], dtype=object)
         a = np.stack([s.amplitude for s in segments])
         v = np.stack([s.var_amplitude for s in segments])
-        return _rows_single(t, nm, a, v, model, config.distance_mm, config.min_snr)
+        return make_cols(t, nm, a, v)
 
     with atomic_path(out_path, suffix=".csv") as tmp:
         with open(tmp, "w", encoding="utf-8", newline="") as fh:
@@ -240,10 +226,7 @@ def locate_to_csv(recording: Recording, model: SensorModel, out_path, config: Lo
                     else:
                         t = np.repeat(wb.t_s, k)
                         nm = np.tile(names_arr, len(wb))
-                        cols, skipped = _rows_single(
-                            t, nm, wb.amplitude.reshape(-1, 4), wb.var_amplitude.reshape(-1, 4), model,
-                            config.distance_mm, config.min_snr,
-                        )
+                        cols, skipped = make_cols(t, nm, wb.amplitude.reshape(-1, 4), wb.var_amplitude.reshape(-1, 4))
                     n_skipped += skipped
                     if cols is not None:
                         n_rows += _write_rows(fh, cols, order)
@@ -264,7 +247,69 @@ def locate_to_csv(recording: Recording, model: SensorModel, out_path, config: Lo
                 f"{recording.path}: no window has a carrier of {list(config.carriers_hz)} Hz above "
                 f"--min-snr {config.min_snr:g} (emitter off, wrong carrier, or dead channels)"
             )
-    return LocateSummary(n_samples, n_windows, n_rows, n_skipped, n_samples / recording.rate_hz, order)
+    return LocateSummary(n_samples, n_windows, n_rows, n_skipped, n_samples / recording.rate_hz, tuple(order))
+
+
+def locate_to_csv(recording: Recording, model: SensorModel, out_path, config: LocateConfig,
+                  progress: Callable[[int], None] | None = None) -> LocateSummary:
+    """Demodulate a recording of one sensor and write angles (and positions) to CSV.
+
+    Parameters
+    ----------
+    recording : Recording
+        From :func:`psdcal.recording.open_recording`.
+    model : SensorModel
+    out_path : str or Path
+        Output CSV, written atomically (an existing file is untouched on error).
+    config : LocateConfig
+    progress : callable, optional
+        Called with the number of samples (per channel) read after each chunk.
+
+    Returns
+    -------
+    LocateSummary
+    """
+
+    def make_cols(t, nm, a, v):
+        return _rows_single(t, nm, a, v, model, config.distance_mm, config.min_snr)
+
+    return _stream_single(recording, config, out_path, single_columns(config.distance_mm is not None), make_cols,
+                          progress)
+
+
+AMPLITUDE_COLUMNS = ("t_s", "emitter", "vx1", "vx2", "vy1", "vy2",
+                     "sigma_vx1", "sigma_vx2", "sigma_vy1", "sigma_vy2")
+
+
+def amplitudes_to_csv(recording: Recording, out_path, config: LocateConfig, *, image_id=None,
+                      progress: Callable[[int], None] | None = None) -> LocateSummary:
+    """Demodulate a recording and write the carrier amplitudes (no calibration needed).
+
+    Without ``image_id`` the columns are :data:`AMPLITUDE_COLUMNS` (one row
+    per window and emitter, or per time-multiplexed segment).  With
+    ``image_id`` the output is a calibration points CSV from raw amplitudes
+    (MODEL.md 9): ``image_id,point_id,vx1,vx2,vy1,vy2``, ``point_id`` the
+    emitter (segment or schedule name): one view of the calibration template.
+
+    Rows whose total amplitude is below ``config.min_snr`` sigma are dropped.
+
+    Returns
+    -------
+    LocateSummary
+    """
+
+    def make_cols(t, nm, a, v):
+        keep = (a.sum(-1) > config.min_snr * np.sqrt(v.sum(-1))) & np.all(np.isfinite(a), axis=-1)
+        sd = np.sqrt(v[keep])
+        cols = {"t_s": t[keep], "emitter": nm[keep], "point_id": nm[keep],
+                "image_id": np.array([str(image_id)] * int(keep.sum()), dtype=object)}
+        for c, name in enumerate(("vx1", "vx2", "vy1", "vy2")):
+            cols[name] = a[keep, c]
+            cols["sigma_" + name] = sd[:, c]
+        return cols, int((~keep).sum())
+
+    order = AMPLITUDE_COLUMNS if image_id is None else ("image_id", "point_id", "vx1", "vx2", "vy1", "vy2")
+    return _stream_single(recording, config, out_path, order, make_cols, progress)
 
 
 def locate_multi_to_csv(recordings, sensors, out_path, config: LocateConfig,

@@ -1,4 +1,4 @@
-"""``psdcal locate``, ``psdcal aoa`` and ``psdcal errormap``: a thin layer over
+"""``psdcal locate``, ``amplitudes``, ``aoa`` and ``errormap``: a thin layer over
 :mod:`psdcal.locate` and :mod:`psdcal.positioning` (no numerics here)."""
 from __future__ import annotations
 
@@ -134,6 +134,55 @@ class _Bar:
 
     def close(self):
         self._p.stop()
+
+
+@cli.command("amplitudes")
+@click.argument("recording", type=click.Path(dir_okay=False))
+@click.option("--rate-hz", type=float, help="Sampling rate (when the file does not carry one).")
+@click.option("--carrier-hz", "carriers", type=float, multiple=True, required=True,
+              help="Carrier of an emitter; repeat for several emitters at once.")
+@click.option("--emitter", "emitters", multiple=True, help="Name of each carrier's emitter (default '<f>Hz').")
+@click.option("--window-s", type=float, default=0.01, show_default=True, help="Demodulation window.")
+@click.option("--tdm", is_flag=True, help="Time multiplexing: one row per segment where one LED is on.")
+@click.option("--schedule", type=click.Path(dir_okay=False),
+              help="TDM schedule CSV emitter,t_start_s,t_end_s (implies --tdm).")
+@click.option("--n-emitters", type=int, help="TDM without schedule: emitters per cycle (names repeat).")
+@click.option("--min-snr", type=float, default=10.0, show_default=True,
+              help="Drop a window/segment whose total amplitude is below this many sigma.")
+@click.option("--image-id", help="Write a calibration points CSV image_id,point_id,vx1,vx2,vy1,vy2 for this view.")
+@click.option("--channels", help="Names of vx1,vx2,vy1,vy2 in the file.")
+@click.option("--dataset", help="HDF5: an (n, 4) dataset.")
+@click.option("--group", help="HDF5 or TDMS group.")
+@click.option("--chunk-samples", type=int, default=1 << 16, show_default=True, help="Samples per channel read at once.")
+@click.option("--progress/--no-progress", default=None, help="Progress bar (default: on for long files).")
+@click.option("-o", "--output", required=True, type=click.Path(dir_okay=False), help="Output CSV.")
+def amplitudes_command(recording, rate_hz, carriers, emitters, window_s, tdm, schedule, n_emitters, min_snr,
+                       image_id, channels, dataset, group, chunk_samples, progress, output):
+    """Demodulate RECORDING to carrier amplitudes (no calibration needed).
+
+    \b
+    Columns: t_s,emitter,vx1,vx2,vy1,vy2,sigma_vx1,sigma_vx2,sigma_vy1,sigma_vy2
+    With --image-id: a calibration points CSV (one view of the LED template):
+      psdcal amplitudes view3.tdms --carrier-hz 1000 --tdm --image-id 3 -o view3.csv
+    """
+    from ..locate import LocateConfig, amplitudes_to_csv
+    from ..recording import open_recording
+    from ..stream import load_schedule
+
+    sched = load_schedule(schedule) if schedule else None
+    config = LocateConfig(carriers_hz=tuple(carriers), window_s=window_s, emitters=tuple(emitters) or None,
+                          min_snr=min_snr, tdm=bool(tdm or sched is not None), schedule=sched,
+                          n_emitters=n_emitters, chunk_samples=chunk_samples)
+    rec = open_recording(recording, rate_hz, channels=_channels(channels), dataset=dataset, group=group)
+    show = progress if progress is not None else (rec.n_samples is not None and rec.n_samples >= _PROGRESS_MIN_SAMPLES)
+    bar = _Bar(rec.n_samples, rec.path) if show else None
+    try:
+        summary = amplitudes_to_csv(rec, output, config, image_id=image_id, progress=bar.update if bar else None)
+    finally:
+        if bar:
+            bar.close()
+    click.echo(f"wrote {summary.n_rows} rows to {output} ({summary.duration_s:.6g} s of signal, "
+               f"{summary.n_windows} windows of {config.window_s:g} s, {summary.n_skipped} below --min-snr)")
 
 
 @cli.command("aoa")
