@@ -175,7 +175,25 @@ class Evaluator:
     def unpack(self, z):
         return self.prob.unpack(z, *self.base)
 
+    def residuals(self, z):
+        """Residuals only (the trial points of LM need no Jacobian)."""
+        key = z.tobytes()
+        if key == self._key:
+            return self._val[0]
+        if self.prob.cost == "image":
+            r = (self.model_points(z) - self.d_meas).ravel()
+        else:
+            intr, coef, gains, rv, tv = self.unpack(z)
+            x = undistort(self.d_meas, coef, intr.c)
+            R, _ = rodrigues_batch(rv)
+            Mm = np.concatenate([R[:, :, :2], tv[:, :, None]], axis=2)
+            Hinv = np.linalg.inv(intr.matrix() @ Mm)
+            q = np.einsum("nij,nj->ni", Hinv[self.img_idx], np.concatenate([x, np.ones((x.shape[0], 1))], axis=1))
+            r = (q[:, :2] / q[:, 2:3] - self.P).ravel()
+        return np.where(np.isfinite(r), r, 1e3)
+
     def evaluate(self, z):
+        """Residuals and Jacobian at ``z`` (cached for the last state)."""
         key = z.tobytes()
         if key == self._key:
             return self._val
@@ -193,9 +211,6 @@ class Evaluator:
         self._key, self._val = key, val
         return val
 
-    def residuals(self, z):
-        return self.evaluate(z)[0]
-
     def jacobian(self, z):
         return self.evaluate(z)[1]
 
@@ -207,7 +222,12 @@ class Evaluator:
         Pc = np.einsum("nij,nj->ni", R[self.img_idx][:, :, :2], self.P) + tv[self.img_idx]
         x = np.stack([intr.f_mm * Pc[:, 0] / Pc[:, 2] + intr.skew * Pc[:, 1] / Pc[:, 2] + intr.cx_mm,
                       intr.fy * Pc[:, 1] / Pc[:, 2] + intr.cy_mm], axis=1)
-        d = distort(x, coef, intr.c, d0_mm=self.d_meas, keep_failed=True).d_mm
+        res = distort(x, coef, intr.c, d0_mm=self.d_meas, keep_failed=True)
+        d = res.d_mm
+        if not np.all(res.converged):
+            bad = ~res.converged
+            d = d.copy()
+            d[bad] = distort(x[bad], coef, intr.c, keep_failed=True).d_mm
         if self.prob.spec.fit_gains:
             d = gain_map(d, gains, *self.prob.sensor_mm)
         return d
@@ -368,7 +388,33 @@ def refine(prob: Problem, intr0: Intrinsics, dist0: Distortion, gains0, rvecs0, 
         from .errors import DegenerateViewsError
 
         raise DegenerateViewsError(f"{m // 2} observed points give {m} equations for {n} unknowns: add images or points")
-    sol = least_squares(
+    with _single_threaded_blas():
+        sol = _solve(ev, z0, options, n)
+    r, J = ev.evaluate(sol.x)
+    return _finish(prob, ev, sol, r, J, m, n, options)
+
+
+def _single_threaded_blas():
+    """Small dense problems run fastest on one BLAS thread (and do not fight
+    other processes of a Monte Carlo run for cores)."""
+    global _CONTROLLER
+    try:
+        if _CONTROLLER is None:
+            from threadpoolctl import ThreadpoolController
+
+            _CONTROLLER = ThreadpoolController()
+        return _CONTROLLER.limit(limits=1, user_api="blas")
+    except Exception:  # threadpoolctl missing or unable to introspect: run as is
+        import contextlib
+
+        return contextlib.nullcontext()
+
+
+_CONTROLLER = None
+
+
+def _solve(ev, z0, options, n):
+    return least_squares(
         ev.residuals,
         z0,
         jac=ev.jacobian,
@@ -379,7 +425,9 @@ def refine(prob: Problem, intr0: Intrinsics, dist0: Distortion, gains0, rvecs0, 
         gtol=options.gtol,
         max_nfev=4 * options.max_iterations,
     )
-    r, J = ev.evaluate(sol.x)
+
+
+def _finish(prob, ev, sol, r, J, m, n, options):
     dof = max(m - n, 1)
     sigma2 = float(r @ r) / dof
     JtJ = J.T @ J

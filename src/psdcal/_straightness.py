@@ -90,12 +90,16 @@ class StraightnessResult:
     success: bool
 
 
-def _line_residuals(pts, group, n_groups):
-    """Straightness residual per group: sqrt(lambda_min / lambda_max) of its scatter.
+def _line_residuals(pts, group, n_groups, dpts=None):
+    """Signed distance of each point to its group's total-least-squares line.
 
-    ``lambda_min`` is the sum of squared distances to the total-least-squares
-    line, ``lambda_max`` the squared spread along it (closed-form eigenvalues
-    of the 2x2 scatter matrix).
+    Distances are divided by the group's RMS spread along the line, which
+    makes the cost scale-free.  The line's direction is the major axis of
+    the group's 2x2 scatter ``[[a, b], [b, c]]``, angle ``atan2(2b, a-c)/2``.
+
+    With ``dpts`` (N, 2, k), the derivatives of the points with respect to k
+    unknowns, also returns the exact Jacobian (N, k), including the rotation
+    of each line and the change of its spread.
     """
     cnt = np.bincount(group, minlength=n_groups)
     mx = np.bincount(group, pts[:, 0], n_groups) / cnt
@@ -105,11 +109,34 @@ def _line_residuals(pts, group, n_groups):
     a = np.bincount(group, qx * qx, n_groups)
     b = np.bincount(group, qx * qy, n_groups)
     c = np.bincount(group, qy * qy, n_groups)
-    half_tr = 0.5 * (a + c)
+    theta = 0.5 * np.arctan2(2 * b, a - c)
+    nx, ny = -np.sin(theta), np.cos(theta)
     rad = np.sqrt((0.5 * (a - c)) ** 2 + b * b)
-    lmin = np.maximum(half_tr - rad, 0.0)
-    lmax = half_tr + rad
-    return np.sqrt(lmin / lmax)
+    lmax = 0.5 * (a + c) + rad
+    spread = np.sqrt(lmax / cnt)
+    w_x = (nx / spread)[group]
+    w_y = (ny / spread)[group]
+    res = qx * w_x + qy * w_y
+    if dpts is None:
+        return res
+    k = dpts.shape[2]
+    jac = np.empty((pts.shape[0], k))
+    den = (a - c) ** 2 + 4 * b * b
+    den = np.where(den > 0, den, 1.0)
+    rad_safe = np.where(rad > 0, rad, 1.0)
+    for j in range(k):
+        dx = dpts[:, 0, j] - (np.bincount(group, dpts[:, 0, j], n_groups) / cnt)[group]
+        dy = dpts[:, 1, j] - (np.bincount(group, dpts[:, 1, j], n_groups) / cnt)[group]
+        da = 2 * np.bincount(group, qx * dx, n_groups)
+        dc = 2 * np.bincount(group, qy * dy, n_groups)
+        db = np.bincount(group, qx * dy + qy * dx, n_groups)
+        dtheta = ((a - c) * db - b * (da - dc)) / den
+        dlmax = 0.5 * (da + dc) + (0.25 * (a - c) * (da - dc) + b * db) / rad_safe
+        dlog_spread = 0.5 * dlmax / lmax
+        # n = (-sin t, cos t): dn = -(cos t, sin t) dt = (-ny, nx) dt
+        dnx, dny = (-ny * dtheta)[group], (nx * dtheta)[group]
+        jac[:, j] = dx * w_x + dy * w_y + (qx * dnx + qy * dny) / spread[group] - res * dlog_spread[group]
+    return res, jac
 
 
 def estimate_radial(points_mm, lines, *, c_mm=(0.0, 0.0), n_terms: int = 2) -> StraightnessResult:
@@ -148,9 +175,14 @@ def estimate_radial(points_mm, lines, *, c_mm=(0.0, 0.0), n_terms: int = 2) -> S
     def fun(z):
         coef = np.zeros(7)
         coef[:n_terms] = z / scale
-        u = undistort(flat, coef, c)
-        return _line_residuals(u, group, len(groups))
+        return _line_residuals(undistort(flat, coef, c), group, len(groups))
 
-    sol = least_squares(fun, np.zeros(n_terms), method="lm", xtol=1e-14, ftol=1e-14, gtol=1e-14)
+    def jac(z):
+        coef = np.zeros(7)
+        coef[:n_terms] = z / scale
+        u, _, _, du_dk = undistort(flat, coef, c, jacobians=True)
+        return _line_residuals(u, group, len(groups), du_dk[:, :, :n_terms] / scale)[1]
+
+    sol = least_squares(fun, np.zeros(n_terms), jac=jac, method="lm", xtol=1e-12, ftol=1e-12, gtol=1e-14, max_nfev=100)
     k = sol.x / scale
     return StraightnessResult(k, c, len(groups), float(np.sqrt(np.mean(sol.fun**2))), bool(sol.success))

@@ -39,9 +39,9 @@ def undistort(d_mm, dist, c_mm, *, jacobians: bool = False):
     dist : Distortion or (7,) array_like
     c_mm : (2,) array_like
         Optical centre (cx, cy), mm.
-    jacobians : bool
+    jacobians : bool or "d"
         Also return ``dx_dd`` (..., 2, 2), ``dx_dc`` (..., 2, 2) and
-        ``dx_dcoeffs`` (..., 2, 7).
+        ``dx_dcoeffs`` (..., 2, 7); ``"d"`` returns ``dx_dd`` only.
 
     Returns
     -------
@@ -62,6 +62,22 @@ def undistort(d_mm, dist, c_mm, *, jacobians: bool = False):
     x = u + e * rad[..., None] + np.stack([tx, ty], axis=-1)
     if not jacobians:
         return x
+    if jacobians == "d":  # only dx/dd (Newton steps of distort)
+        drad_dr2 = k1 + r2 * (2 * k2 + 3 * k3 * r2)
+        g = 2 * drad_dr2
+        G = np.empty(d.shape[:-1] + (2, 2))
+        G[..., 0, 0] = 1 + rad + g * ex * ex + 6 * p1 * ex + 2 * p2 * ey
+        G[..., 0, 1] = g * ex * ey + 2 * p1 * ey + 2 * p2 * ex
+        G[..., 1, 0] = g * ex * ey + 2 * p2 * ex + 2 * p1 * ey
+        G[..., 1, 1] = 1 + rad + g * ey * ey + 6 * p2 * ey + 2 * p1 * ex
+        if l1 == 0.0 and l2 == 0.0:
+            return x, G
+        ds = 2 * (l1 + 2 * l2 * h2)
+        du_dd = np.empty_like(G)
+        du_dd[..., 0, 0] = s + ds * d[..., 0] * d[..., 0]
+        du_dd[..., 0, 1] = du_dd[..., 1, 0] = ds * d[..., 0] * d[..., 1]
+        du_dd[..., 1, 1] = s + ds * d[..., 1] * d[..., 1]
+        return x, G @ du_dd
     eye = np.eye(2)
     # G = d(lens correction)/de
     drad_dr2 = k1 + r2 * (2 * k2 + 3 * k3 * r2)
@@ -190,7 +206,10 @@ def distort(
     for it in range(max_iter + 1):
         if idx.size == 0:
             break
-        xa, J, Jc, Jk = undistort(d[idx], coef, c, jacobians=True)
+        if jacobians:
+            xa, J, Jc, Jk = undistort(d[idx], coef, c, jacobians=True)
+        else:
+            xa, J = undistort(d[idx], coef, c, jacobians="d")
         res = xa - x[idx]
         e_new = np.hypot(res[:, 0], res[:, 1])
         # backtrack where the last step made things worse
