@@ -164,3 +164,28 @@ def test_schedule_errors(tmp_path):
     p.write_text("emitter,start\n")
     with pytest.raises(InputError, match="t_start_s"):
         load_schedule(p)
+
+
+def test_tdm_back_to_back_leds_are_split():
+    """LEDs switched without a dark gap, the switching in the middle of a window."""
+    m = model()
+    spots = spot_for_angles(m, np.radians([[5.0, 5.0], [-10.0, 3.0], [15.0, -12.0], [6.0, 5.5]]))
+    rng = np.random.default_rng(3)
+    n_on = 10_450  # 104.5 ms: not a whole number of 10 ms windows
+    parts, t = [], 0.0
+    for d in spots:
+        parts.append(signals(RATE, n_on, [(amplitudes(m, d), 1000.0, 0.2)], t0_s=t, offset=(0, 0, 0, 0)))
+        t += n_on / RATE
+    x = np.concatenate(parts, axis=1) + 0.05 + 1e-3 * rng.standard_normal((4, 4 * n_on))
+    lk = MultiCarrierLockin(RATE, [1000.0], 0.01)
+    seg = TdmSegmenter(lk.window_s)
+    segs = []
+    for i in range(0, x.shape[1], 5000):
+        segs += seg.feed(lk.process(i / RATE, x[:, i : i + 5000]))
+    segs += seg.finish()
+    assert [s.emitter for s in segs] == ["1", "2", "3", "4"]
+    for k, (s, d) in enumerate(zip(segs, spots)):
+        assert k * n_on / RATE <= s.t_start_s and s.t_end_s <= (k + 1) * n_on / RATE + 1e-9
+        assert s.n_windows >= 7
+        np.testing.assert_allclose(s.amplitude / s.amplitude.sum(), amplitudes(m, d) / amplitudes(m, d).sum(),
+                                   atol=2e-4)

@@ -336,11 +336,15 @@ class TdmSegmenter:
 
     Without a schedule, a window is *on* when its total amplitude exceeds
     ``min_snr`` times its standard deviation; each run of on-windows is a
-    segment, its first and last windows (which may straddle the switching)
-    are dropped when the run is longer than two windows.  Segments are named
-    ``1, 2, ...`` (modulo ``n_emitters`` when the emitters repeat in cycles).
-    With a schedule, the windows lying entirely inside an entry's interval
-    are that entry's segment.
+    segment.  A run is also split where the spot jumps: where the channel
+    ratios ``a_i / sum(a)`` of consecutive windows differ by more than
+    ``split_sigma`` times their noise and by more than ``split_floor`` (LEDs
+    switched back to back, without a dark gap).  The first and last windows of
+    a run (which may straddle the switching) are dropped when the run is
+    longer than two windows; a lone window between two jumps (a transition)
+    is discarded.  Segments are named ``1, 2, ...`` (modulo ``n_emitters``
+    when the emitters repeat in cycles).  With a schedule, the windows lying
+    entirely inside an entry's interval are that entry's segment.
 
     Parameters
     ----------
@@ -353,20 +357,27 @@ class TdmSegmenter:
     schedule : sequence of ScheduleEntry, optional
     n_emitters : int, optional
         Number of emitters in a cycle (names repeat modulo it).
+    split_sigma, split_floor : float
+        Jump detection between consecutive windows (see above); the floor
+        1e-3 of the ratio is about 0.01 mm on a 9 mm PSD.
     """
 
     def __init__(self, window_s: float, *, carrier_index: int = 0, min_snr: float = 20.0, schedule=None,
-                 n_emitters: int | None = None):
+                 n_emitters: int | None = None, split_sigma: float = 8.0, split_floor: float = 1e-3):
         self.window_s = float(window_s)
         self.k = int(carrier_index)
         self.min_snr = float(min_snr)
         self.schedule = None if schedule is None else tuple(schedule)
         self.n_emitters = None if n_emitters is None else int(n_emitters)
+        self.split_sigma = float(split_sigma)
+        self.split_floor = float(split_floor)
         self._count = 0
         self._run: _Acc | None = None
         self._run_len = 0
+        self._run_after_jump = False
         self._first = None  # held-back first window of the run
         self._pending = None  # held-back latest window of the run
+        self._last_ratio = None  # (ratio (4,), its sigma (4,)) of the latest on-window
         self._sched_acc: dict[int, _Acc] = {}
         self._sched_next = 0
 
@@ -387,24 +398,42 @@ class TdmSegmenter:
         total = a.sum(-1)
         sd = np.sqrt(v.sum(-1))
         on = total > self.min_snr * sd
+        safe = np.where(on, total, 1.0)
+        ratio = a / safe[:, None]
+        ratio_sd = np.sqrt(v) / np.abs(safe)[:, None]
         out = []
         for i in range(len(on)):  # a few windows per chunk: a Python loop is cheap here
             w = (t0[i], t1[i], a[i : i + 1], v[i : i + 1])
             if on[i]:
                 if self._run is None:
-                    self._run, self._run_len, self._first, self._pending = _Acc(), 1, w, None
+                    self._start(w, after_jump=False)
+                elif self._jumped(ratio[i], ratio_sd[i]):
+                    out.extend(self._close_run(jump=True))
+                    self._start(w, after_jump=True)
                 else:
                     self._run_len += 1
                     if self._pending is not None:
                         self._run.add(*self._pending)
                     self._pending = w
+                self._last_ratio = (ratio[i], ratio_sd[i])
             elif self._run is not None:
-                out.extend(self._close_run())
+                out.extend(self._close_run(jump=False))
         return out
 
-    def _close_run(self) -> list[Segment]:
+    def _start(self, w, *, after_jump: bool) -> None:
+        self._run, self._run_len, self._first, self._pending = _Acc(), 1, w, None
+        self._run_after_jump = after_jump
+
+    def _jumped(self, r, r_sd) -> bool:
+        r0, sd0 = self._last_ratio
+        diff = np.abs(r - r0)
+        return bool(np.any((diff > self.split_sigma * np.hypot(r_sd, sd0)) & (diff > self.split_floor)))
+
+    def _close_run(self, *, jump: bool = False) -> list[Segment]:
         run, n = self._run, self._run_len
         self._run = None
+        if n == 1 and jump and self._run_after_jump:
+            return []  # a lone transition window between two spots
         if n <= 2:  # too short to drop edges: keep what there is
             for w in (self._first, self._pending):
                 if w is not None:
