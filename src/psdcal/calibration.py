@@ -409,12 +409,32 @@ def calibrate(
     spec = ModelSpec(radial=radial, tangential=tangential, psd_radial=psd_radial, skew=skew, aspect=aspect, fit_gains=fit_gains)
     if fit_gains and cost != "image":
         raise InputError("fit_gains needs the image cost", field="cost")
+    if fit_gains and (skew or aspect or (radial == 0 and psd_radial == 0)):
+        # psdcal.gains.identifiability: unequal gains make the readout a homography of
+        # the sensor plane; a general intrinsic matrix absorbs all three gain ratios
+        # (and a pure single-f pinhole one combination of them) in a rotation of the poses.
+        raise InputError(
+            "the channel gains are not identifiable with skew/aspect or without any distortion term; "
+            "fit them with a single f, zero skew and radial >= 1 (or calibrate them electrically)",
+            field="fit_gains",
+        )
     T, X, ids = _check_inputs(template_mm, points_mm, image_ids, 3 if (skew or aspect) else 2)
     pids = tuple(range(T.shape[0])) if point_ids is None else tuple(point_ids)
     g0 = np.ones(4) if gains is None else np.asarray(gains, dtype=float) / float(np.asarray(gains)[0])
-    start = initial_estimate(
-        T, X, preliminary=preliminary, normalize=normalize, radial_terms=radial, skew=skew, aspect=aspect, image_ids=ids
-    )
+    try:
+        start = initial_estimate(
+            T, X, preliminary=preliminary, normalize=normalize, radial_terms=radial, skew=skew, aspect=aspect, image_ids=ids
+        )
+    except DegenerateViewsError:
+        if not fit_gains or X.shape[0] < 3:
+            raise
+        # Raw readout through unequal gains is a homography of the sensor plane, which the
+        # single-f closed form may not fit (negative f^2); the general one absorbs it.
+        start = initial_estimate(
+            T, X, preliminary=preliminary, normalize=normalize, radial_terms=radial, skew=True, aspect=True, image_ids=ids
+        )
+        gi = start.intrinsics
+        start = replace(start, intrinsics=Intrinsics(f_mm=float(np.sqrt(gi.f_mm * gi.fy)), cx_mm=gi.cx_mm, cy_mm=gi.cy_mm))
     dist0 = Distortion(k1=float(start.preliminary_k[0]) if radial >= 1 else 0.0, k2=float(start.preliminary_k[1]) if radial >= 2 else 0.0)
     prob = Problem(T, X, spec, cost=cost, sensor_mm=tuple(sensor_mm))
     intr0 = start.intrinsics
