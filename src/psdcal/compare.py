@@ -232,7 +232,7 @@ class Comparison:
         if self.visible:
             return (f"different: up to {s['max_sigma']:.1f} combined standard deviations apart "
                     f"(threshold {VISIBLE_SIGMA:g}); the sensor or its lens changed, or one calibration is wrong")
-        return (f"consistent: within {s['max_sigma']:.1f} combined standard deviations everywhere "
+        return (f"consistent: within {s['max_sigma']:.2g} combined standard deviations everywhere "
                 f"(threshold {VISIBLE_SIGMA:g}); no re-calibration needed on this evidence")
 
 

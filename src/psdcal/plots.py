@@ -177,10 +177,14 @@ def residuals_per_image(result, *, scale=None, ncols: int = 4, k: float = DEFAUL
     n = X.shape[0]
     ncols = max(1, min(ncols, n))
     nrows = int(np.ceil(n / ncols))
-    fig = _new((2.6 * ncols, 2.7 * nrows + 0.4))
+    fig = Figure(figsize=(2.6 * ncols, 2.7 * nrows + 0.4), dpi=100)  # fixed layout: fast with many panels
+    fig.subplots_adjust(left=0.06, right=0.98, bottom=0.6 / (2.7 * nrows + 0.4), top=1 - 0.7 / (2.7 * nrows + 0.4),
+                        wspace=0.12, hspace=0.32)
     colors = _palette(n)
+    first = None
     for i in range(n):
-        ax = fig.add_subplot(nrows, ncols, i + 1)
+        ax = fig.add_subplot(nrows, ncols, i + 1, sharex=first, sharey=first)
+        first = first or ax
         iid = result.image_ids[i]
         rem = tuple(p for p in removed if p.image_id == iid)
         _draw_residuals(ax, X[i : i + 1], R[i : i + 1], result.sensor_mm, scale, [colors[i]],
@@ -188,8 +192,8 @@ def residuals_per_image(result, *, scale=None, ncols: int = 4, k: float = DEFAUL
         if ax.get_legend() is not None:
             ax.get_legend().remove()
         ax.set_title(f"image {iid}: {result.per_image_rms_mm[i] * _UM:.2f} um", fontsize=9, loc="left")
-        ax.tick_params(labelsize=7)
-        ax.set_xlabel("x [mm]" if i // ncols == nrows - 1 else "", fontsize=8)
+        ax.tick_params(labelsize=7, labelbottom=i + ncols >= n, labelleft=i % ncols == 0)
+        ax.set_xlabel("x [mm]" if i + ncols >= n else "", fontsize=8)
         ax.set_ylabel("y [mm]" if i % ncols == 0 else "", fontsize=8)
     fig.suptitle(f"Residuals per image (arrows x{scale:.0f}; red: outliers)", fontsize=10)
     return fig

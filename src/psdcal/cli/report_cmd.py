@@ -84,10 +84,10 @@ def compare_command(calib_a, calib_b, output, json_out, distance_mm, grid, margi
     t.add_column("")
     t.add_column("max", justify="right")
     t.add_column("RMS", justify="right")
-    t.add_row("ray difference [deg]", f"{s['max_deg']:.4g}", f"{s['rms_deg']:.4g}")
+    t.add_row("ray difference (deg)", f"{s['max_deg']:.4g}", f"{s['rms_deg']:.4g}")
     t.add_row("in combined sigma", f"{s['max_sigma']:.3g}", f"{s['rms_sigma']:.3g}")
     if distance_mm is not None:
-        t.add_row(f"position at {distance_mm:g} mm [mm]", f"{s['position_max_mm']:.4g}", f"{s['position_rms_mm']:.4g}")
+        t.add_row(f"position at {distance_mm:g} mm (mm)", f"{s['position_max_mm']:.4g}", f"{s['position_rms_mm']:.4g}")
     con = Console()
     con.print(t)
     con.print(f"combined 1-sigma AoA uncertainty (median over the sensor): {s['combined_sigma_deg_median']:.3g} deg")

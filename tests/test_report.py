@@ -1,0 +1,133 @@
+"""The HTML calibration report: content, provenance, self-containment, and a real headless browser."""
+import hashlib
+import html
+import io
+import json
+import os
+import re
+import shutil
+
+import matplotlib.image as mpimg
+import numpy as np
+import pytest
+
+from psdcal.cli import main
+from psdcal.io import write_points, write_template
+from psdcal.simulate import simulate_set
+
+N_FIGURES = 8
+
+
+@pytest.fixture(scope="module")
+def made(tmp_path_factory):
+    """A points file with one planted outlier, its calibration with --reject 5, and the report of it."""
+    d = tmp_path_factory.mktemp("report")
+    s = simulate_set("lens2", n_images=8, noise_mm=0.003, seed=5)
+    X = s.points_mm.copy()
+    X[5, 8] += np.array([0.09, -0.12])  # 50 sigma
+    write_template(d / "template.csv", list(range(14)), s.template_mm)
+    write_points(d / "points.csv", list(range(8)), list(range(14)), X)
+    assert main(["calibrate", str(d / "points.csv"), "-t", str(d / "template.csv"), "-o", str(d / "rej.json"),
+                 "--reject", "5", "-q"]) == 0
+    assert main(["calibrate", str(d / "points.csv"), "-t", str(d / "template.csv"), "-o", str(d / "raw.json"), "-q"]) == 0
+    assert main(["report", str(d / "rej.json"), "--points", str(d / "points.csv"), "-t", str(d / "template.csv"),
+                 "-o", str(d / "report.html"), "--title", "Sensor <A&B> \"report\""]) == 0
+    return d
+
+
+def test_report_content(made):
+    text = (made / "report.html").read_text(encoding="utf-8")
+    for section in ("summary", "parameters", "residuals", "outliers", "coverage", "distortion", "provenance"):
+        assert f'id="{section}"' in text
+    for fid in ("correlation", "residuals", "residual_histogram", "residuals_per_image", "per_image_rms", "coverage",
+                "distortion_field", "aoa_uncertainty"):
+        assert f'id="fig-{fid}"' in text
+    # parameters with standard errors
+    assert "f_mm" in text and "std error" in text
+    # the removed outlier with its line in the points file (header = line 1)
+    line = 1 + 5 * 14 + 8 + 1
+    row = re.search(r"<tr class=\"bad\">(.*?removed by --reject.*?)</tr>", text, re.S)
+    assert row and f">{line}<" in row.group(1)
+    # provenance: the checksums of the input files, version, dates
+    for name in ("points.csv", "template.csv", "rej.json"):
+        digest = hashlib.sha256((made / name).read_bytes()).hexdigest()
+        assert digest in text
+    assert "matches the calibration&#x27;s record" in text
+    assert "psdcal 0." in text and "report made" in text
+    # the title is escaped
+    assert html.escape('Sensor <A&B> "report"') in text and "<A&B>" not in text
+
+
+def test_report_is_self_contained(made):
+    text = (made / "report.html").read_text(encoding="utf-8")
+    srcs = re.findall(r'\b(?:src|href)="([^"]*)"', text)
+    assert len(srcs) == N_FIGURES and all(s.startswith("data:image/png;base64,") for s in srcs)
+    assert "<script" not in text and "@import" not in text and "url(" not in text
+
+
+def test_report_flags_an_outlier_without_reject(made, tmp_path):
+    out = tmp_path / "raw.html"
+    assert main(["report", str(made / "raw.json"), "-o", str(out)]) == 0
+    text = out.read_text(encoding="utf-8")
+    assert "1 outlier point(s) above 5 robust sigma" in text
+    assert "flagged (--reject 5 removes it)" in text
+
+
+def test_report_errors_never_clobber(made, tmp_path, capsys):
+    out = tmp_path / "r.html"
+    out.write_text("old")
+    rc = main(["report", str(made / "rej.json"), "--points", str(made / "points.csv"), "-o", str(out)])
+    assert rc == 2 and "--template" in capsys.readouterr().err
+    other = tmp_path / "other.csv"
+    s = simulate_set("lens2", n_images=8, noise_mm=0.003, seed=99)
+    write_points(other, list(range(8)), list(range(14)), s.points_mm)
+    rc = main(["report", str(made / "rej.json"), "--points", str(other), "-t", str(made / "template.csv"), "-o", str(out)])
+    assert rc == 2 and "differ" in capsys.readouterr().err
+    rc = main(["report", str(tmp_path / "nope.json"), "-o", str(out)])
+    assert rc == 2 and "nope.json" in capsys.readouterr().err
+    assert out.read_text() == "old"
+
+
+def _chromium():
+    from browser import find_chromium
+
+    return find_chromium()
+
+
+def test_ci_has_a_browser():
+    if os.environ.get("CI", "").lower() != "true":
+        pytest.skip("only enforced on CI (CI=true)")
+    assert _chromium() is not None, "CI must install chromium (.ci/run) so that the browser test runs"
+
+
+@pytest.mark.skipif(_chromium() is None, reason="no chromium on this machine (apt-get install chromium); CI installs it")
+def test_report_in_a_headless_browser(made):
+    from browser import inspect_page
+
+    page = inspect_page(made / "report.html")
+    assert page["errors"] == []
+    figs = page["figures"]
+    assert len(figs) == N_FIGURES
+    img = mpimg.imread(io.BytesIO(page["screenshot"]), format="png")[..., :3]
+    for f in figs:
+        assert f["complete"] and f["natural"][0] > 100 and f["natural"][1] > 100, f
+        x, y, w, h = (int(round(v)) for v in f["rect"])
+        assert w > 100 and h > 100, f
+        crop = img[y : y + h, x : x + w]
+        assert crop.shape[0] > 50 and crop.shape[1] > 50, (f["alt"], crop.shape, img.shape)
+        dark = np.mean(np.any(crop < 0.9, axis=-1))
+        assert crop.std() > 0.05 and dark > 0.02, (f["alt"], crop.std(), dark)
+
+
+@pytest.mark.skipif(_chromium() is None, reason="no chromium on this machine")
+def test_browser_check_catches_errors(tmp_path):
+    """The harness itself: a page with a console error, an exception and a missing image is caught."""
+    from browser import inspect_page
+
+    p = tmp_path / "bad.html"
+    p.write_text('<!DOCTYPE html><html><body><img alt="x" src="missing.png">'
+                 '<script>console.error("boom"); notDefined();</script></body></html>')
+    page = inspect_page(p)
+    text = " | ".join(page["errors"])
+    assert "boom" in text and "notDefined" in text and "missing.png" in text
+    assert page["figures"][0]["natural"] == [0, 0]
