@@ -48,14 +48,14 @@ body{font-family:system-ui,-apple-system,"Segoe UI",Roboto,Helvetica,Arial,sans-
 padding:1.2em 2em 3em;color:#1d2327;line-height:1.4}
 h1{font-size:1.6em;margin-bottom:.2em}h2{font-size:1.25em;border-bottom:2px solid #d0d7de;padding-bottom:.2em;margin-top:1.8em}
 table{border-collapse:collapse;margin:.6em 0;font-size:.9em}th,td{border:1px solid #d0d7de;padding:.25em .6em;text-align:right}
-th{background:#f2f4f6}td.l,th.l{text-align:left}tr.bad td{background:#fde8e8}
+th{background:#f2f4f6}td{white-space:nowrap}td.l,th.l{text-align:left}tr.bad td{background:#fde8e8}
 figure{margin:.8em 0;text-align:center}figure img{max-width:100%;height:auto;border:1px solid #e4e7ea}
 figcaption{font-size:.85em;color:#57606a;max-width:900px;margin:.3em auto}
 .warn{background:#fff4e5;border-left:4px solid #e8590c;padding:.5em .9em;margin:.4em 0}
 .ok{background:#e8f6ec;border-left:4px solid #2b8a3e;padding:.5em .9em;margin:.4em 0}
 .info{color:#57606a;font-size:.9em}code,pre{font-family:ui-monospace,Menlo,Consolas,monospace;font-size:.85em}
 pre{background:#f6f8fa;padding:.6em;overflow-x:auto;text-align:left}
-.grid{display:flex;flex-wrap:wrap;gap:1em;justify-content:center}.grid figure{flex:1 1 460px}
+.grid{display:flex;flex-wrap:wrap;gap:1em;justify-content:center;align-items:flex-start}.grid figure{flex:1 1 460px}.side{flex:0 1 440px}
 """
 
 
@@ -256,10 +256,12 @@ def build_report(result, inputs: ReportInputs = ReportInputs(), *, k: float = DE
         sd = result.std.get(n)
         rel = "-" if sd is None or v == 0 else f"{abs(sd / v) * 100:.2g} %"
         rows.append([_esc(n), _fmt(v, "{:.8g}"), _fmt(sd, "{:.3g}"), rel, _esc(UNITS.get(n, ""))])
-    parts.append(_table(["parameter", "value", "std error", "relative", "unit"], rows, left=(0, 4)))
+    parts.append('<div class="grid"><div class="side">' + _table(["parameter", "value", "std error", "relative", "unit"], rows,
+                                                      left=(0, 4)))
     parts.append('<p class="info">Standard errors from the Jacobian at the solution, scaled by the implied noise; '
-                 'the poses are marginalised. "fixed": not estimated in this model.</p>')
-    parts.append(_fig(figs["correlation"], "correlation matrix", "Correlation matrix of the free parameters.", "correlation"))
+                 'the poses are marginalised. "fixed": not estimated in this model.</p></div>')
+    parts.append(_fig(figs["correlation"], "correlation matrix", "Correlation matrix of the free parameters.",
+                      "correlation") + "</div>")
     if strong:
         parts.append('<p class="info">Strongly correlated (|r| &gt; 0.95): '
                      + ", ".join(f"{_esc(a)}-{_esc(b)} {c:+.3f}" for a, b, c in strong)
