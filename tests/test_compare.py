@@ -8,7 +8,7 @@ import pytest
 from psdcal.calibration import calibrate
 from psdcal.compare import VISIBLE_SIGMA, _mahalanobis, aoa_field, compare, fov_uncertainty, sensor_grid_mm
 from psdcal.errors import InputError
-from psdcal.params import Distortion, Intrinsics
+from psdcal.params import Distortion
 from psdcal.simulate import simulate_set
 
 

@@ -2,10 +2,8 @@
 import hashlib
 import html
 import io
-import json
 import os
 import re
-import shutil
 
 import matplotlib.image as mpimg
 import numpy as np
