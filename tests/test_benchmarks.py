@@ -1,0 +1,68 @@
+"""The benchmark scripts stay runnable and measure what they claim."""
+from __future__ import annotations
+
+import importlib.util
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from psdcal.params import Distortion, Intrinsics
+from psdcal.simulate import simulate_set
+
+BENCH = Path(__file__).resolve().parent.parent / "benchmarks"
+
+
+def _load(name):
+    spec = importlib.util.spec_from_file_location(f"_bench_{name}", BENCH / f"{name}.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_opencv_conversion_recovers_the_truth_without_distortion():
+    """With no distortion and no noise both models are exact: OpenCV's f and C in mm must be the truth."""
+    cv2 = pytest.importorskip("cv2")
+    bench = _load("bench_opencv")
+    lens = (Intrinsics(f_mm=8.0, cx_mm=0.5, cy_mm=-0.7), Distortion())
+    s = simulate_set(lens, n_images=9, noise_mm=0.0, seed=3)
+    pitch = 0.010
+    f, c = bench.opencv_calibrate(cv2, *bench.to_opencv(s, pitch), pitch)
+    assert abs(f - 8.0) < 1e-4
+    np.testing.assert_allclose(c, [0.5, -0.7], atol=1e-4)
+    f, c = bench.psdcal_calibrate(s)
+    assert abs(f - 8.0) < 1e-8
+    np.testing.assert_allclose(c, [0.5, -0.7], atol=1e-8)
+
+
+def test_linearised_covariance_of_the_image_cost_is_the_bound():
+    """The sandwich covariance reduces to the Cramér-Rao bound when the cost is the likelihood."""
+    eff = _load("efficiency")
+    s = simulate_set("lens2", n_images=9, noise_mm=0.0, seed=5)
+    bound = eff.crb(s, 0.002)
+    np.testing.assert_allclose(eff.linearised_covariance(s, 0.002, "image"), bound, rtol=1e-5)
+    tpl = eff.linearised_covariance(s, 0.002, "template")
+    # a non-likelihood cost is never more efficient (to rounding)
+    assert np.all(np.diag(tpl) >= np.diag(bound) * (1 - 1e-6))
+    assert np.all(np.linalg.eigvalsh(tpl - bound) > -1e-9 * np.abs(bound).max())
+
+
+def test_run_all_selects_by_name_and_reports_unknown_names():
+    out = subprocess.run([sys.executable, str(BENCH / "run_all.py"), "no-such-bench"], capture_output=True, text=True)
+    assert out.returncode == 2 and "no benchmark matches" in out.stderr
+    out = subprocess.run([sys.executable, str(BENCH / "run_all.py"), "--sets", "1"], capture_output=True, text=True)
+    assert out.returncode == 2 and "must follow '--'" in out.stderr
+
+
+def test_bench_opencv_runs_end_to_end():
+    pytest.importorskip("cv2")
+    out = subprocess.run(
+        [sys.executable, str(BENCH / "run_all.py"), "opencv", "--", "--sets", "1", "--repeats", "1"],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert out.returncode == 0, out.stderr
+    assert "ratio psdcal/OpenCV" in out.stdout and out.stdout.count("lens") >= 4
