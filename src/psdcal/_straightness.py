@@ -13,7 +13,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import least_squares
 
 from .distortion import undistort
 
@@ -183,6 +182,8 @@ def estimate_radial(points_mm, lines, *, c_mm=(0.0, 0.0), n_terms: int = 2) -> S
         u, _, _, du_dk = undistort(flat, coef, c, jacobians=True)
         return _line_residuals(u, group, len(groups), du_dk[:, :, :n_terms] / scale)[1]
 
-    sol = least_squares(fun, np.zeros(n_terms), jac=jac, method="lm", xtol=1e-12, ftol=1e-12, gtol=1e-14, max_nfev=100)
+    from ._refine import SolverOptions, levenberg_marquardt
+
+    sol = levenberg_marquardt(fun, jac, np.zeros(n_terms), SolverOptions(ftol=1e-12, xtol=1e-12, gtol=1e-14, max_iterations=50))
     k = sol.x / scale
-    return StraightnessResult(k, c, len(groups), float(np.sqrt(np.mean(sol.fun**2))), bool(sol.success))
+    return StraightnessResult(k, c, len(groups), float(np.sqrt(2 * sol.cost / max(len(flat), 1))), bool(sol.status > 0))

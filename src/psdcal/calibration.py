@@ -487,10 +487,14 @@ def _make_result(prob, ref, start, ids, pids, spec, cost, g0, preliminary, norma
     intr = ref.intrinsics
     dist = Distortion.from_array(ref.coeffs)
     # modelled measured points on the sensor, whichever cost was minimised
-    x = np.stack([project(prob.template_mm, intr, r, t) for r, t in zip(ref.rvecs, ref.tvecs)])
-    model = distort(x, dist, intr.c, d0_mm=X).d_mm
-    if spec.fit_gains or not np.allclose(ref.gains, 1.0):
-        model = gain_map(model, ref.gains, *prob.sensor_mm)
+    if ref.model_mm is not None:  # the image cost already has them
+        model = np.full(X.shape, np.nan)
+        model[prob.valid] = ref.model_mm
+    else:
+        x = np.stack([project(prob.template_mm, intr, r, t) for r, t in zip(ref.rvecs, ref.tvecs)])
+        model = distort(x, dist, intr.c, d0_mm=X).d_mm
+        if spec.fit_gains or not np.allclose(ref.gains, 1.0):
+            model = gain_map(model, ref.gains, *prob.sensor_mm)
     res = X - model
     valid = prob.valid
     sq = np.where(valid, np.sum(np.nan_to_num(res) ** 2, axis=-1), 0.0)
