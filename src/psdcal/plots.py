@@ -265,8 +265,14 @@ def per_image_rms(result, *, k: float = DEFAULT_K, flags=None) -> Figure:
     ax.set_xticks(np.arange(n), [str(i) for i in result.image_ids], fontsize=8, rotation=90 if n > 25 else 0)
     ax.set_xlabel("image")
     ax.set_ylabel("RMS residual [um]")
+    removed = removed_points(result)
+    for p in removed:
+        if p.image_id in result.image_ids:
+            i = list(result.image_ids).index(p.image_id)
+            ax.plot(i, rms[i], "x", color="red", ms=9, mew=2)
+    gone = f", {len(removed)} removed: red x" if removed else ""
     ax.set_title(f"Per-image RMS ({int(flags.images.sum())} image(s) flagged, {flags.n_points} point(s) above "
-                 f"{flags.k:g} sigma)", fontsize=10)
+                 f"{flags.k:g} sigma{gone})", fontsize=10)
     ax.legend(fontsize=8)
     return fig
 

@@ -361,13 +361,14 @@ def build_report(result, inputs: ReportInputs = ReportInputs(), *, k: float = DE
         rows.append(["command", f"<code>{_esc(inputs.command)}</code>"])
     for key, v in inputs.extra.items():
         rows.append([_esc(key), _esc(v)])
-    parts.append(_table(["", ""], rows, left=(0, 1)))
+    parts.append(_table(["software and dates", ""], rows, left=(0, 1)))
     opts = dict((result.problem or {}).get("options", {}))
     rej = (result.problem or {}).get("outlier_rejection")
     if rej:
         opts["outlier_rejection"] = {k_: v for k_, v in rej.items() if k_ != "removed"}
     opts["report"] = {"k": k, "n_cells": n_cells, "region_mm": None if region_mm is None else list(region_mm)}
-    parts.append("<p>Options:</p><pre>" + _esc(json.dumps(opts, indent=1, default=str)) + "</pre>")
+    rows = [[_esc(key), f"<code>{_esc(json.dumps(v, default=str))}</code>"] for key, v in opts.items()]
+    parts.append("<p>Options of the calibration (and of this report):</p>" + _table(["option", "value"], rows, left=(0, 1)))
     parts.append("</body></html>")
     return "\n".join(parts) + "\n"
 
