@@ -418,23 +418,25 @@ def calibrate(
             "fit them with a single f, zero skew and radial >= 1 (or calibrate them electrically)",
             field="fit_gains",
         )
-    T, X, ids = _check_inputs(template_mm, points_mm, image_ids, 3 if (skew or aspect) else 2)
+    T, X, ids = _check_inputs(template_mm, points_mm, image_ids, 3 if (skew or aspect or fit_gains) else 2)
     pids = tuple(range(T.shape[0])) if point_ids is None else tuple(point_ids)
     g0 = np.ones(4) if gains is None else np.asarray(gains, dtype=float) / float(np.asarray(gains)[0])
-    try:
-        start = initial_estimate(
-            T, X, preliminary=preliminary, normalize=normalize, radial_terms=radial, skew=skew, aspect=aspect, image_ids=ids
-        )
-    except DegenerateViewsError:
-        if not fit_gains or X.shape[0] < 3:
-            raise
-        # Raw readout through unequal gains is a homography of the sensor plane, which the
-        # single-f closed form may not fit (negative f^2); the general one absorbs it.
+    if fit_gains:
+        # Raw readout through unequal gains is a homography of the sensor plane (psdcal.gains):
+        # the single-f closed form may fail on it (f^2 < 0) or put C tens of mm off (the
+        # projective part looks like a tilt); the general closed form absorbs it. Start from
+        # its f with C at the electrical centre (a lens mount puts it within about 1 mm).
         start = initial_estimate(
             T, X, preliminary=preliminary, normalize=normalize, radial_terms=radial, skew=True, aspect=True, image_ids=ids
         )
-        gi = start.intrinsics
-        start = replace(start, intrinsics=Intrinsics(f_mm=float(np.sqrt(gi.f_mm * gi.fy)), cx_mm=gi.cx_mm, cy_mm=gi.cy_mm))
+        intr_s = Intrinsics(f_mm=float(np.sqrt(start.intrinsics.f_mm * start.intrinsics.fy)))
+        poses_s = [extrinsics_from_homography(H, intr_s) for H in start.homographies]
+        start = replace(start, intrinsics=intr_s, rvecs=np.array([p[0] for p in poses_s]),
+                        tvecs_mm=np.array([p[1] for p in poses_s]))
+    else:
+        start = initial_estimate(
+            T, X, preliminary=preliminary, normalize=normalize, radial_terms=radial, skew=skew, aspect=aspect, image_ids=ids
+        )
     dist0 = Distortion(k1=float(start.preliminary_k[0]) if radial >= 1 else 0.0, k2=float(start.preliminary_k[1]) if radial >= 2 else 0.0)
     prob = Problem(T, X, spec, cost=cost, sensor_mm=tuple(sensor_mm))
     intr0 = start.intrinsics
