@@ -478,3 +478,36 @@ def identifiability(template_mm, intrinsics, distortion, rvecs, tvecs_mm, gains=
     cov = np.linalg.pinv(info, rcond=1e-14)
     std = {n: float(np.sqrt(max(cov[k, k], 0.0))) for k, n in enumerate(prob.names)}
     return Identifiability(tuple(prob.names), sv, null, float(sv[-1] / sv[0]), std)
+
+
+def simulate_amplitudes(points_mm, *, snr_db: float | None = None, r_tol: float = 0.0, c_tol: float = 0.0, seed=0):
+    """Raw amplitudes of readout points through the paper's signal chain, for an amplitude points file.
+
+    The chain of :meth:`psdcal.signalchain.ChainSettings.paper` (band-pass,
+    Eq 43 gains); the four channels' R and C drawn within ``r_tol``,
+    ``c_tol`` (none when both are 0), white noise at ``snr_db``.
+
+    Parameters
+    ----------
+    points_mm : (..., 2) array_like
+        Noiseless readout points (Eq 1-2 with equal gains; PSD distortion
+        already included), mm.  NaN rows stay NaN.
+    snr_db : float or None
+    r_tol, c_tol : float
+    seed : int or Generator
+
+    Returns
+    -------
+    amplitudes : (..., 4) ndarray, V
+    gains : (4,) ndarray, V/A (the drawn channel gains)
+    chain : dict, the chain settings used (for the truth file)
+    """
+    from dataclasses import asdict
+
+    from .signalchain import ChainSettings, channel_gains, measure_amplitudes
+
+    chain = ChainSettings.paper(snr_db=snr_db, r_tol=float(r_tol), c_tol=float(c_tol))
+    rng = np.random.default_rng(seed)
+    g = channel_gains(chain, rng) if (r_tol > 0 or c_tol > 0) else channel_gains(chain)
+    amps = measure_amplitudes(points_mm, chain, g, rng)
+    return amps, g, asdict(chain)

@@ -29,7 +29,16 @@ from . import cli
               help="Use this template CSV instead of the built-in 14-LED one.")
 @click.option("--out-dir", "-o", type=click.Path(file_okay=False, path_type=Path), default=Path("."), show_default=True,
               help="Folder for template.csv, points.csv and truth.json.")
-def simulate_command(lens, f_mm, cx_mm, cy_mm, k1, k2, k3, p1, p2, l1, l2, images, noise_mm, seed, template_in, out_dir):
+@click.option("--amplitudes", is_flag=True, default=False,
+              help="Write raw amplitudes (image_id,point_id,vx1,vx2,vy1,vy2) through the simulated signal chain "
+                   "(paper's band-pass, Eq 43 gains) instead of points with --noise-mm.")
+@click.option("--snr-db", type=float, default=None, help="With --amplitudes: SNR in dB (MODEL.md 3). [default: no noise]")
+@click.option("--r-tol", type=click.FloatRange(0.0, 1.0, max_open=True), default=0.0, show_default=True,
+              help="With --amplitudes: resistor tolerance of the channel gains (the paper: 0.01).")
+@click.option("--c-tol", type=click.FloatRange(0.0, 1.0, max_open=True), default=0.0, show_default=True,
+              help="With --amplitudes: capacitor tolerance of the channel gains (the paper: 0.15).")
+def simulate_command(lens, f_mm, cx_mm, cy_mm, k1, k2, k3, p1, p2, l1, l2, images, noise_mm, seed, template_in, out_dir,
+                     amplitudes=False, snr_db=None, r_tol=0.0, c_tol=0.0):
     """Simulate a calibration set (geometry only) with known truth.
 
     Writes OUT_DIR/template.csv, OUT_DIR/points.csv and OUT_DIR/truth.json.
@@ -48,12 +57,23 @@ def simulate_command(lens, f_mm, cx_mm, cy_mm, k1, k2, k3, p1, p2, l1, l2, image
         tids, txy = read_template(template_in)
     else:
         tids, txy = None, None
-    s = simulate_set((intr, dist), n_images=images, noise_mm=noise_mm, seed=seed, template_mm=txy)
+    s = simulate_set((intr, dist), n_images=images, noise_mm=0.0 if amplitudes else noise_mm, seed=seed, template_mm=txy)
     tids = list(range(len(s.template_mm))) if tids is None else tids
     out_dir.mkdir(parents=True, exist_ok=True)
     write_template(out_dir / "template.csv", tids, s.template_mm)
-    write_points(out_dir / "points.csv", list(range(images)), tids, s.points_mm)
     truth = s.truth_dict()
+    if amplitudes:
+        from ..gains import simulate_amplitudes
+
+        amps, gains, chain = simulate_amplitudes(s.ideal_points_mm, snr_db=snr_db, r_tol=r_tol, c_tol=c_tol, seed=seed)
+        from ..io import write_amplitudes
+
+        write_amplitudes(out_dir / "points.csv", list(range(images)), tids, amps)
+        truth.update(noise_mm=None, snr_db=snr_db, gains=[float(g) for g in gains],
+                     relative_gains=[float(g / gains[0]) for g in gains], chain=chain)
+        noise_mm = 0.0
+    else:
+        write_points(out_dir / "points.csv", list(range(images)), tids, s.points_mm)
     truth["seed"] = seed
     truth["lens"] = lens
     write_json(out_dir / "truth.json", truth)
