@@ -129,3 +129,25 @@ def test_browser_check_catches_errors(tmp_path):
     text = " | ".join(page["errors"])
     assert "boom" in text and "notDefined" in text and "missing.png" in text
     assert page["figures"][0]["natural"] == [0, 0]
+
+
+def test_report_of_a_minimal_calibration_file(made, tmp_path):
+    """A calibration JSON with only the keys of MODEL.md 9 (no problem record, residual rows or covariance)."""
+    import json
+
+    d = json.loads((made / "raw.json").read_text())
+    keep = ("intrinsics", "distortion", "std", "extrinsics", "residuals", "cost", "iterations", "converged", "model",
+            "software")
+    d = {k: v for k, v in d.items() if k in keep}
+    rms = d["residuals"]["rms_mm"]
+    d["residuals"] = {"rms_mm": rms, "per_image_rms_mm": d["residuals"]["per_image_rms_mm"]}
+    (tmp_path / "min.json").write_text(json.dumps(d))
+    out = tmp_path / "min.html"
+    assert main(["report", str(tmp_path / "min.json"), "-o", str(out)]) == 2  # no points anywhere
+    assert main(["report", str(tmp_path / "min.json"), "--points", str(made / "points.csv"), "-t",
+                 str(made / "template.csv"), "-o", str(out)]) == 0
+    text = out.read_text(encoding="utf-8")
+    assert f"{rms * 1e3:.3f} um" in text  # residuals recomputed from the parameters and poses agree
+    assert "no covariance matrix" in text
+    # without a problem record there is no trial refit: the planted point and the neighbours it pulls are flagged
+    assert re.search(r"Warning: \d+ outlier point\(s\) above 5 robust sigma", text)

@@ -56,14 +56,25 @@ def sensor_grid_mm(sensor_mm=(9.0, 9.0), n: int = 41, *, margin_mm: float = 0.0)
 
 
 def sensor_model(result):
-    """The :class:`psdcal.sensor_model.SensorModel` of a calibration (parameters and covariance)."""
-    from .sensor_model import SensorModel
+    """The :class:`psdcal.sensor_model.SensorModel` of a calibration (parameters and covariance).
 
+    A calibration without a covariance matrix (a file with only ``std``) gets
+    the diagonal covariance of its standard errors, as
+    :meth:`psdcal.sensor_model.SensorModel.from_dict` does.
+    """
+    from .sensor_model import PARAMETER_NAMES, SensorModel
+
+    names = tuple(result.param_names)
+    cov = np.asarray(result.covariance, dtype=float)
+    if not names or cov.size == 0:
+        std = {n: v for n, v in (result.std or {}).items() if n in PARAMETER_NAMES and v is not None}
+        names = tuple(n for n in PARAMETER_NAMES if n in std)
+        cov = np.diag([float(std[n]) ** 2 for n in names]) if names else np.zeros((0, 0))
     return SensorModel(
         intrinsics=result.intrinsics,
         distortion=result.distortion,
-        names=tuple(result.param_names),
-        covariance=np.asarray(result.covariance, dtype=float),
+        names=names,
+        covariance=cov,
         gains=np.asarray(result.gains, dtype=float),
         lx_mm=float(result.sensor_mm[0]),
         ly_mm=float(result.sensor_mm[1]),

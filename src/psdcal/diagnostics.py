@@ -38,6 +38,60 @@ def align_to_problem(result):
     return dataclasses.replace(result, point_ids=pids, residuals_mm=R)
 
 
+def with_points(result, point_ids, template_mm, points_mm):
+    """The result aligned to a template and points given from files (for results without a problem record).
+
+    The residual columns are put in the order of ``point_ids``; when the
+    calibration file carries no per-point residuals (MODEL.md 9 does not
+    require them), they are computed from its parameters and poses
+    (``points_mm - distort(project(P))``), with the RMS values.  The template
+    and the points are added to the problem record (without options: such a
+    result cannot be refitted).
+
+    Parameters
+    ----------
+    result : CalibrationResult
+    point_ids : sequence (M,)
+    template_mm : (M, 2) array_like, mm
+    points_mm : (n_images, M, 2) array_like, mm, NaN where missing; images in ``result.image_ids`` order.
+
+    Returns
+    -------
+    CalibrationResult
+    """
+    import dataclasses
+
+    from .outliers import model_points_mm
+
+    pids = tuple(point_ids)
+    X = np.asarray(points_mm, dtype=float)
+    T = np.asarray(template_mm, dtype=float)
+    R0 = np.asarray(result.residuals_mm, dtype=float)
+    changes = {}
+    if R0.ndim == 3 and R0.shape[1] > 0:
+        index = {p: j for j, p in enumerate(result.point_ids)}
+        R = np.full(X.shape, np.nan)
+        for j, p in enumerate(pids):
+            if p in index:
+                R[:, j] = R0[:, index[p]]
+    else:
+        if len(result.rvecs) != X.shape[0]:
+            raise InputError(f"the calibration has {len(result.rvecs)} poses for {X.shape[0]} images", field="extrinsics")
+        R = X - model_points_mm(result, T)
+        ok = np.all(np.isfinite(R), axis=-1)
+        sq = np.where(ok, np.sum(np.nan_to_num(R) ** 2, axis=-1), 0.0)
+        changes["rms_mm"] = float(np.sqrt(sq.sum() / max(ok.sum(), 1)))
+        changes["per_image_rms_mm"] = np.sqrt(sq.sum(axis=1) / np.maximum(ok.sum(axis=1), 1))
+        if not np.isfinite(result.sigma_mm):
+            dof = max(2 * int(ok.sum()) - len(result.param_names) - 6 * X.shape[0], 1)
+            changes["sigma_mm"] = float(np.sqrt(sq.sum() / dof))
+    problem = dict(result.problem or {})
+    problem.setdefault("template", {"point_ids": list(pids), "xy_mm": T.tolist()})
+    problem.setdefault("points", {"image_ids": list(result.image_ids),
+                                  "xy_mm": [[[None if not np.isfinite(v) else float(v) for v in pt] for pt in img] for img in X]})
+    return dataclasses.replace(result, point_ids=pids, residuals_mm=R, problem=problem, **changes)
+
+
 def measured_points_mm(result) -> np.ndarray:
     """The measured impact points the calibration used, (n_images, M, 2) mm, NaN where missing.
 
@@ -146,4 +200,4 @@ def coverage(points_mm, sensor_mm=(9.0, 9.0), *, n_cells: int = 6, region_mm=Non
     return Coverage(xe, ye, H.astype(int), inside, region)
 
 
-__all__ = ["Coverage", "align_to_problem", "coverage", "measured_points_mm"]
+__all__ = ["Coverage", "align_to_problem", "coverage", "measured_points_mm", "with_points"]

@@ -174,7 +174,7 @@ def flag_outliers(result, k: float = DEFAULT_K, *, alpha: float = 1e-3, refit: b
     with np.errstate(invalid="ignore", divide="ignore"):
         ratio = residual_norms_mm(r) / sigma
     points = np.nan_to_num(ratio, nan=0.0) > k
-    if refit and points.any() and "points" in (result.problem or {}) and "template" in (result.problem or {}):
+    if refit and points.any() and all(key in (result.problem or {}) for key in ("points", "template", "options")):
         trial = reject_outliers(result, k)
         index_i = {iid: i for i, iid in enumerate(result.image_ids)}
         index_j = {pid: j for j, pid in enumerate(result.point_ids)}
@@ -272,18 +272,24 @@ def _refit(result, points_mm):
     return recalibrate(d)
 
 
-def model_points_mm(result) -> np.ndarray:
+def model_points_mm(result, template_mm=None) -> np.ndarray:
     """Modelled measured points (n_images, M, 2), mm, of every template point in every view.
 
     ``distort(project(P))`` with the result's parameters and poses (and the
     channel gains when they are not all one): what the calibration predicts
     the sensor reads, also where the point is missing or was removed.
+
+    Parameters
+    ----------
+    result : CalibrationResult
+    template_mm : (M, 2) array_like, optional
+        Template points, mm (default: the result's problem record).
     """
     from .distortion import distort
     from .projection import project
     from .readout import gain_map
 
-    T = np.asarray(result.problem["template"]["xy_mm"], dtype=float)
+    T = np.asarray(result.problem["template"]["xy_mm"] if template_mm is None else template_mm, dtype=float)
     x = np.stack([project(T, result.intrinsics, r, t) for r, t in zip(result.rvecs, result.tvecs_mm)])
     m = distort(x, result.distortion, result.intrinsics.c).d_mm
     if not np.allclose(result.gains, 1.0):

@@ -213,6 +213,8 @@ def residual_histogram(result, *, bins: int = 40) -> Figure:
     R = np.asarray(result.residuals_mm, dtype=float).reshape(-1, 2)
     R = R[np.all(np.isfinite(R), axis=1)] * _UM
     sigma = float(result.sigma_mm) * _UM
+    if not np.isfinite(sigma):
+        sigma = 0.0
     fig = _new((7.0, 4.4))
     ax = fig.add_subplot()
     comps = R.ravel()
@@ -388,6 +390,10 @@ def correlation(result) -> Figure:
     k = len(names)
     fig = _new((max(4.5, 0.62 * k + 2.2), max(3.8, 0.55 * k + 1.6)))
     ax = fig.add_subplot()
+    if k == 0 or np.asarray(result.covariance).size == 0:
+        ax.text(0.5, 0.5, "the calibration holds no covariance matrix", ha="center", va="center", fontsize=11)
+        ax.set_axis_off()
+        return fig
     m = ax.imshow(C, cmap="RdBu_r", vmin=-1, vmax=1)
     fig.colorbar(m, ax=ax, label="correlation", shrink=0.85)
     ax.set_xticks(range(k), names, rotation=45, ha="right", fontsize=8)

@@ -118,7 +118,11 @@ def _table(head, rows, classes=None, left=(0,)) -> str:
 
 
 def _files_and_points(result, inputs: ReportInputs):
-    """Read the optional points/template files; return (points_mm or None, line_numbers or None, file records)."""
+    """Read the optional points/template files.
+
+    Returns (result, points_mm or None, line_numbers or None, file records); the result is aligned to the
+    files when it has no problem record of its own.
+    """
     from .io import read_points, read_template
 
     files = []
@@ -128,7 +132,7 @@ def _files_and_points(result, inputs: ReportInputs):
         raise InputError(f"{missing} is needed too: the points file is read against its template", field=missing)
     if inputs.points is not None:
         tids, txy = read_template(inputs.template)
-        if tuple(tids) != tuple(result.point_ids):
+        if "template" in (result.problem or {}) and tuple(tids) != tuple(result.point_ids):
             raise InputError(f"template point ids {list(tids)[:6]}... do not match the calibration's "
                              f"{list(result.point_ids)[:6]}...", path=inputs.template)
         prob_t = np.asarray(result.problem.get("template", {}).get("xy_mm", txy), dtype=float)
@@ -143,6 +147,10 @@ def _files_and_points(result, inputs: ReportInputs):
         order = [index[i] for i in result.image_ids]
         pts = pf.points_mm[order]
         lines = pf.line_numbers[order]
+        if "template" not in (result.problem or {}):
+            from .diagnostics import with_points
+
+            result = with_points(result, tids, txy, pts)
         if "points" in result.problem:
             from .diagnostics import measured_points_mm
 
@@ -154,7 +162,7 @@ def _files_and_points(result, inputs: ReportInputs):
         files += [("template", inputs.template), ("points", inputs.points)]
     if inputs.calibration is not None:
         files.insert(0, ("calibration", inputs.calibration))
-    return pts, lines, [(role, str(p), sha256_file(p), Path(p).stat().st_size) for role, p in files]
+    return result, pts, lines, [(role, str(p), sha256_file(p), Path(p).stat().st_size) for role, p in files]
 
 
 def build_report(result, inputs: ReportInputs = ReportInputs(), *, k: float = DEFAULT_K, n_cells: int = 6,
@@ -193,7 +201,7 @@ def build_report(result, inputs: ReportInputs = ReportInputs(), *, k: float = DE
     from .outliers import flag_outliers, removed_points
 
     result = align_to_problem(result)
-    pts, lines, files = _files_and_points(result, inputs)
+    result, pts, lines, files = _files_and_points(result, inputs)
     X = measured_points_mm(result) if pts is None else pts
     flags = flag_outliers(result, k, refit=True)
     cov = coverage(X, result.sensor_mm, n_cells=n_cells, region_mm=region_mm)
@@ -215,6 +223,9 @@ def build_report(result, inputs: ReportInputs = ReportInputs(), *, k: float = DE
         ids = [str(result.image_ids[i]) for i in np.nonzero(flags.images)[0]]
         warnings.append(f"image(s) {', '.join(ids)} fit worse than the noise allows (chi-square test)")
     warnings += cov.warnings()
+    if np.asarray(result.covariance).size == 0:
+        warnings.append("the calibration file holds no covariance matrix: the AoA uncertainty uses the standard errors "
+                        "alone (correlations ignored)")
     corr = result.correlation() if len(result.param_names) else np.zeros((0, 0))
     strong = [(result.param_names[i], result.param_names[j], corr[i, j]) for i in range(len(corr))
               for j in range(i + 1, len(corr)) if abs(corr[i, j]) > 0.95]
