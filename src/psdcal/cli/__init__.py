@@ -31,6 +31,7 @@ _COMMANDS = (
     "signal_cmd",
     "locate_cmd",
     "report_cmd",
+    "reproduce_cmd",
 )
 
 
