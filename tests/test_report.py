@@ -83,6 +83,10 @@ def test_report_errors_never_clobber(made, tmp_path, capsys):
     assert rc == 2 and "differ" in capsys.readouterr().err
     rc = main(["report", str(tmp_path / "nope.json"), "-o", str(out)])
     assert rc == 2 and "nope.json" in capsys.readouterr().err
+    blocker = tmp_path / "file"
+    blocker.write_text("")
+    rc = main(["report", str(made / "rej.json"), "-o", str(blocker / "r.html")])
+    assert rc == 2 and "cannot write the report" in capsys.readouterr().err
     assert out.read_text() == "old"
 
 
@@ -93,7 +97,7 @@ def _chromium():
 
 
 def test_ci_has_a_browser():
-    if os.environ.get("CI", "").lower() != "true":
+    if os.environ.get("CI", "").lower() not in ("true", "1", "yes"):
         pytest.skip("only enforced on CI (CI=true)")
     assert _chromium() is not None, "CI must install chromium (.ci/run) so that the browser test runs"
 

@@ -392,7 +392,10 @@ def write_report(path, result, inputs: ReportInputs = ReportInputs(), **kwargs) 
     from ._atomic import write_text_atomic
 
     text = build_report(result, inputs, **kwargs)
-    write_text_atomic(path, text)
+    try:
+        write_text_atomic(path, text)
+    except OSError as exc:
+        raise InputError(f"cannot write the report: {exc.strerror or exc}", path=path, field="--output") from None
 
 
 __all__ = ["ReportInputs", "UNITS", "build_report", "sha256_file", "write_report"]

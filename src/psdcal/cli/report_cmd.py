@@ -96,10 +96,20 @@ def compare_command(calib_a, calib_b, output, json_out, distance_mm, grid, margi
         from .._atomic import atomic_path
         from ..plots import compare_maps
 
+        from ..errors import InputError
+
         fig = compare_maps(c)
-        with atomic_path(output) as tmp:
-            fig.savefig(tmp, format=output.suffix.lower().lstrip("."), dpi=100)
+        try:
+            with atomic_path(output) as tmp:
+                fig.savefig(tmp, format=output.suffix.lower().lstrip("."), dpi=100)
+        except OSError as exc:
+            raise InputError(f"cannot write the figure: {exc.strerror or exc}", path=output, field="--output") from None
         click.echo(f"wrote {output}")
     if json_out is not None:
-        write_json(json_out, {"a": str(calib_a), "b": str(calib_b), **s, "verdict": c.verdict()})
+        from ..errors import InputError
+
+        try:
+            write_json(json_out, {"a": str(calib_a), "b": str(calib_b), **s, "verdict": c.verdict()})
+        except OSError as exc:
+            raise InputError(f"cannot write: {exc.strerror or exc}", path=json_out, field="--json") from None
         click.echo(f"wrote {json_out}")
