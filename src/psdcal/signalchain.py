@@ -25,8 +25,8 @@ Conventions
   outside it (towards the corners of the square active area) one channel's
   current is negative, i.e. its carrier is in antiphase.  The estimators
   return a magnitude; the chain signs it with the channel's lock-in phase
-  relative to the sum of the other three channels (whose current is always
-  positive), so Eq 1-2 hold over the whole active area.
+  relative to the emitter's carrier phase (known in the simulation), so
+  Eq 1-2 hold over the whole active area, whatever the channel gains.
 * A spot outside the active area (``|x| > Lx/2`` or ``|y| > Ly/2``) gives no
   reading: NaN amplitudes and points, like a missing point in a file.
 
@@ -481,9 +481,11 @@ def estimate_amplitudes(samples, settings: ChainSettings | None = None):
             order=int(s.filter_order),
             settle_periods=s.settle_periods,
         )
-    i_rest = i.sum(axis=-1, keepdims=True) - i
-    q_rest = q.sum(axis=-1, keepdims=True) - q
-    sign = np.where(i * i_rest + q * q_rest < 0.0, -1.0, 1.0)
+    # Sign: the channel's phasor against the emitter's carrier phase, which the
+    # simulation knows (A sin(w t + phase) has i = A cos(phase), q = A sin(phase)).
+    # A reference built from the other channels fails where their sum changes
+    # sign (corners of the sensor under strong gain imbalance).
+    sign = np.where(i * np.cos(s.phase_rad) + q * np.sin(s.phase_rad) < 0.0, -1.0, 1.0)
     return sign * mag
 
 
