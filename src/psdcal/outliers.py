@@ -26,7 +26,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .errors import InputError
+from .errors import InputError, PsdcalError
 
 #: Median of a unit Rayleigh distribution: median(|r|) = sigma * RAYLEIGH_MEDIAN.
 RAYLEIGH_MEDIAN = float(np.sqrt(2.0 * np.log(2.0)))
@@ -175,12 +175,16 @@ def flag_outliers(result, k: float = DEFAULT_K, *, alpha: float = 1e-3, refit: b
         ratio = residual_norms_mm(r) / sigma
     points = np.nan_to_num(ratio, nan=0.0) > k
     if refit and points.any() and all(key in (result.problem or {}) for key in ("points", "template", "options")):
-        trial = reject_outliers(result, k)
-        index_i = {iid: i for i, iid in enumerate(result.image_ids)}
-        index_j = {pid: j for j, pid in enumerate(result.point_ids)}
-        points = np.zeros_like(points)
-        for p in trial.removed:
-            points[index_i[p.image_id], index_j[p.point_id]] = True
+        try:
+            trial = reject_outliers(result, k)
+        except PsdcalError:  # a refit failed: keep the plain threshold
+            trial = None
+        if trial is not None:
+            index_i = {iid: i for i, iid in enumerate(result.image_ids)}
+            index_j = {pid: j for j, pid in enumerate(result.point_ids)}
+            points = np.zeros_like(points)
+            for p in trial.removed:
+                points[index_i[p.image_id], index_j[p.point_id]] = True
     images, p = flag_images(np.where(points[..., None], np.nan, r), sigma, alpha=alpha)
     return OutlierFlags(float(k), sigma, ratio, points, images, p)
 
