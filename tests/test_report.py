@@ -155,3 +155,17 @@ def test_report_of_a_minimal_calibration_file(made, tmp_path):
     assert "no covariance matrix" in text
     # without a problem record there is no trial refit: the planted point and the neighbours it pulls are flagged
     assert re.search(r"Warning: \d+ outlier point\(s\) above 5 robust sigma", text)
+
+
+def test_identifiers_are_escaped():
+    from psdcal.calibration import calibrate
+    from psdcal.report import build_report
+
+    s = simulate_set("lens2", n_images=4, noise_mm=0.003, seed=8)
+    ids = ["<b>img&0</b>", "img'1", 'img"2', "img<3"]
+    pids = [f"<i>p{j}</i>" for j in range(14)]
+    r = calibrate(s.template_mm, s.points_mm, image_ids=ids, point_ids=pids)
+    text = build_report(r)
+    for raw in ("<b>img&0</b>", "<i>p0</i>", "img<3"):
+        assert raw not in text
+    assert html.escape("<b>img&0</b>") in text
