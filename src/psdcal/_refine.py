@@ -477,7 +477,8 @@ def levenberg_marquardt(fun, jac, x0, options: SolverOptions = SolverOptions()) 
     A = J.T @ J
     g = J.T @ r
     D = np.maximum(np.diag(A).copy(), 1e-300)
-    mu = 1e-3
+    mu = 1e-8  # start near Gauss-Newton, like MINPACK's large initial trust region: a damped
+    # first step from a poor closed-form start (C off by mm, Lens 1) can walk into a local minimum
     nu = 2.0
     status, message = 0, "iteration limit reached"
     max_nfev = 4 * options.max_iterations + 10
