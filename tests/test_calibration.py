@@ -261,3 +261,16 @@ def test_non_convergence_is_an_error_carrying_the_last_iterate():
     with pytest.raises(ConvergenceError) as info:
         psdcal.calibrate(s.template_mm, s.points_mm, solver=SolverOptions(max_iterations=1))
     assert info.value.result is not None and not info.value.result.converged
+
+
+@pytest.mark.parametrize("normalize", [True, False])
+def test_batched_homographies_equal_one_by_one(normalize):
+    from psdcal._homography import homographies
+
+    s = simulate_set("lens2", n_images=5, noise_mm=0.003, seed=8)
+    pts = s.points_mm.copy()
+    pts[1, [2, 9]] = np.nan
+    Hb = homographies(s.template_mm, pts, normalize=normalize)
+    for i in range(5):
+        ok = np.all(np.isfinite(pts[i]), axis=1)
+        np.testing.assert_allclose(Hb[i], homography(s.template_mm[ok], pts[i][ok], normalize=normalize), rtol=1e-9, atol=1e-13)

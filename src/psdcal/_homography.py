@@ -93,3 +93,70 @@ def apply_homography(H, pts) -> np.ndarray:
     pts = np.asarray(pts, dtype=float)
     ph = pts @ H[:, :2].T + H[:, 2]
     return ph[..., :2] / ph[..., 2:3]
+
+
+def homographies(src, dst, *, normalize: bool = True, labels=None) -> np.ndarray:
+    """Homographies of many views at once (batched DLT, Eq 17-18 and 36-38).
+
+    Parameters
+    ----------
+    src : (M, 2) array_like
+        Template points, mm.
+    dst : (n_views, M, 2) array_like
+        Image points, mm; NaN rows are missing points (they add zero rows to
+        the DLT, which leave its solution unchanged).
+    labels : sequence of str, optional
+        Names of the views for error messages (default "image i").
+
+    Returns
+    -------
+    (n_views, 3, 3) ndarray, each as :func:`homography` returns it.
+    """
+    src = np.asarray(src, dtype=float)
+    dst = np.asarray(dst, dtype=float)
+    n, M = dst.shape[:2]
+    labels = [f"image {i}" for i in range(n)] if labels is None else list(labels)
+    ok = np.all(np.isfinite(dst), axis=-1)  # (n, M)
+    for i in range(n):
+        cnt = int(ok[i].sum())
+        if cnt < 4:
+            raise DegenerateViewsError(f"{labels[i]}: {cnt} points, a homography needs at least 4")
+        if collinearity(src[ok[i]]) < 1e-6 or collinearity(dst[i][ok[i]]) < 1e-6:
+            raise DegenerateViewsError(f"{labels[i]}: its points are collinear, a homography needs points spread on the plane")
+    w = ok.astype(float)
+    cnt = w.sum(axis=1)
+    if normalize:
+        # per-view similarities of both point sets (Hartley), over the valid points
+        def norm_mats(p):  # p (n, M, 2)
+            mean = np.einsum("nm,nmk->nk", w, np.nan_to_num(p)) / cnt[:, None]
+            dist = np.einsum("nm,nm->n", w, np.hypot(*np.moveaxis(np.nan_to_num(p) - mean[:, None], -1, 0))) / cnt
+            s = np.sqrt(2.0) / dist
+            T = np.zeros((n, 3, 3))
+            T[:, 0, 0] = T[:, 1, 1] = s
+            T[:, :2, 2] = -s[:, None] * mean
+            T[:, 2, 2] = 1.0
+            return T
+
+        Tp = norm_mats(np.broadcast_to(src, dst.shape))
+        Tq = norm_mats(dst)
+        p = np.einsum("nij,nmj->nmi", Tp[:, :2, :2], np.broadcast_to(src, dst.shape)) + Tp[:, None, :2, 2]
+        q = np.einsum("nij,nmj->nmi", Tq[:, :2, :2], np.nan_to_num(dst)) + Tq[:, None, :2, 2]
+    else:
+        p = np.broadcast_to(src, dst.shape)
+        q = np.nan_to_num(dst)
+    X, Y = p[..., 0] * w, p[..., 1] * w
+    x, y = q[..., 0], q[..., 1]
+    one, zero = w, np.zeros_like(w)
+    rows_x = np.stack([X, Y, one, zero, zero, zero, -x * X, -x * Y, -x * one], axis=-1)
+    rows_y = np.stack([zero, zero, zero, X, Y, one, -y * X, -y * Y, -y * one], axis=-1)
+    A = np.concatenate([rows_x, rows_y], axis=1)  # (n, 2M, 9)
+    _, s, Vt = np.linalg.svd(A)
+    bad = s[:, 7] <= 1e-12 * s[:, 0]
+    if np.any(bad):
+        i = int(np.flatnonzero(bad)[0])
+        raise DegenerateViewsError(f"{labels[i]}: the points do not determine a homography (rank-deficient DLT)")
+    H = Vt[:, -1].reshape(n, 3, 3)
+    if normalize:
+        H = np.linalg.solve(Tq, H @ Tp)  # Eq 38
+    H = H / np.linalg.norm(H, axis=(1, 2), keepdims=True)
+    return np.where(H[:, 2:3, 2:3] >= 0, H, -H)

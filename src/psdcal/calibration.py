@@ -17,7 +17,7 @@ import numpy as np
 
 from . import __version__
 from ._closed_form import extrinsics_from_homography, intrinsics_from_homographies
-from ._homography import homography
+from ._homography import homographies
 from ._refine import Problem, SolverOptions, refine
 from ._straightness import estimate_radial, find_lines
 from .distortion import distort, undistort
@@ -106,11 +106,7 @@ def initial_estimate(
     coef = np.zeros(7)
     coef[:2] = k
     Xc = undistort(X, coef, c0) if n_lines else X
-    Hs = []
-    for i, img in enumerate(Xc):
-        ok = np.all(np.isfinite(img), axis=1)
-        Hs.append(homography(T[ok], img[ok], normalize=normalize, label=f"image {ids[i]}"))
-    Hs = np.array(Hs)
+    Hs = homographies(T, Xc, normalize=normalize, labels=[f"image {i}" for i in ids])
     intr = intrinsics_from_homographies(Hs, skew=skew, aspect=aspect)
     extent = float(np.nanmax(np.abs(X))) * 2 if np.any(np.isfinite(X)) else 1.0
     if not (intr.f_mm < 1e3 * extent and np.hypot(intr.cx_mm, intr.cy_mm) < 10 * extent):
