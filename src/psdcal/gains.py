@@ -47,10 +47,15 @@ freedom, the ratios ``u_x = d_x/G``, ``u_y = d_y/G``, ``e = d_xy/G``
 Identifiability (:func:`identifiability`): with a pure pinhole, *any*
 homography of the sensor plane followed by the pinhole is again a pinhole
 (``H A = A' R``, RQ decomposition) with a rotated frame that the per-image
-poses absorb.  Hence the joint model ``gain_map(project(P))`` with single
-``f`` and zero skew has a null space of dimension 2: ``(u_x, u_y)`` trade
-against ``(cx, cy)``, ``f`` and a common rotation of the poses, while ``e`` is
-identifiable.  Only the lens distortion, radially symmetric about C in the
+poses absorb.  With a general intrinsic matrix none of the three gain ratios
+is identifiable.  With single ``f`` and zero skew, to first order the tilt
+parts ``(u_x, u_y)`` trade against ``(cx, cy)``, ``f`` and a common rotation
+of the poses under the constraint ``cx u_x ~ cy u_y`` (the diagonal of the
+composite map must stay isotropic): the joint model
+``gain_map(project(P))`` has a null space of dimension 1, and 2 when the
+optical centre sits at the electrical centre with equal gains (then the
+second direction is merely weak, in proportion to the offset of C), while
+``e`` is identifiable.  Only the lens distortion, radially symmetric about C in the
 *true* sensor plane, breaks this tie; the joint fit is then regular but its
 ``(u_x, u_y)`` direction is as weakly determined as the distortion is weak.
 

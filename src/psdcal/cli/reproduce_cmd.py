@@ -8,7 +8,7 @@ import click
 from . import cli
 
 #: ``--quick``: trials per case and per remedy case (a smoke run for CI, under a minute).
-QUICK_TRIALS = (4, 3)
+QUICK_TRIALS = (3, 2)
 
 
 @cli.command("reproduce")
