@@ -107,10 +107,13 @@ def _draw_residuals(ax, X, R, sensor_mm, scale, colors, flagged=None, removed=()
 
 
 def _palette(n):
+    """Image colours without the reds and pinks, which mark outliers."""
     from matplotlib import colormaps
 
     cmap = colormaps["tab20" if n > 10 else "tab10"]
-    return [cmap(i % cmap.N) for i in range(max(n, 1))]
+    reds = {6, 7, 12, 13} if cmap.N == 20 else {3, 6}
+    cols = [cmap(i) for i in range(cmap.N) if i not in reds]
+    return [cols[i % len(cols)] for i in range(max(n, 1))]
 
 
 def _outlier_mask(result, k, flags):
