@@ -800,7 +800,8 @@ def plot_figure9(study: Study, path) -> None:
         for ax in (ax_a, ax_p):
             ax.set_xlabel("impact point x (mm), y = 0")
             ax.grid(True, which="both", alpha=0.3)
-        ax_a.legend(fontsize=7)
+        if ax_a.get_legend_handles_labels()[0]:
+            ax_a.legend(fontsize=7)
     for k, lens in enumerate(("lens1", "lens2")):
         col = figure9_cases(lens)[-1]
         ax = axes[2, k]
