@@ -133,3 +133,15 @@ def test_best_remedy_within_1p5x_of_no_imbalance_at_50db(lens):
     best = min(rms["b"], rms["c"])
     assert best <= 1.5 * rms["balanced"], rms
     assert rms["a"] > 4 * rms["balanced"], rms  # ignoring the imbalance is far worse (the paper: about 4x)
+
+
+@pytest.mark.parametrize("cost", ["image", "template"])
+def test_known_gains_held_fixed_give_the_truth(cost):
+    """calibrate(gains=...) without fit_gains: the readout is corrected by the known gains first."""
+    data, rel = _noiseless_imbalanced("lens2", 9)
+    intr, _ = LENSES["lens2"]
+    res = calibrate(data.template_mm, data.points_mm, cost=cost, radial=2, tangential=False, gains=data.gains)
+    np.testing.assert_allclose([res.intrinsics.f_mm, res.intrinsics.cx_mm, res.intrinsics.cy_mm],
+                               [intr.f_mm, intr.cx_mm, intr.cy_mm], atol=1e-8)
+    np.testing.assert_allclose(res.gains, rel, rtol=1e-12)
+    assert res.rms_mm < 1e-9

@@ -417,6 +417,13 @@ def calibrate(
     T, X, ids = _check_inputs(template_mm, points_mm, image_ids, 3 if (skew or aspect or fit_gains) else 2)
     pids = tuple(range(T.shape[0])) if point_ids is None else tuple(point_ids)
     g0 = np.ones(4) if gains is None else np.asarray(gains, dtype=float) / float(np.asarray(gains)[0])
+    known_gains = None
+    if not fit_gains and not np.allclose(g0, 1.0):
+        # Known gains held fixed: the raw readout is a homography of the equal-gain one
+        # (psdcal.gains); map it back once, so that every stage sees corrected points.
+        from .gains import correct_points
+
+        known_gains, X, g0 = g0, correct_points(X, g0, *sensor_mm), np.ones(4)
     if fit_gains:
         # Raw readout through unequal gains is a homography of the sensor plane (psdcal.gains):
         # the single-f closed form may fail on it (f^2 < 0) or put C tens of mm off (the
@@ -464,6 +471,8 @@ def calibrate(
             rv0, tv0 = ri.rvecs, ri.tvecs
     ref = refine(prob, intr0, dist0, g0, rv0, tv0, solver)
     result = _make_result(prob, ref, start, ids, pids, spec, cost, g0, preliminary, normalize, solver)
+    if known_gains is not None:
+        result = replace(result, gains=known_gains)
     if not ref.converged:
         raise ConvergenceError(
             f"the {cost}-cost refinement did not converge in {ref.iterations} iterations ({ref.message}); "
