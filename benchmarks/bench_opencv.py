@@ -15,6 +15,11 @@ libraries in the same process:
   (one focal length, no tangential terms, k1, k2 of OpenCV's *forward*
   model; OpenCV has no skew, as ours here).
 
+A last row does the same on real data, Zhang's five views of 256 corners
+(``tests/data/zhang1998``: psdcal on ``points.csv`` in mm, OpenCV on the
+published pixels ``points_px.csv``, 640 x 480, 10 um nominal pitch); its
+errors are the distances to Zhang's published f and C, not to a truth.
+
 Time: the median over all sets of the median of ``--repeats`` calls per set,
 after a warm-up call per method that is not timed; ``cv2.setNumThreads(1)``
 and single-threaded BLAS (environment set before numpy loads), so both run
@@ -37,6 +42,7 @@ import argparse  # noqa: E402
 import platform  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
+from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
 
@@ -46,6 +52,9 @@ from psdcal.readout import LX_MM, LY_MM  # noqa: E402
 from psdcal.simulate import simulate_set  # noqa: E402
 
 CONFIGS = (("lens1", 9), ("lens1", 12), ("lens2", 9), ("lens2", 12))
+ZHANG = Path(__file__).resolve().parent.parent / "tests" / "data" / "zhang1998"
+#: Zhang's published alpha, beta, u0, v0 (pixels) of these data
+ZHANG_PUBLISHED_PX = (832.5, 832.53, 303.959, 206.585)
 
 
 def to_opencv(sset, pitch_mm: float):
@@ -83,6 +92,49 @@ def psdcal_calibrate(sset):
     """f and C in mm from ``psdcal.calibrate`` (image cost, k1, k2, no tangential)."""
     res = calibrate(sset.template_mm, sset.points_mm, cost="image", radial=2, tangential=False)
     return res.intrinsics.f_mm, res.intrinsics.c
+
+
+def zhang_row(cv2, repeats: int) -> dict:
+    """Both libraries on Zhang's real data; errors against his published f and C (mm)."""
+    from psdcal.io import read_points, read_template
+
+    pitch, origin, size = 0.010, np.array([320.0, 240.0]), (640, 480)
+    ids, template = read_template(ZHANG / "template.csv")
+    pts = read_points(ZHANG / "points.csv", ids, sensor_mm=(6.4, 4.8)).points_mm
+    px = np.loadtxt(ZHANG / "points_px.csv", delimiter=",", skiprows=1)
+    obj = np.concatenate([template, np.zeros((len(template), 1))], axis=1).astype(np.float32)
+    objs, imgs = [], []
+    for i in np.unique(px[:, 0]):
+        rows = px[px[:, 0] == i]
+        objs.append(obj[rows[:, 1].astype(int)])
+        imgs.append(rows[:, 2:4].astype(np.float32).reshape(-1, 1, 2))
+    a, b, u0, v0 = ZHANG_PUBLISHED_PX
+    f_ref = 0.5 * (a + b) * pitch
+    c_ref = (np.array([u0, v0]) - origin) * pitch
+
+    def ours():
+        res = calibrate(template, pts, cost="image", radial=2, tangential=False, sensor_mm=(6.4, 4.8))
+        return res.intrinsics.f_mm, res.intrinsics.c
+
+    def theirs():
+        flags = cv2.CALIB_FIX_ASPECT_RATIO | cv2.CALIB_ZERO_TANGENT_DIST | cv2.CALIB_FIX_K3
+        _, K, _, _, _ = cv2.calibrateCamera(objs, imgs, size, np.eye(3), np.zeros(5), flags=flags)
+        return 0.5 * (K[0, 0] + K[1, 1]) * pitch, (np.array([K[0, 2], K[1, 2]]) - origin) * pitch
+
+    ours()
+    theirs()
+    (f_p, c_p), t_p = _timed(ours, repeats)
+    (f_o, c_o), t_o = _timed(theirs, repeats)
+    return {
+        "lens": "zhang1998 (real)",
+        "n_images": len(objs),
+        "t_psdcal_ms": 1e3 * t_p,
+        "t_opencv_ms": 1e3 * t_o,
+        "f_err_psdcal": abs(f_p - f_ref),
+        "f_err_opencv": abs(f_o - f_ref),
+        "c_err_psdcal": float(np.linalg.norm(c_p - c_ref)),
+        "c_err_opencv": float(np.linalg.norm(c_o - c_ref)),
+    }
 
 
 def _timed(fn, repeats: int):
@@ -128,6 +180,8 @@ def run(n_sets: int, repeats: int, noise_mm: float, pitch_mm: float) -> list[dic
                 "c_err_opencv": rms(ec_o),
             }
         )
+    if (ZHANG / "points_px.csv").exists():
+        rows.append(zhang_row(cv2, repeats))
     return rows
 
 
