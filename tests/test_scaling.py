@@ -16,14 +16,6 @@ from psdcal._homography import homographies
 from psdcal.params import Intrinsics
 from psdcal.projection import project
 
-DLT_FULL_U = (
-    "src/psdcal/_homography.py, homographies(): np.linalg.svd(A) with the default full_matrices=True "
-    "computes U of shape (n_views, 2M, 2M) it never uses: O(M^2) memory and time (274 ms of SVD per "
-    "calibration of Zhang's 5 x 256 points; 257 MB peak for 2 views of 2000 points, 2 MB when fixed); "
-    "fix: np.linalg.svd(A, full_matrices=False) (or the eigenvector of A^T A, 9 x 9)"
-)
-
-
 def _views(n_points: int):
     """Template (n_points, 2) and its exact images in two views (2, n_points, 2)."""
     rng = np.random.default_rng(0)
@@ -43,7 +35,6 @@ def _peak_mb(fn) -> float:
         tracemalloc.stop()
 
 
-@pytest.mark.xfail(strict=True, reason=DLT_FULL_U)
 def test_batched_dlt_memory_is_linear_in_points():
     src, dst = _views(2000)
     H = homographies(src, dst)

@@ -78,7 +78,7 @@ def homography(src, dst, *, normalize: bool = True, label: str = "view") -> np.n
     rows_x = np.stack([X, Y, one, zero, zero, zero, -x * X, -x * Y, -x], axis=1)
     rows_y = np.stack([zero, zero, zero, X, Y, one, -y * X, -y * Y, -y], axis=1)
     M = np.concatenate([rows_x, rows_y])
-    _, s, Vt = np.linalg.svd(M)
+    _, s, Vt = np.linalg.svd(M, full_matrices=False)
     if s[7] <= 1e-12 * s[0]:
         raise DegenerateViewsError(f"{label}: the points do not determine a homography (rank-deficient DLT)")
     H = Vt[-1].reshape(3, 3)
@@ -150,7 +150,7 @@ def homographies(src, dst, *, normalize: bool = True, labels=None) -> np.ndarray
     rows_x = np.stack([X, Y, one, zero, zero, zero, -x * X, -x * Y, -x * one], axis=-1)
     rows_y = np.stack([zero, zero, zero, X, Y, one, -y * X, -y * Y, -y * one], axis=-1)
     A = np.concatenate([rows_x, rows_y], axis=1)  # (n, 2M, 9)
-    _, s, Vt = np.linalg.svd(A)
+    _, s, Vt = np.linalg.svd(A, full_matrices=False)  # U is never used: keep memory O(points)
     bad = s[:, 7] <= 1e-12 * s[:, 0]
     if np.any(bad):
         i = int(np.flatnonzero(bad)[0])
