@@ -274,3 +274,24 @@ def test_batched_homographies_equal_one_by_one(normalize):
     for i in range(5):
         ok = np.all(np.isfinite(pts[i]), axis=1)
         np.testing.assert_allclose(Hb[i], homography(s.template_mm[ok], pts[i][ok], normalize=normalize), rtol=1e-9, atol=1e-13)
+
+
+def test_find_lines_on_a_grid_is_complete_and_unique():
+    # 5 x 4 grid: 4 rows of 5, 5 columns of 4, and diagonals of >= 3 points
+    g = np.array([(x, y) for y in range(4) for x in range(5)], dtype=float)
+    lines = find_lines(g)
+    sets = [tuple(ln) for ln in lines]
+    assert len(sets) == len(set(sets))  # each line once
+    for r in range(4):
+        assert tuple(range(5 * r, 5 * r + 5)) in sets
+    for c in range(5):
+        assert tuple(range(c, 20, 5)) in sets
+    # brute force: every collinear triple lies on exactly one found line
+    import itertools
+
+    for a, b, c in itertools.combinations(range(20), 3):
+        u, v = g[b] - g[a], g[c] - g[a]
+        if abs(u[0] * v[1] - u[1] * v[0]) < 1e-12:
+            assert sum({a, b, c} <= set(ln) for ln in sets) == 1
+    longest = find_lines(g, max_lines=9)
+    assert len(longest) == 9 and min(len(ln) for ln in longest) >= 4

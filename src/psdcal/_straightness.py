@@ -17,22 +17,28 @@ import numpy as np
 from .distortion import undistort
 
 
-def find_lines(template_mm, *, min_points: int = 3, tol_rel: float = 1e-6) -> list[np.ndarray]:
+def find_lines(template_mm, *, min_points: int = 3, tol_rel: float = 1e-6, max_lines: int | None = None) -> list[np.ndarray]:
     """All maximal sets of >= ``min_points`` collinear template points.
 
-    For each point, the directions to all later points are sorted by angle
-    and split where consecutive angles differ by more than the tolerance, so
-    the search is O(M^2 log M).
+    For each point ``i``, the directions to all other points are sorted by
+    angle and split where consecutive angles differ by more than the
+    tolerance; a group is a line through ``i``, recorded only when ``i`` is
+    its smallest index, so every maximal line appears exactly once.
+    O(M^2 log M).
 
     Parameters
     ----------
     template_mm : (M, 2) array_like
+    min_points : int
     tol_rel : float
         Collinearity tolerance as a fraction of the template's extent.
+    max_lines : int, optional
+        Keep only this many lines, the ones with the most points (ties: the
+        order found).
 
     Returns
     -------
-    list of int arrays (sorted indices), one per line, without duplicates.
+    list of int arrays (sorted indices), one per line.
     """
     P = np.asarray(template_mm, dtype=float)
     M = P.shape[0]
@@ -40,42 +46,33 @@ def find_lines(template_mm, *, min_points: int = 3, tol_rel: float = 1e-6) -> li
         return []
     extent = float(np.ptp(P, axis=0).max())
     tol = tol_rel * max(extent, 1e-300)
-    seen: set[tuple[int, ...]] = set()
     lines = []
-    for i in range(M - 2):
-        v = P[i + 1 :] - P[i]
+    idx_all = np.arange(M)
+    for i in range(M - min_points + 1):
+        v = P - P[i]
         dist = np.hypot(v[:, 0], v[:, 1])
         keep = dist > tol
-        if keep.sum() < min_points - 1:
+        keep[i] = False
+        js = idx_all[keep]
+        if js.size < min_points - 1:
             continue
-        js = np.flatnonzero(keep) + i + 1
         ang = np.mod(np.arctan2(v[keep, 1], v[keep, 0]), np.pi)
         order = np.argsort(ang)
         a = ang[order]
-        # wrap-around: angles near pi equal angles near 0
-        angtol = tol / np.maximum(dist[keep][order], tol)
-        brk = np.flatnonzero(np.diff(a) > np.maximum(angtol[1:], angtol[:-1]))
-        groups = np.split(order, brk + 1)
-        if len(groups) > 1 and (a[-1] - np.pi) > -max(angtol[0], angtol[-1]) - (a[0]):
-            if np.pi - a[-1] + a[0] <= max(angtol[0], angtol[-1]):
-                groups[0] = np.concatenate([groups[-1], groups[0]])
-                groups = groups[:-1]
-        for g in groups:
-            if len(g) >= min_points - 1:
-                members = (i, *sorted(int(j) for j in js[g]))
-                if members not in seen:
-                    seen.add(members)
-                    lines.append(np.array(members))
-    # keep maximal sets only (a line found from a later point is a subset)
-    lines.sort(key=len, reverse=True)
-    out: list[np.ndarray] = []
-    sets: list[set] = []
-    for ln in lines:
-        s = set(ln.tolist())
-        if not any(s <= t for t in sets):
-            sets.append(s)
-            out.append(ln)
-    return out
+        angtol = tol / dist[keep][order]
+        gid = np.concatenate([[0], np.cumsum(np.diff(a) > np.maximum(angtol[1:], angtol[:-1]))])
+        # angles near pi and near 0 are the same direction
+        if gid[-1] > 0 and (np.pi - a[-1]) + a[0] <= max(angtol[0], angtol[-1]):
+            gid[gid == gid[-1]] = 0
+        counts = np.bincount(gid)
+        for g in np.flatnonzero(counts >= min_points - 1):
+            members = js[order[gid == g]]
+            if members.min() > i:
+                lines.append(np.concatenate([[i], np.sort(members)]))
+    if max_lines is not None and len(lines) > max_lines:
+        order = sorted(range(len(lines)), key=lambda k: -len(lines[k]))[:max_lines]
+        lines = [lines[k] for k in sorted(order)]
+    return lines
 
 
 @dataclass(frozen=True)
@@ -87,6 +84,7 @@ class StraightnessResult:
     n_lines: int
     rms_rel: float
     success: bool
+
 
 
 def _line_residuals(pts, group, n_groups, dpts=None):

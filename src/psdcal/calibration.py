@@ -27,6 +27,9 @@ from .projection import project
 from .readout import LX_MM, LY_MM, gain_map
 
 COSTS = ("image", "template")
+#: The line-straightness step uses at most this many template lines (the longest):
+#: a dense grid (Zhang's 256 corners) has hundreds, mostly short diagonals.
+MAX_STRAIGHTNESS_LINES = 40
 _ALL_INTR = ("f_mm", "cx_mm", "cy_mm", "skew")
 
 
@@ -98,7 +101,7 @@ def initial_estimate(
     n_lines = 0
     c0 = np.zeros(2)
     if preliminary and radial_terms > 0:
-        lines = find_lines(T)
+        lines = find_lines(T, max_lines=MAX_STRAIGHTNESS_LINES)
         if lines:
             st = estimate_radial(X, lines, c_mm=c0, n_terms=min(2, radial_terms))
             k[: st.k.size] = st.k
