@@ -52,8 +52,11 @@ class SolverOptions:
     max_iterations: int = 200
 
 
-def rodrigues_batch(r):
-    """Rotations R (n, 3, 3) and their derivatives dR (n, 3, 3, 3) (dR[:, k] = dR/dr_k)."""
+def rodrigues_batch(r, *, derivatives: bool = True):
+    """Rotations R (n, 3, 3) and their derivatives dR (n, 3, 3, 3) (dR[:, k] = dR/dr_k).
+
+    With ``derivatives=False`` dR is None.
+    """
     r = np.asarray(r, dtype=float)
     n = r.shape[0]
     theta = np.linalg.norm(r, axis=1)
@@ -66,6 +69,8 @@ def rodrigues_batch(r):
     A = np.where(small, 1.0, np.sin(th) / th)
     B = np.where(small, 0.5, (1 - np.cos(th)) / th**2)
     R = np.eye(3) + A[:, None, None] * K + B[:, None, None] * (K @ K)
+    if not derivatives:
+        return R, None
     IR = np.eye(3) - R
     dR = np.empty((n, 3, 3, 3))
     for k in range(3):
@@ -192,7 +197,7 @@ class Evaluator:
         else:
             intr, coef, gains, rv, tv = self.unpack(z)
             x = undistort(self.d_meas, coef, intr.c)
-            R = self._rotations(rv)[0]
+            R = self._rotations(rv, derivatives=False)[0]
             Mm = np.concatenate([R[:, :, :2], tv[:, :, None]], axis=2)
             Hinv = np.linalg.inv(intr.matrix() @ Mm)
             q = np.einsum("nij,nj->ni", Hinv[self.img_idx], np.concatenate([x, np.ones((x.shape[0], 1))], axis=1))
@@ -221,18 +226,18 @@ class Evaluator:
     def jacobian(self, z):
         return self.evaluate(z)[1]
 
-    def _rotations(self, rv):
-        """R, dR of all poses, cached for the last rotation vectors."""
+    def _rotations(self, rv, derivatives: bool = True):
+        """R, dR of all poses, cached for the last rotation vectors (dR only when asked)."""
         key = rv.tobytes()
-        if self._rkey != key:
-            self._rkey, self._rval = key, rodrigues_batch(rv)
+        if self._rkey != key or (derivatives and self._rval[1] is None):
+            self._rkey, self._rval = key, rodrigues_batch(rv, derivatives=derivatives)
         return self._rval
 
     # -- image-plane cost --------------------------------------------------------------
-    def _ideal(self, z):
+    def _ideal(self, z, derivatives: bool = True):
         """Ideal image points x (N, 2) of the template and what their Jacobians need."""
         intr, coef, gains, rv, tv = self.unpack(z)
-        R, dR = self._rotations(rv)
+        R, dR = self._rotations(rv, derivatives)
         ii = self.img_idx
         Pc = np.einsum("nij,nj->ni", R[ii][:, :, :2], self.P) + tv[ii]
         xn, yn = Pc[:, 0] / Pc[:, 2], Pc[:, 1] / Pc[:, 2]
@@ -262,7 +267,7 @@ class Evaluator:
 
     def model_points(self, z):
         """Modelled measured points (N, 2) of the valid observations, mm on the sensor."""
-        intr, coef, gains, dR, Pc, xn, yn, x = self._ideal(z)
+        intr, coef, gains, dR, Pc, xn, yn, x = self._ideal(z, derivatives=False)
         d = self._solve_distort(z.tobytes(), x, coef, intr.c)
         if self.prob.spec.fit_gains:
             d = gain_map(d, gains, *self.prob.sensor_mm)
