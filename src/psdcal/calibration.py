@@ -403,6 +403,18 @@ def calibrate(
     >>> round(res.intrinsics.f_mm, 1)
     8.0
     """
+    from ._refine import _single_threaded_blas
+
+    with _single_threaded_blas():  # small dense linear algebra: one BLAS thread is fastest
+        return _calibrate(
+            template_mm, points_mm, cost=cost, radial=radial, tangential=tangential, psd_radial=psd_radial,
+            skew=skew, preliminary=preliminary, normalize=normalize, aspect=aspect, fit_gains=fit_gains,
+            gains=gains, image_ids=image_ids, point_ids=point_ids, sensor_mm=sensor_mm, solver=solver,
+        )
+
+
+def _calibrate(template_mm, points_mm, *, cost, radial, tangential, psd_radial, skew, preliminary, normalize,
+               aspect, fit_gains, gains, image_ids, point_ids, sensor_mm, solver) -> CalibrationResult:
     if cost not in COSTS:
         raise InputError(f"cost must be one of {COSTS}, got {cost!r}", field="cost")
     spec = ModelSpec(radial=radial, tangential=tangential, psd_radial=psd_radial, skew=skew, aspect=aspect, fit_gains=fit_gains)
