@@ -1096,10 +1096,12 @@ def gains_markdown(study: Study) -> str:
               "noise (a few 1e-4 at 50 dB).", "",
               "How the tool handles it: `calibrate(fit_gains=True)` refuses the unidentifiable combinations "
               "(`skew`/`aspect` with gains, or no distortion term at all) with an InputError naming the fix "
-              "(single f, zero skew, radial >= 1, or an electrical calibration); with raw data too far from a "
-              "single-f pinhole for the closed form, it starts from the general closed form. The covariance of "
-              "the fitted gains is reported with the calibration (`std.g_x2` ...), so a weakly determined tilt "
-              "direction shows as large standard errors.", "",
+              "(single f, zero skew, radial >= 1, or an electrical calibration). It starts the joint fit from the "
+              "general closed form's focal length with C at the electrical centre: the single-f closed form on raw "
+              "imbalanced data can fail (f^2 < 0) or put C tens of mm off (the tilt), and the refinement then stops "
+              "in a false minimum. The covariance of the fitted gains is reported with the calibration "
+              "(`std.g_x2` ...), so a weakly determined tilt direction shows as large standard errors. Known gains "
+              "(`calibrate(gains=...)`, e.g. from an electrical calibration) correct the readout before every stage.", "",
               f"## Remedies on the Tables 5-6 cases ({study.gain_trials} trials per case, seed {study.seed})", "",
               "AoA error: RMS angle between true and estimated rays of held-out emitters (an 11 x 11 grid of "
               "directions over the field of view, never used in a calibration), read out noiselessly through the "
@@ -1159,7 +1161,9 @@ def report_markdown(study: Study) -> str:
         parts += [f"| {r['lens']} | {r['case']} | {_fmt(r['aoa_max_deg'], 3)} | {_fmt(r['aoa_rms_deg'], 3)} | "
                   f"{_fmt(r['position_max_cm'], 3)} | {_fmt(r['position_rms_cm'], 3)} |" for r in fig]
         parts += ["", "The paper: Lens 1 position error about 2 cm, Lens 2 under 10 cm (no imbalance), worst AoA "
-                  "about 0.25 deg (Lens 1) and 0.7 deg (Lens 2), about four times more with imbalance.", ""]
+                  "about 0.25 deg (Lens 1) and 0.7 deg (Lens 2), about four times more with imbalance. Where a case "
+                  "has failed or wild trials (imbalance, PSD centre mismatch), mean + 2 std is dominated by them "
+                  "and the map says more about the spread of the failures than about a typical calibration.", ""]
     if study.remedies:
         parts += ["## Gain remedies", "", "See gains.md.", ""]
     return "\n".join(parts)
