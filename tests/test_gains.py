@@ -9,7 +9,7 @@ from psdcal.calibration import calibrate
 from psdcal.errors import InputError
 from psdcal.params import Distortion
 from psdcal.readout import LX_MM, LY_MM, gain_homography, gain_map, impact_point, photocurrents
-from psdcal.reproduce import Case, chain_settings, gain_trial, pooled_rms, simulate_trial
+from psdcal.reproduce import chain_settings, gain_trial, pooled_rms, simulate_trial
 from psdcal.signalchain import channel_gains
 from psdcal.simulate import LENSES, default_template, random_poses
 

@@ -42,13 +42,13 @@ import numpy as np
 
 from .calibration import calibrate
 from .distortion import distort, undistort
-from .errors import ConvergenceError, DegenerateViewsError, InputError, PsdcalError
+from .errors import ConvergenceError, InputError, PsdcalError
 from .gains import correct_points, simulate_electrical_calibration
 from .montecarlo import ParameterSummary, run_trials
 from .params import Distortion, Intrinsics
 from .projection import project
 from .readout import impact_point
-from .signalchain import ChainSettings, channel_gains, measure_points, signal_amplitudes
+from .signalchain import ChainSettings, channel_gains, signal_amplitudes
 from .simulate import LENSES, PAPER_L1, default_template, random_poses
 
 #: Parameters of the paper's tables, in their order.
