@@ -987,16 +987,23 @@ def _reason(row: ComparisonRow) -> str:
         return "different solver and iteration count (see notes)"
     parts = []
     if row.std_agrees == "no" and np.isfinite(row.std) and np.isfinite(row.paper_std) and row.paper_std > 0:
-        parts.append(f"spread {row.std / row.paper_std:.2g}x the paper's: noise level set by the SNR definition, "
-                     "sampling, template and views (see notes)")
+        if "imbalance" in row.column:
+            why = "set by the gain draws and the tilt the model absorbs (see the Table 5-6 notes)"
+        elif "PSD" in row.column:
+            why = "the PSD centre mismatch adds to the noise (see the Table 7-8 notes)"
+        else:
+            why = "noise level set by the SNR definition, sampling, template and views (see notes)"
+        parts.append(f"spread {row.std / row.paper_std:.2g}x the paper's: {why}")
     if row.mean_agrees == "no":
         if row.unbiased == "yes":
             parts.append("our mean is unbiased; the paper's mean differs from the ideal by more than its own Monte "
                          "Carlo error" + (" (single set)" if not np.isfinite(row.paper_std) else ""))
         elif "imbalance" in row.column:
-            parts.append("both biased by the imbalance, by amounts that depend on the gain draws (see Table 5 notes)")
+            parts.append("both biased by the imbalance, by amounts that depend on the gain draws (see the Table 5-6 "
+                         "notes)")
         elif "PSD" in row.column:
-            parts.append("bias from the l1 term the paper's model lacks (see notes)")
+            parts.append("bias from the PSD distortion about the electrical centre, which the paper's single-centre "
+                         "model cannot absorb (see the Table 7-8 notes)")
         else:
             parts.append("bias of the estimator at this noise level (see notes)")
     return "; ".join(parts)
