@@ -971,8 +971,8 @@ _TABLE_NOTES = {
        "(2.9 C for Lens 1, 1.15 C for Lens 2) and leaves a residual of several um even without noise; for Lens 1, "
        "where k1 is only 1.5 |l1|, our pipeline, started from its biased linear estimate, stops in a mirrored "
        "local minimum (C about (-1.2, 1.3), k1 about 0). The paper's near-zero residual (2.5e-6) means its PSD "
-       "distortion was effectively about C. A model with the l1 term (psd_radial=1) started near the electrical "
-       "centre reaches the truth at noise level (checked), the remedy for real sensors.",
+       "distortion was effectively about C. A model with the l1 term (psd_radial=1) reaches the truth at noise "
+       "level (calibrate tries several optical-centre starts for it; tested), the remedy for real sensors.",
     8: "As Table 7 for Lens 2 (ideal k1 = 8.6941e-3): here the single-centre compromise is mild (C about 1.15 x "
        "the truth, k2 absorbs part of the mismatch).",
     9: "Columns gathered from Tables 3, 5 and 7 (same cases, same runs here) plus the practical case (50 dB + PSD).",
