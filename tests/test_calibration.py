@@ -311,3 +311,18 @@ def test_psd_term_fit_reaches_the_truth_with_noise(lens):
             bad.append((seed, c_err, r.rms_mm))
         assert abs(r.distortion.l1 - PAPER_L1) < 5 * r.std["l1"] or (seed, "l1") in bad
     assert not bad, bad
+
+
+def test_implausible_solutions_are_refused():
+    from psdcal.calibration import implausible
+
+    s = simulate_set("lens2", n_images=9, noise_mm=0.002, seed=1)
+    res = psdcal.calibrate(s.template_mm, s.points_mm)
+    assert implausible(res) == ""
+    from dataclasses import replace as rp
+
+    assert "focal length" in implausible(rp(res, intrinsics=rp(res.intrinsics, f_mm=-3e10)))
+    tv = res.tvecs_mm.copy()
+    tv[2, 2] = -5.0
+    assert "image 2 behind the sensor" in implausible(rp(res, tvecs_mm=tv))
+    assert "non-finite" in implausible(rp(res, distortion=rp(res.distortion, k1=np.nan)))

@@ -498,7 +498,34 @@ def _calibrate(template_mm, points_mm, *, cost, radial, tangential, psd_radial, 
             "check the data, or try --cost image, fewer distortion terms or more images",
             result=result,
         )
+    why = implausible(result)
+    if why:
+        raise ConvergenceError(
+            f"the {cost}-cost refinement stopped at a solution that is not a camera ({why}); "
+            "check the data (template, point ids, gains), or try fewer distortion terms or more images",
+            result=result,
+        )
     return result
+
+
+def implausible(result: CalibrationResult) -> str:
+    """Why a refined solution cannot be a real sensor ("" when it can).
+
+    A focal length that is not positive and finite, or a template view that is
+    not in front of the sensor (t_z <= 0), means the solver stopped in a
+    meaningless stationary point, whatever its convergence test said.
+    """
+    intr = result.intrinsics
+    values = [intr.f_mm, intr.fy, intr.cx_mm, intr.cy_mm, intr.skew, *result.distortion.as_array()]
+    if not np.all(np.isfinite(values)):
+        return "non-finite parameters"
+    if not (intr.f_mm > 0 and intr.fy > 0):
+        return f"focal length {intr.f_mm:.3g} mm"
+    tz = np.asarray(result.tvecs_mm, dtype=float)[:, 2]
+    if np.any(~np.isfinite(tz)) or np.any(tz <= 0):
+        i = int(np.argmin(np.nan_to_num(tz, nan=-np.inf)))
+        return f"image {result.image_ids[i]} behind the sensor (t_z = {tz[i]:.3g} mm)"
+    return ""
 
 
 #: Offsets (in units of the sensor's size) of the optical-centre starts tried
