@@ -42,6 +42,7 @@ import numpy as np
 
 from .calibration import calibrate
 from .distortion import distort, undistort
+from .calibration import implausible
 from .errors import ConvergenceError, InputError, PsdcalError
 from .gains import correct_points, simulate_electrical_calibration
 from .montecarlo import ParameterSummary, run_trials
@@ -319,8 +320,8 @@ def _calibrate(data_points, prefix, rays, heldout_points, names=_BASE_NAMES, **k
     kw.setdefault("cost", "template")
     try:
         res = calibrate(default_template(), data_points, radial=2, tangential=False, **kw)
-    except ConvergenceError as exc:  # keep the last iterate, flagged by its iteration count
-        if exc.result is None:
+    except ConvergenceError as exc:  # keep the last iterate, flagged by its iteration count,
+        if exc.result is None or implausible(exc.result):  # unless it is not a camera at all
             return _nan_params(prefix, names)
         res = exc.result
     except _CAL_ERRORS:
