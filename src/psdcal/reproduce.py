@@ -40,9 +40,8 @@ from importlib import resources
 
 import numpy as np
 
-from .calibration import calibrate
+from .calibration import calibrate, implausible
 from .distortion import distort, undistort
-from .calibration import implausible
 from .errors import ConvergenceError, InputError, PsdcalError
 from .gains import correct_points, simulate_electrical_calibration
 from .montecarlo import ParameterSummary, run_trials
