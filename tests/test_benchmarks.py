@@ -66,3 +66,14 @@ def test_bench_opencv_runs_end_to_end():
     )
     assert out.returncode == 0, out.stderr
     assert "ratio psdcal/OpenCV" in out.stdout and out.stdout.count("lens") >= 4
+
+
+def test_bench_montecarlo_runs(capsys):
+    bench = _load("bench_montecarlo")
+    assert bench.main(["--trials", "1"]) == 0
+    out = capsys.readouterr().out
+    rows = [ln.split() for ln in out.splitlines() if ln.startswith(("lens1", "lens2"))]
+    assert len(rows) == 2
+    for r in rows:
+        sim_s, incl, excl, failed = float(r[1]), float(r[2]), float(r[3]), int(r[4])
+        assert sim_s > 0 and incl > 0 and excl > incl and failed == 0

@@ -1,0 +1,79 @@
+"""Monte Carlo throughput: calibrations per second per core, signal simulation included and excluded.
+
+One trial is what ``psdcal reproduce`` runs for Tables 3-4: 9 random views of
+the 14-LED template, the paper's signal chain (band-pass demodulation, Eq 43
+gains, 50 kHz x 20 ms records) at 40 dB SNR, then a calibration with the
+paper's model (k1, k2; template cost, preliminary correction, normalisation).
+"Signal excluded" replaces the signal chain by Gaussian noise on the impact
+points (the geometry-only simulator). Times are CPU seconds of this one
+process (one core); a process pool scales them by the number of cores
+(``psdcal.montecarlo.run_trials``).
+
+Run: ``.venv/bin/python benchmarks/bench_montecarlo.py [--trials N]``
+"""
+from __future__ import annotations
+
+import argparse
+import time
+
+import numpy as np
+
+from psdcal.calibration import calibrate
+from psdcal.errors import PsdcalError
+from psdcal.reproduce import chain_settings, simulate_trial
+from psdcal.signalchain import channel_gains
+from psdcal.simulate import simulate_set
+
+
+def _cpu(fn, n):
+    fn(0)  # warm-up (imports, caches)
+    t = time.process_time()
+    fails = 0
+    for i in range(n):
+        fails += not fn(i + 1)
+    return (time.process_time() - t) / n, fails
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--trials", type=int, default=20, help="trials per row (default 20)")
+    args = ap.parse_args(argv)
+    n = args.trials
+    gains = channel_gains(chain_settings(40.0))
+    rows = []
+    for lens in ("lens1", "lens2"):
+
+        def sim_only(i, lens=lens):
+            simulate_trial(np.random.default_rng(i), lens, 40.0, gains, False)
+            return True
+
+        def with_signal(i, lens=lens):
+            data = simulate_trial(np.random.default_rng(i), lens, 40.0, gains, False)
+            try:
+                calibrate(data.template_mm, data.points_mm, cost="template", radial=2, tangential=False)
+                return True
+            except PsdcalError:
+                return False
+
+        def geometry_only(i, lens=lens):
+            s = simulate_set(lens, n_images=9, noise_mm=0.0007, seed=i)  # ~ the 40 dB impact-point noise
+            try:
+                calibrate(s.template_mm, s.points_mm, cost="template", radial=2, tangential=False)
+                return True
+            except PsdcalError:
+                return False
+
+        t_sim, _ = _cpu(sim_only, n)
+        t_sig, f_sig = _cpu(with_signal, n)
+        t_geo, f_geo = _cpu(geometry_only, n)
+        rows.append((lens, t_sim, t_sig, f_sig, t_geo, f_geo))
+    print(f"Monte Carlo throughput, one core (CPU time), {n} trials per row; trial = 9 views x 14 LEDs, "
+          "paper's model, template cost")
+    print(f"{'lens':6} {'signal sim s/trial':>19} {'calib/s, signal incl.':>22} {'calib/s, signal excl.':>22} {'failed':>7}")
+    for lens, t_sim, t_sig, f_sig, t_geo, f_geo in rows:
+        print(f"{lens:6} {t_sim:19.4f} {1 / t_sig:22.1f} {1 / t_geo:22.1f} {f_sig + f_geo:7d}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
