@@ -199,26 +199,25 @@ def write_template(path, point_ids, xy_mm) -> None:
     write_text_atomic(path, "\n".join(rows) + "\n")
 
 
-def write_points(path, image_ids, point_ids, points_mm) -> None:
-    """Write an impact-points CSV atomically; NaN points are left out (missing rows)."""
-    P = np.asarray(points_mm, dtype=float)
-    rows = [",".join(POINTS_HEADER)]
+def _write_per_point(path, header, image_ids, point_ids, values, fmt) -> None:
+    """One row per (image, point) with finite ``values[i, j]`` (missing rows otherwise), atomically."""
+    V = np.asarray(values, dtype=float)
+    rows = [",".join(header)]
     for i, iid in enumerate(image_ids):
         for j, pid in enumerate(point_ids):
-            if np.all(np.isfinite(P[i, j])):
-                rows.append(f"{iid},{pid},{P[i, j, 0]:.12f},{P[i, j, 1]:.12f}")
+            if np.all(np.isfinite(V[i, j])):
+                rows.append(f"{iid},{pid}," + ",".join(fmt.format(v) for v in V[i, j]))
     write_text_atomic(path, "\n".join(rows) + "\n")
+
+
+def write_points(path, image_ids, point_ids, points_mm) -> None:
+    """Write an impact-points CSV atomically; NaN points are left out (missing rows)."""
+    _write_per_point(path, POINTS_HEADER, image_ids, point_ids, points_mm, "{:.12f}")
 
 
 def write_amplitudes(path, image_ids, point_ids, amplitudes) -> None:
     """Write a raw-amplitude points CSV (``image_id,point_id,vx1,vx2,vy1,vy2``) atomically."""
-    A = np.asarray(amplitudes, dtype=float)
-    rows = [",".join(AMPLITUDES_HEADER)]
-    for i, iid in enumerate(image_ids):
-        for j, pid in enumerate(point_ids):
-            if np.all(np.isfinite(A[i, j])):
-                rows.append(f"{iid},{pid}," + ",".join(f"{v:.12g}" for v in A[i, j]))
-    write_text_atomic(path, "\n".join(rows) + "\n")
+    _write_per_point(path, AMPLITUDES_HEADER, image_ids, point_ids, amplitudes, "{:.12g}")
 
 
 def write_json(path, obj) -> None:
