@@ -54,7 +54,6 @@ def main(argv=None) -> int:
         t_dem = _best_of(lambda: sc.estimate_amplitudes(recs, s)) / len(block)
         t_all = _best_of(lambda: sc.measure_points(xy, s, rng=1)) / n
         rows += [(method, "simulate", t_sim), (method, "demodulate", t_dem), (method, "chain", t_all)]
-        del recs
     noiseless = replace(sc.ChainSettings(), snr_db=None)
     t_clean = _best_of(lambda: sc.measure_points(xy, noiseless)) / n
     rows.append(("lockin", "chain, noiseless", t_clean))

@@ -2,15 +2,13 @@
 import json
 import subprocess
 import sys
-from pathlib import Path
 
-import numpy as np
 import pytest
 
 from psdcal.cli import main
 from psdcal.io import write_amplitudes, write_points, write_template
 from psdcal.readout import photocurrents
-from psdcal.simulate import default_template, simulate_set
+from psdcal.simulate import simulate_set
 
 
 def run(args, capsys):

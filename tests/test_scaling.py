@@ -10,7 +10,6 @@ from __future__ import annotations
 import tracemalloc
 
 import numpy as np
-import pytest
 
 from psdcal._homography import homographies
 from psdcal.params import Intrinsics

@@ -200,7 +200,6 @@ def triangulate(n, cov_n, R, t_mm, *, iterations: int = 8) -> Triangulation:
     cov_n = np.asarray(cov_n, dtype=float)
     R = np.asarray(R, dtype=float)
     t = np.asarray(t_mm, dtype=float)
-    k = n.shape[0]
     batch = n.shape[1:-1]
     ok = np.all(np.isfinite(n), axis=-1) & np.all(np.isfinite(cov_n), axis=(-1, -2))  # (k, ...)
     n0 = np.where(ok[..., None], n, 0.0)
