@@ -45,6 +45,8 @@ import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # benchmarks/_table.py, also when imported by the tests
+from _table import print_table  # noqa: E402
 
 import psdcal  # noqa: E402
 from psdcal.calibration import calibrate  # noqa: E402
@@ -218,16 +220,7 @@ def main(argv=None) -> int:
         )
         for r in rows
     ]
-    if a.markdown:
-        print("| " + " | ".join(head) + " |")
-        print("|" + "|".join("---" for _ in head) + "|")
-        for line in lines:
-            print("| " + " | ".join(line) + " |")
-    else:
-        w = [max(len(h), *(len(line[k]) for line in lines)) for k, h in enumerate(head)]
-        print("  ".join(h.rjust(w[k]) for k, h in enumerate(head)))
-        for line in lines:
-            print("  ".join(v.rjust(w[k]) for k, v in enumerate(line)))
+    print_table(head, lines, a.markdown)
     return 0
 
 

@@ -42,9 +42,12 @@ import argparse
 import os
 import platform
 import sys
+from pathlib import Path
 import time
 
 import numpy as np
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # benchmarks/_table.py, also when imported by the tests
+from _table import print_table  # noqa: E402
 
 import psdcal
 from psdcal._refine import Evaluator, Problem
@@ -240,16 +243,7 @@ def main(argv=None) -> int:
                 f"{r['bias_se']:+.2f}",
             )
         )
-    if a.markdown:
-        print("| " + " | ".join(head) + " |")
-        print("|" + "|".join("---" for _ in head) + "|")
-        for line in lines:
-            print("| " + " | ".join(line) + " |")
-    else:
-        w = [max(len(h), *(len(line[k]) for line in lines)) for k, h in enumerate(head)]
-        print("  ".join(h.rjust(w[k]) for k, h in enumerate(head)))
-        for line in lines:
-            print("  ".join(v.rjust(w[k]) for k, v in enumerate(line)))
+    print_table(head, lines, a.markdown)
     ms = {c: np.mean([r["ms_per_cal"] for r in rows if r["cost"] == c]) for c in COSTS}
     print(f"wall time per calibration ({a.jobs} worker(s)): image {ms['image']:.1f} ms, "
           f"template {ms['template']:.1f} ms; total {time.perf_counter() - t0:.0f} s")
