@@ -18,30 +18,42 @@ def _channels(value):
     return tuple(names)
 
 
+def _demod_options(f):
+    """Options shared by the commands that demodulate recordings (locate, amplitudes)."""
+    opts = [
+        click.option("--rate-hz", type=float, help="Sampling rate (when the file does not carry one)."),
+        click.option("--carrier-hz", "carriers", type=float, multiple=True, required=True,
+                     help="Carrier of an emitter; repeat for several emitters at once (frequency multiplexing)."),
+        click.option("--emitter", "emitters", multiple=True, help="Name of each carrier's emitter (default '<f>Hz')."),
+        click.option("--window-s", type=float, default=0.01, show_default=True,
+                     help="Demodulation window: one output per window."),
+        click.option("--tdm", is_flag=True, help="Time multiplexing: one row per segment where one LED is on."),
+        click.option("--schedule", type=click.Path(dir_okay=False),
+                     help="TDM schedule CSV emitter,t_start_s,t_end_s (implies --tdm)."),
+        click.option("--n-emitters", type=int, help="TDM without schedule: emitters per cycle (names repeat)."),
+        click.option("--min-snr", type=float, default=10.0, show_default=True,
+                     help="Drop a window/segment whose total amplitude is below this many sigma."),
+        click.option("--channels",
+                     help="Names of vx1,vx2,vy1,vy2 in the file (CSV columns, HDF5 datasets, TDMS channels)."),
+        click.option("--dataset", help="HDF5: an (n, 4) dataset."),
+        click.option("--group", help="HDF5 or TDMS group."),
+        click.option("--chunk-samples", type=int, default=1 << 16, show_default=True,
+                     help="Samples per channel read at once (bounds memory)."),
+        click.option("--progress/--no-progress", default=None, help="Progress bar (default: on for long files)."),
+        click.option("-o", "--output", required=True, type=click.Path(dir_okay=False), help="Output CSV."),
+    ]
+    for o in reversed(opts):
+        f = o(f)
+    return f
+
+
 @cli.command("locate")
 @click.argument("recordings", nargs=-1, type=click.Path(dir_okay=False))
 @click.option("--calib", type=click.Path(dir_okay=False), help="Calibration JSON of the sensor (one sensor).")
 @click.option("--sensors", type=click.Path(dir_okay=False),
               help="SENSORS.json: several calibrated sensors with poses (3D triangulation).")
-@click.option("--rate-hz", type=float, help="Sampling rate (when the file does not carry one).")
-@click.option("--carrier-hz", "carriers", type=float, multiple=True, required=True,
-              help="Carrier of an emitter; repeat for several emitters at once (frequency multiplexing).")
-@click.option("--emitter", "emitters", multiple=True, help="Name of each carrier's emitter (default '<f>Hz').")
 @click.option("--distance-mm", type=float, help="Plane distance S: also write X_mm, Y_mm on that plane.")
-@click.option("--window-s", type=float, default=0.01, show_default=True, help="Demodulation window: one output per window.")
-@click.option("--tdm", is_flag=True, help="Time multiplexing: one row per segment where one LED is on.")
-@click.option("--schedule", type=click.Path(dir_okay=False),
-              help="TDM schedule CSV emitter,t_start_s,t_end_s (implies --tdm).")
-@click.option("--n-emitters", type=int, help="TDM without schedule: emitters per cycle (names repeat).")
-@click.option("--min-snr", type=float, default=10.0, show_default=True,
-              help="Drop a window/segment whose total amplitude is below this many sigma.")
-@click.option("--channels", help="Names of vx1,vx2,vy1,vy2 in the file (CSV columns, HDF5 datasets, TDMS channels).")
-@click.option("--dataset", help="HDF5: an (n, 4) dataset.")
-@click.option("--group", help="HDF5 or TDMS group.")
-@click.option("--chunk-samples", type=int, default=1 << 16, show_default=True,
-              help="Samples per channel read at once (bounds memory).")
-@click.option("--progress/--no-progress", default=None, help="Progress bar (default: on for long files).")
-@click.option("-o", "--output", required=True, type=click.Path(dir_okay=False), help="Output CSV.")
+@_demod_options
 def locate_command(recordings, calib, sensors, rate_hz, carriers, emitters, distance_mm, window_s, tdm, schedule,
                    n_emitters, min_snr, channels, dataset, group, chunk_samples, progress, output):
     """Demodulate RECORDING(s) and write angles of arrival and positions.
@@ -138,24 +150,8 @@ class _Bar:
 
 @cli.command("amplitudes")
 @click.argument("recording", type=click.Path(dir_okay=False))
-@click.option("--rate-hz", type=float, help="Sampling rate (when the file does not carry one).")
-@click.option("--carrier-hz", "carriers", type=float, multiple=True, required=True,
-              help="Carrier of an emitter; repeat for several emitters at once.")
-@click.option("--emitter", "emitters", multiple=True, help="Name of each carrier's emitter (default '<f>Hz').")
-@click.option("--window-s", type=float, default=0.01, show_default=True, help="Demodulation window.")
-@click.option("--tdm", is_flag=True, help="Time multiplexing: one row per segment where one LED is on.")
-@click.option("--schedule", type=click.Path(dir_okay=False),
-              help="TDM schedule CSV emitter,t_start_s,t_end_s (implies --tdm).")
-@click.option("--n-emitters", type=int, help="TDM without schedule: emitters per cycle (names repeat).")
-@click.option("--min-snr", type=float, default=10.0, show_default=True,
-              help="Drop a window/segment whose total amplitude is below this many sigma.")
 @click.option("--image-id", help="Write a calibration points CSV image_id,point_id,vx1,vx2,vy1,vy2 for this view.")
-@click.option("--channels", help="Names of vx1,vx2,vy1,vy2 in the file.")
-@click.option("--dataset", help="HDF5: an (n, 4) dataset.")
-@click.option("--group", help="HDF5 or TDMS group.")
-@click.option("--chunk-samples", type=int, default=1 << 16, show_default=True, help="Samples per channel read at once.")
-@click.option("--progress/--no-progress", default=None, help="Progress bar (default: on for long files).")
-@click.option("-o", "--output", required=True, type=click.Path(dir_okay=False), help="Output CSV.")
+@_demod_options
 def amplitudes_command(recording, rate_hz, carriers, emitters, window_s, tdm, schedule, n_emitters, min_snr,
                        image_id, channels, dataset, group, chunk_samples, progress, output):
     """Demodulate RECORDING to carrier amplitudes (no calibration needed).
