@@ -12,21 +12,6 @@ import numpy as np
 from .errors import DegenerateViewsError
 
 
-def normalization_matrix(pts) -> np.ndarray:
-    """Similarity T (3, 3) that centres (n, 2) points and scales their mean distance to sqrt(2)."""
-    pts = np.asarray(pts, dtype=float)
-    mean = pts.mean(axis=0)
-    dist = np.linalg.norm(pts - mean, axis=1).mean()
-    if not dist > 0:
-        raise DegenerateViewsError("all points coincide: cannot normalise them")
-    s = np.sqrt(2.0) / dist
-    return np.array([[s, 0.0, -s * mean[0]], [0.0, s, -s * mean[1]], [0.0, 0.0, 1.0]])
-
-
-def _apply(T, pts):
-    return pts @ T[:2, :2].T + T[:2, 2]
-
-
 def collinearity(pts) -> float:
     """Ratio of the smaller to the larger singular value of centred (n, 2) points (0 = collinear)."""
     pts = np.asarray(pts, dtype=float)
@@ -36,6 +21,8 @@ def collinearity(pts) -> float:
 
 def homography(src, dst, *, normalize: bool = True, label: str = "view") -> np.ndarray:
     """Homography H (3, 3) with ``dst ~ H src`` by the DLT (Eq 17-18), optionally normalised.
+
+    One view of :func:`homographies`.
 
     Parameters
     ----------
@@ -58,34 +45,8 @@ def homography(src, dst, *, normalize: bool = True, label: str = "view") -> np.n
     DegenerateViewsError
         Fewer than 4 points, or collinear points.
     """
-    src = np.asarray(src, dtype=float)
     dst = np.asarray(dst, dtype=float)
-    n = src.shape[0]
-    if n < 4:
-        raise DegenerateViewsError(f"{label}: {n} points, a homography needs at least 4")
-    if collinearity(src) < 1e-6 or collinearity(dst) < 1e-6:
-        raise DegenerateViewsError(f"{label}: its points are collinear, a homography needs points spread on the plane")
-    if normalize:
-        Tp = normalization_matrix(src)
-        Tq = normalization_matrix(dst)
-        p = _apply(Tp, src)
-        q = _apply(Tq, dst)
-    else:
-        p, q = src, dst
-    X, Y = p[:, 0], p[:, 1]
-    x, y = q[:, 0], q[:, 1]
-    one, zero = np.ones(n), np.zeros(n)
-    rows_x = np.stack([X, Y, one, zero, zero, zero, -x * X, -x * Y, -x], axis=1)
-    rows_y = np.stack([zero, zero, zero, X, Y, one, -y * X, -y * Y, -y], axis=1)
-    M = np.concatenate([rows_x, rows_y])
-    _, s, Vt = np.linalg.svd(M, full_matrices=False)
-    if s[7] <= 1e-12 * s[0]:
-        raise DegenerateViewsError(f"{label}: the points do not determine a homography (rank-deficient DLT)")
-    H = Vt[-1].reshape(3, 3)
-    if normalize:
-        H = np.linalg.solve(Tq, H @ Tp)  # Eq 38: H = T_Q^-1 H^o T_P
-    H = H / np.linalg.norm(H)
-    return H if H[2, 2] >= 0 else -H
+    return homographies(src, dst[None], normalize=normalize, labels=[label])[0]
 
 
 def apply_homography(H, pts) -> np.ndarray:
