@@ -128,3 +128,14 @@ def extrinsics_from_homography(H, intr: Intrinsics):
     r1, r2, t = lam * a1, lam * a2, lam * a3
     R = nearest_rotation(np.column_stack([r1, r2, np.cross(r1, r2)]))
     return r_from_R(R), t
+
+
+def poses_from_homographies(Hs, intr: Intrinsics):
+    """Poses of all views (:func:`extrinsics_from_homography` for each).
+
+    Returns
+    -------
+    rvecs, tvecs_mm : (n_views, 3) arrays
+    """
+    poses = [extrinsics_from_homography(H, intr) for H in Hs]
+    return np.array([p[0] for p in poses]).reshape(-1, 3), np.array([p[1] for p in poses]).reshape(-1, 3)

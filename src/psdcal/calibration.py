@@ -16,7 +16,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from . import __version__
-from ._closed_form import extrinsics_from_homography, intrinsics_from_homographies
+from ._closed_form import intrinsics_from_homographies, poses_from_homographies
 from ._homography import homographies
 from ._refine import Problem, SolverOptions, refine
 from ._straightness import estimate_radial, find_lines
@@ -52,6 +52,11 @@ class InitialEstimate:
     intrinsics: Intrinsics
     rvecs: np.ndarray
     tvecs_mm: np.ndarray
+
+    def distortion(self, radial: int) -> Distortion:
+        """The preliminary k1, k2 as a start for a model with ``radial`` lens terms."""
+        return Distortion(k1=float(self.preliminary_k[0]) if radial >= 1 else 0.0,
+                          k2=float(self.preliminary_k[1]) if radial >= 2 else 0.0)
 
 
 def _check_inputs(template_mm, points_mm, image_ids, min_images):
@@ -117,8 +122,7 @@ def initial_estimate(
             f"the views do not determine the intrinsics (closed form gives f = {intr.f_mm:.3g} mm, "
             f"C = ({intr.cx_mm:.3g}, {intr.cy_mm:.3g}) mm): tilt the template differently between views"
         )
-    poses = [extrinsics_from_homography(H, intr) for H in Hs]
-    return InitialEstimate(k, n_lines, Hs, intr, np.array([p[0] for p in poses]), np.array([p[1] for p in poses]))
+    return InitialEstimate(k, n_lines, Hs, intr, *poses_from_homographies(Hs, intr))
 
 
 @dataclass(frozen=True)
@@ -448,14 +452,13 @@ def _calibrate(template_mm, points_mm, *, cost, radial, tangential, psd_radial, 
             T, X, preliminary=preliminary, normalize=normalize, radial_terms=radial, skew=True, aspect=True, image_ids=ids
         )
         intr_s = Intrinsics(f_mm=float(np.sqrt(start.intrinsics.f_mm * start.intrinsics.fy)))
-        poses_s = [extrinsics_from_homography(H, intr_s) for H in start.homographies]
-        start = replace(start, intrinsics=intr_s, rvecs=np.array([p[0] for p in poses_s]),
-                        tvecs_mm=np.array([p[1] for p in poses_s]))
+        rv_s, tv_s = poses_from_homographies(start.homographies, intr_s)
+        start = replace(start, intrinsics=intr_s, rvecs=rv_s, tvecs_mm=tv_s)
     else:
         start = initial_estimate(
             T, X, preliminary=preliminary, normalize=normalize, radial_terms=radial, skew=skew, aspect=aspect, image_ids=ids
         )
-    dist0 = Distortion(k1=float(start.preliminary_k[0]) if radial >= 1 else 0.0, k2=float(start.preliminary_k[1]) if radial >= 2 else 0.0)
+    dist0 = start.distortion(radial)
     prob = Problem(T, X, spec, cost=cost, sensor_mm=tuple(sensor_mm))
     intr0 = start.intrinsics
     if aspect and intr0.fy_mm is None:
@@ -549,14 +552,10 @@ def _psd_multistart(T, X, spec, sensor_mm, start, intr0, dist0, g0, rv0, tv0, so
     """
     pimg = Problem(T, X, spec, cost="image", sensor_mm=tuple(sensor_mm))
     cands = [refine(pimg, intr0, dist0, g0, rv0, tv0, solver)]
-    lin = Distortion(k1=float(start.preliminary_k[0]) if spec.radial >= 1 else 0.0,
-                     k2=float(start.preliminary_k[1]) if spec.radial >= 2 else 0.0)
+    lin = start.distortion(spec.radial)
     for ox, oy in PSD_CENTRE_STARTS:
         i0 = replace(intr0, cx_mm=ox * PSD_CENTRE_STEP * sensor_mm[0], cy_mm=oy * PSD_CENTRE_STEP * sensor_mm[1])
-        poses = [extrinsics_from_homography(H, i0) for H in start.homographies]
-        rv = np.array([q[0] for q in poses])
-        tv = np.array([q[1] for q in poses])
-        cands.append(refine(pimg, i0, lin, g0, rv, tv, solver))
+        cands.append(refine(pimg, i0, lin, g0, *poses_from_homographies(start.homographies, i0), solver))
     ok = [c for c in cands if c.converged and np.isfinite(c.cost_rms)]
     return min(ok, key=lambda c: c.cost_rms) if ok else None
 
