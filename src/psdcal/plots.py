@@ -106,6 +106,14 @@ def _draw_residuals(ax, X, R, sensor_mm, scale, colors, flagged=None, removed=()
         ax.legend(loc="lower left", fontsize=8)
 
 
+def _residual_inputs(result, points_mm, scale):
+    """The aligned result, measured points (n, M, 2), residuals (n, M, 2) and arrow scale of a residual plot."""
+    result = align_to_problem(result)
+    X = measured_points_mm(result) if points_mm is None else np.asarray(points_mm, dtype=float)
+    R = np.asarray(result.residuals_mm, dtype=float)
+    return result, X, R, (_auto_scale(R, result.sensor_mm) if scale is None else scale)
+
+
 def _palette(n):
     """Image colours without the reds and pinks, which mark outliers."""
     from matplotlib import colormaps
@@ -144,10 +152,7 @@ def residuals(result, *, scale=None, k: float = DEFAULT_K, flags=None, points_mm
     -------
     Figure
     """
-    result = align_to_problem(result)
-    X = measured_points_mm(result) if points_mm is None else np.asarray(points_mm, dtype=float)
-    R = np.asarray(result.residuals_mm, dtype=float)
-    scale = _auto_scale(R, result.sensor_mm) if scale is None else scale
+    result, X, R, scale = _residual_inputs(result, points_mm, scale)
     fig = _new((7.0, 6.4))
     ax = fig.add_subplot()
     _draw_residuals(ax, X, R, result.sensor_mm, scale, _palette(X.shape[0]), _outlier_mask(result, k, flags),
@@ -171,10 +176,7 @@ def residuals_per_image(result, *, scale=None, ncols: int = 4, k: float = DEFAUL
     -------
     Figure
     """
-    result = align_to_problem(result)
-    X = measured_points_mm(result) if points_mm is None else np.asarray(points_mm, dtype=float)
-    R = np.asarray(result.residuals_mm, dtype=float)
-    scale = _auto_scale(R, result.sensor_mm) if scale is None else scale
+    result, X, R, scale = _residual_inputs(result, points_mm, scale)
     mask = _outlier_mask(result, k, flags)
     removed = removed_points(result)
     n = X.shape[0]
