@@ -183,6 +183,16 @@ class Evaluator:
         self._rkey = self._rval = None
         self._dkey = self._dval = None
         self._anchor = None
+        self._kernel = None
+        if prob.cost == "image" and not prob.spec.fit_gains:
+            from . import _jit
+
+            if _jit.enabled():  # the compiled image cost (psdcal._image_kernel); this class's numpy code is its reference
+                from ._image_kernel import global_map, image_model
+
+                self._kernel = image_model
+                self._gmap = global_map(prob.names)
+                self._no_warm = np.full(self.d_meas.shape, np.nan)
 
     def unpack(self, z):
         return self.prob.unpack(z, *self.base)
@@ -209,7 +219,10 @@ class Evaluator:
         key = z.tobytes()
         if key == self._key:
             return self._val
-        if self.prob.cost == "image":
+        if self._kernel is not None:
+            d, J = self._compiled(z, key, want_jac=True)
+            val = ((d - self.d_meas).ravel(), J)
+        elif self.prob.cost == "image":
             val = self._image(z)
         else:
             val = self._template(z)
@@ -265,8 +278,34 @@ class Evaluator:
         self._dkey, self._dval = key, d
         return d
 
+    def _compiled(self, z, key, want_jac):
+        """Modelled points d (N, 2) (and the Jacobian) by the compiled kernel.
+
+        The Newton inverse starts from the solution at this state when it is
+        cached (a Jacobian at the point whose residuals were just taken),
+        otherwise from that of the last Jacobian evaluation.
+        """
+        intr, coef, gains, rv, tv = self.unpack(z)
+        if self._dkey == key:
+            warm = self._dval
+        else:
+            warm = self._anchor if self._anchor is not None else self._no_warm
+        fy = intr.fy_mm if intr.fy_mm is not None else intr.f_mm
+        d, ok, J = self._kernel(
+            self.P, self.img_idx, np.ascontiguousarray(rv), np.ascontiguousarray(tv),
+            np.array([intr.f_mm, intr.cx_mm, intr.cy_mm, intr.skew, fy]), intr.fy_mm is not None,
+            np.ascontiguousarray(coef, dtype=float), warm, self.d_meas, self._gmap, want_jac, 1e-13, 50,
+        )
+        self._dkey, self._dval = key, d
+        if want_jac:
+            self._anchor = d
+        return d, J
+
     def model_points(self, z):
         """Modelled measured points (N, 2) of the valid observations, mm on the sensor."""
+        if self._kernel is not None:
+            key = z.tobytes()
+            return self._dval if self._dkey == key else self._compiled(z, key, want_jac=False)[0]
         intr, coef, gains, dR, Pc, xn, yn, x = self._ideal(z, derivatives=False)
         d = self._solve_distort(z.tobytes(), x, coef, intr.c)
         if self.prob.spec.fit_gains:

@@ -1,0 +1,325 @@
+"""Compiled image-plane cost: residuals and Jacobian in one pass over the points.
+
+The same mathematics as the numpy reference in :mod:`psdcal._refine`
+(``Evaluator._image``), :mod:`psdcal.distortion` (``undistort``, ``distort``,
+``distort_jacobians``) and :func:`psdcal._refine.rodrigues_batch`, written as
+scalar loops for numba (:mod:`psdcal._jit`). For each observation ``i`` of
+view ``v``:
+
+- ``Pc = R_v [X, Y, 0]^T + t_v`` (Rodrigues rotation; Eq 3 of the paper);
+- ideal point ``x = (f xn + s yn + cx, fy yn + cy)``, ``xn = Pc_x / Pc_z``
+  (Eq 4);
+- measured point ``d`` with ``undistort(d) = x`` by Newton's method
+  (Eq 7-16 inverted, MODEL.md 5), from a warm start, then from the measured
+  point, then from a fixed-point start, the first that converges;
+- the Jacobian of ``d`` with respect to (f, cx, cy, skew, fy, k1, k2, k3,
+  p1, p2, l1, l2) and the view's (r, t) from the implicit function theorem,
+  ``dd/dtheta = -(dx/dd)^-1 dx/dtheta``.
+
+The Jacobian's global columns are chosen by ``gmap`` (index into the 12
+derivatives above, in that order); the pose columns of view ``v`` start at
+``n_global + 6 v`` (r then t), all other entries of the row are zero.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from ._jit import njit
+
+#: order of the global derivatives the kernel computes (``gmap`` indexes it)
+GLOBAL_ORDER = ("f_mm", "cx_mm", "cy_mm", "skew", "fy_mm", "k1", "k2", "k3", "p1", "p2", "l1", "l2")
+
+
+@njit
+def _rotations(rv, want_d):
+    """R (n, 3, 3) and dR (n, 3, 3, 3) (dR[v, k] = dR/dr_k) of rotation vectors rv (n, 3)."""
+    n = rv.shape[0]
+    R = np.zeros((n, 3, 3))
+    dR = np.zeros((n, 3, 3, 3))
+    K = np.zeros((3, 3))
+    W = np.zeros((3, 3))
+    for v in range(n):
+        r0, r1, r2 = rv[v, 0], rv[v, 1], rv[v, 2]
+        th2 = r0 * r0 + r1 * r1 + r2 * r2
+        th = math.sqrt(th2)
+        small = th < 1e-12
+        if small:
+            A, B = 1.0, 0.5
+        else:
+            A = math.sin(th) / th
+            B = (1.0 - math.cos(th)) / th2
+        K[0, 0], K[0, 1], K[0, 2] = 0.0, -r2, r1
+        K[1, 0], K[1, 1], K[1, 2] = r2, 0.0, -r0
+        K[2, 0], K[2, 1], K[2, 2] = -r1, r0, 0.0
+        for i in range(3):
+            for j in range(3):
+                kk = K[i, 0] * K[0, j] + K[i, 1] * K[1, j] + K[i, 2] * K[2, j]
+                R[v, i, j] = (1.0 if i == j else 0.0) + A * K[i, j] + B * kk
+        if not want_d:
+            continue
+        for k in range(3):
+            if small:
+                e0 = 1.0 if k == 0 else 0.0
+                e1 = 1.0 if k == 1 else 0.0
+                e2 = 1.0 if k == 2 else 0.0
+                dR[v, k, 0, 1], dR[v, k, 0, 2] = -e2, e1
+                dR[v, k, 1, 0], dR[v, k, 1, 2] = e2, -e0
+                dR[v, k, 2, 0], dR[v, k, 2, 1] = -e1, e0
+                continue
+            # w = r x (I - R)[:, k]
+            a0 = (1.0 if k == 0 else 0.0) - R[v, 0, k]
+            a1 = (1.0 if k == 1 else 0.0) - R[v, 1, k]
+            a2 = (1.0 if k == 2 else 0.0) - R[v, 2, k]
+            w0 = r1 * a2 - r2 * a1
+            w1 = r2 * a0 - r0 * a2
+            w2 = r0 * a1 - r1 * a0
+            W[0, 0], W[0, 1], W[0, 2] = 0.0, -w2, w1
+            W[1, 0], W[1, 1], W[1, 2] = w2, 0.0, -w0
+            W[2, 0], W[2, 1], W[2, 2] = -w1, w0, 0.0
+            rk = rv[v, k]
+            for i in range(3):
+                for j in range(3):
+                    acc = 0.0
+                    for m in range(3):
+                        acc += (rk * K[i, m] + W[i, m]) * R[v, m, j]
+                    dR[v, k, i, j] = acc / th2
+    return R, dR
+
+
+@njit
+def _undistort_point(dx, dy, coef, cx, cy):
+    """x = undistort(d) and dx/dd (Eq 7-16) of one point; returns (x0, x1, J00, J01, J10, J11)."""
+    k1, k2, k3, p1, p2, l1, l2 = coef[0], coef[1], coef[2], coef[3], coef[4], coef[5], coef[6]
+    h2 = dx * dx + dy * dy
+    s = 1.0 + l1 * h2 + l2 * h2 * h2
+    ux, uy = dx * s, dy * s
+    ex, ey = ux - cx, uy - cy
+    r2 = ex * ex + ey * ey
+    rad = r2 * (k1 + r2 * (k2 + r2 * k3))
+    x0 = ux + ex * rad + p1 * (r2 + 2 * ex * ex) + 2 * p2 * ex * ey
+    x1 = uy + ey * rad + p2 * (r2 + 2 * ey * ey) + 2 * p1 * ex * ey
+    g = 2 * (k1 + r2 * (2 * k2 + 3 * k3 * r2))
+    G00 = 1 + rad + g * ex * ex + 6 * p1 * ex + 2 * p2 * ey
+    G01 = g * ex * ey + 2 * p1 * ey + 2 * p2 * ex
+    G10 = g * ex * ey + 2 * p2 * ex + 2 * p1 * ey
+    G11 = 1 + rad + g * ey * ey + 6 * p2 * ey + 2 * p1 * ex
+    ds = 2 * (l1 + 2 * l2 * h2)
+    U00 = s + ds * dx * dx
+    U01 = ds * dx * dy
+    U11 = s + ds * dy * dy
+    return (x0, x1, G00 * U00 + G01 * U01, G00 * U01 + G01 * U11, G10 * U00 + G11 * U01, G10 * U01 + G11 * U11)
+
+
+@njit
+def _monotone(dx, dy, coef, cx, cy):
+    """Whether d lies on the branch of the model that starts at the centre (distortion._on_monotone_branch)."""
+    k1, k2, k3, l1, l2 = coef[0], coef[1], coef[2], coef[5], coef[6]
+    h2 = dx * dx + dy * dy
+    s_psd = 1 + h2 * (l1 + l2 * h2)
+    ds_psd = 1 + h2 * (3 * l1 + 5 * l2 * h2)
+    ex, ey = dx * s_psd - cx, dy * s_psd - cy
+    r2 = ex * ex + ey * ey
+    s_lens = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    ds_lens = 1 + r2 * (3 * k1 + r2 * (5 * k2 + 7 * r2 * k3))
+    return s_psd > 0 and ds_psd > 0 and s_lens > 0 and ds_lens > 0
+
+
+@njit
+def _newton(x0, x1, sx, sy, coef, cx, cy, tol, max_iter):
+    """d with undistort(d) = x from the start (sx, sy); as :func:`psdcal.distortion.distort`.
+
+    Returns (d0, d1, converged).
+    """
+    d0, d1 = sx, sy
+    prev = math.inf
+    st0 = st1 = 0.0
+    err = math.inf
+    det = 0.0
+    for it in range(max_iter + 1):
+        a0, a1, J00, J01, J10, J11 = _undistort_point(d0, d1, coef, cx, cy)
+        r0, r1 = a0 - x0, a1 - x1
+        e = math.hypot(r0, r1)
+        if not (e < prev) and prev < math.inf:
+            # the last step made things worse: take back half of it
+            st0 *= 0.5
+            st1 *= 0.5
+            d0 += st0
+            d1 += st1
+            if max(abs(st0), abs(st1)) <= 1e-16:
+                prev = math.inf  # give up backtracking, accept the next point
+            continue
+        err = e
+        det = J00 * J11 - J01 * J10
+        if e <= tol or not math.isfinite(e) or it == max_iter:
+            break
+        st0 = (J11 * r0 - J01 * r1) / det
+        st1 = (-J10 * r0 + J00 * r1) / det
+        prev = e
+        d0 -= st0
+        d1 -= st1
+        smax = max(abs(st0), abs(st1))
+        if smax <= 0.3 * math.sqrt(tol):
+            # quadratic convergence: the remaining error is about kappa s^2 < tol / 10
+            err = smax * smax
+            break
+    ok = math.isfinite(err) and err <= 10 * tol and det > 0 and _monotone(d0, d1, coef, cx, cy)
+    return d0, d1, ok
+
+
+@njit
+def _fixed_point_start(x0, x1, coef, cx, cy):
+    """Start of the Newton inverse: a few fixed-point steps of the lens radial part about c."""
+    k1, k2, k3 = coef[0], coef[1], coef[2]
+    d0, d1 = x0, x1
+    e0, e1 = x0 - cx, x1 - cy
+    for _ in range(3):
+        f0, f1 = d0 - cx, d1 - cy
+        rr = f0 * f0 + f1 * f1
+        den = 1.0 + rr * (k1 + rr * (k2 + rr * k3))
+        c0 = cx + e0 / den
+        c1 = cy + e1 / den
+        if math.isfinite(c0) and math.isfinite(c1):
+            d0, d1 = c0, c1
+    return d0, d1
+
+
+@njit
+def image_model(P, img, rv, tv, intr, separate_fy, coef, warm, meas, gmap, want_jac, tol_mm, max_iter):
+    """Modelled measured points of all observations, and their Jacobian.
+
+    Parameters
+    ----------
+    P : (N, 2) template point of each observation, mm
+    img : (N,) int, view of each observation
+    rv, tv : (n, 3) rotation vectors and translations (mm) of the views
+    intr : (5,) f, cx, cy, skew, fy (fy is used only when ``separate_fy``), mm
+    coef : (7,) k1, k2, k3, p1, p2, l1, l2
+    warm : (N, 2) warm start of the Newton inverse (NaN: none), mm
+    meas : (N, 2) measured points (the second start), mm
+    gmap : (n_global,) int, column k of the Jacobian is derivative ``GLOBAL_ORDER[gmap[k]]``
+    want_jac : bool
+    tol_mm, max_iter : of the Newton inverse, as :func:`psdcal.distortion.distort`
+
+    Returns
+    -------
+    d : (N, 2) modelled measured points, mm (the last iterate where the inverse failed)
+    ok : (N,) bool, the inverse converged
+    J : (2N, n_global + 6 n) Jacobian of d (rows x0, y0, x1, ...); (0, 0) without ``want_jac``
+    """
+    N = P.shape[0]
+    n = rv.shape[0]
+    ng = gmap.shape[0]
+    R, dR = _rotations(rv, want_jac)
+    f, cx, cy, sk = intr[0], intr[1], intr[2], intr[3]
+    fy = intr[4] if separate_fy else f
+    d = np.empty((N, 2))
+    ok = np.zeros(N, dtype=np.bool_)
+    if want_jac:
+        J = np.zeros((2 * N, ng + 6 * n))
+    else:
+        J = np.zeros((0, 0))
+    D = np.empty((2, 12))
+    for i in range(N):
+        v = img[i]
+        X, Y = P[i, 0], P[i, 1]
+        pcx = R[v, 0, 0] * X + R[v, 0, 1] * Y + tv[v, 0]
+        pcy = R[v, 1, 0] * X + R[v, 1, 1] * Y + tv[v, 1]
+        pcz = R[v, 2, 0] * X + R[v, 2, 1] * Y + tv[v, 2]
+        xn, yn = pcx / pcz, pcy / pcz
+        x0 = f * xn + sk * yn + cx  # Eq 4
+        x1 = fy * yn + cy
+        tol = tol_mm * max(1.0, math.hypot(x0, x1))
+        conv = False
+        d0 = d1 = math.nan
+        for attempt in range(3):
+            if attempt == 0:
+                if math.isfinite(warm[i, 0]) and math.isfinite(warm[i, 1]):
+                    s0, s1 = warm[i, 0], warm[i, 1]
+                else:
+                    s0, s1 = _fixed_point_start(x0, x1, coef, cx, cy)
+            elif attempt == 1:
+                s0, s1 = meas[i, 0], meas[i, 1]
+            else:
+                s0, s1 = _fixed_point_start(x0, x1, coef, cx, cy)
+            d0, d1, conv = _newton(x0, x1, s0, s1, coef, cx, cy, tol, max_iter)
+            if conv:
+                break
+        d[i, 0], d[i, 1] = d0, d1
+        ok[i] = conv
+        if not want_jac:
+            continue
+        # -- undistortion Jacobians at d (as distortion.undistort(..., jacobians=True))
+        k1, k2, k3, p1, p2, l1, l2 = coef[0], coef[1], coef[2], coef[3], coef[4], coef[5], coef[6]
+        h2 = d0 * d0 + d1 * d1
+        s = 1.0 + l1 * h2 + l2 * h2 * h2
+        ex, ey = d0 * s - cx, d1 * s - cy
+        r2 = ex * ex + ey * ey
+        rad = r2 * (k1 + r2 * (k2 + r2 * k3))
+        g2 = 2 * (k1 + r2 * (2 * k2 + 3 * k3 * r2))
+        G00 = rad + g2 * ex * ex + 6 * p1 * ex + 2 * p2 * ey
+        G01 = g2 * ex * ey + 2 * p1 * ey + 2 * p2 * ex
+        G10 = g2 * ex * ey + 2 * p2 * ex + 2 * p1 * ey
+        G11 = rad + g2 * ey * ey + 6 * p2 * ey + 2 * p1 * ex
+        ds = 2 * (l1 + 2 * l2 * h2)
+        U00 = s + ds * d0 * d0
+        U01 = ds * d0 * d1
+        U11 = s + ds * d1 * d1
+        A00 = (1 + G00) * U00 + G01 * U01  # dx/dd = (I + G) dU/dd
+        A01 = (1 + G00) * U01 + G01 * U11
+        A10 = G10 * U00 + (1 + G11) * U01
+        A11 = G10 * U01 + (1 + G11) * U11
+        det = A00 * A11 - A01 * A10
+        I00, I01, I10, I11 = A11 / det, -A01 / det, -A10 / det, A00 / det  # dd/dx
+        # dd/dtheta for the global parameters: D[:, j] = inv @ dx/dtheta_j (with sign)
+        # intrinsics through x (Eq 4)
+        if separate_fy:
+            D[0, 0], D[1, 0] = I00 * xn, I10 * xn
+            D[0, 4], D[1, 4] = I01 * yn, I11 * yn
+        else:
+            D[0, 0], D[1, 0] = I00 * xn + I01 * yn, I10 * xn + I11 * yn
+            D[0, 4] = D[1, 4] = 0.0
+        D[0, 3], D[1, 3] = I00 * yn, I10 * yn
+        # cx, cy: through x (+identity) and through the model's centre (dx/dc = -G)
+        D[0, 1], D[1, 1] = I00 * (1 + G00) + I01 * G10, I10 * (1 + G00) + I11 * G10
+        D[0, 2], D[1, 2] = I00 * G01 + I01 * (1 + G11), I10 * G01 + I11 * (1 + G11)
+        # distortion coefficients: dd/dk = -inv dx/dk
+        r4 = r2 * r2
+        q0 = (ex * r2, ex * r4, ex * r4 * r2, r2 + 2 * ex * ex, 2 * ex * ey)
+        q1 = (ey * r2, ey * r4, ey * r4 * r2, 2 * ex * ey, r2 + 2 * ey * ey)
+        for j in range(5):
+            D[0, 5 + j] = -(I00 * q0[j] + I01 * q1[j])
+            D[1, 5 + j] = -(I10 * q0[j] + I11 * q1[j])
+        for j in range(2):
+            hp = h2 if j == 0 else h2 * h2
+            u0, u1 = d0 * hp, d1 * hp
+            w0 = (1 + G00) * u0 + G01 * u1
+            w1 = G10 * u0 + (1 + G11) * u1
+            D[0, 10 + j] = -(I00 * w0 + I01 * w1)
+            D[1, 10 + j] = -(I10 * w0 + I11 * w1)
+        row = 2 * i
+        for k in range(ng):
+            J[row, k] = D[0, gmap[k]]
+            J[row + 1, k] = D[1, gmap[k]]
+        # poses: dd/dPc = inv @ dx/dPc, dPc/dr_k = dR_k[:, :2] P, dPc/dt = I
+        iz = 1.0 / pcz
+        B00, B01, B02 = f * iz, sk * iz, -(f * xn + sk * yn) * iz
+        B11, B12 = fy * iz, -fy * yn * iz
+        E00, E01, E02 = I00 * B00, I00 * B01 + I01 * B11, I00 * B02 + I01 * B12
+        E10, E11, E12 = I10 * B00, I10 * B01 + I11 * B11, I10 * B02 + I11 * B12
+        base = ng + 6 * v
+        for k in range(3):
+            g0 = dR[v, k, 0, 0] * X + dR[v, k, 0, 1] * Y
+            g1 = dR[v, k, 1, 0] * X + dR[v, k, 1, 1] * Y
+            g2 = dR[v, k, 2, 0] * X + dR[v, k, 2, 1] * Y
+            J[row, base + k] = E00 * g0 + E01 * g1 + E02 * g2
+            J[row + 1, base + k] = E10 * g0 + E11 * g1 + E12 * g2
+        J[row, base + 3], J[row, base + 4], J[row, base + 5] = E00, E01, E02
+        J[row + 1, base + 3], J[row + 1, base + 4], J[row + 1, base + 5] = E10, E11, E12
+    return d, ok, J
+
+
+def global_map(names) -> np.ndarray:
+    """``gmap`` of :func:`image_model` for the free global parameter names."""
+    return np.array([GLOBAL_ORDER.index(n) for n in names], dtype=np.int64)
