@@ -10,15 +10,24 @@ trivial "shrink everything" solution).
 """
 from __future__ import annotations
 
+import functools
+import math
 from dataclasses import dataclass
 
 import numpy as np
 
+from . import _jit
+from ._jit import njit
 from .distortion import undistort
 
 
 def find_lines(template_mm, *, min_points: int = 3, tol_rel: float = 1e-6, max_lines: int | None = None) -> list[np.ndarray]:
     """All maximal sets of >= ``min_points`` collinear template points.
+
+    The lines depend on the template only, which a calibration (and every
+    Monte-Carlo trial) reuses: results are memoised per template (its bytes
+    and shape) and options; each call returns fresh copies.
+    :func:`find_lines_reference` is the uncached search.
 
     For each point ``i``, the directions to all other points are sorted by
     angle and split where consecutive angles differ by more than the
@@ -40,6 +49,25 @@ def find_lines(template_mm, *, min_points: int = 3, tol_rel: float = 1e-6, max_l
     -------
     list of int arrays (sorted indices), one per line.
     """
+    P = np.ascontiguousarray(template_mm, dtype=float)
+    if P.ndim != 2:
+        return find_lines_reference(P, min_points=min_points, tol_rel=tol_rel, max_lines=max_lines)
+    cached = _find_lines_cached(P.tobytes(), P.shape, int(min_points), float(tol_rel), max_lines)
+    return [ln.copy() for ln in cached]
+
+
+@functools.lru_cache(maxsize=64)
+def _find_lines_cached(template_bytes: bytes, shape: tuple, min_points: int, tol_rel: float, max_lines):
+    """Memoised :func:`find_lines_reference` on a template given as its bytes (float64) and shape."""
+    P = np.frombuffer(template_bytes, dtype=float).reshape(shape)
+    lines = find_lines_reference(P, min_points=min_points, tol_rel=tol_rel, max_lines=max_lines)
+    for ln in lines:
+        ln.setflags(write=False)
+    return tuple(lines)
+
+
+def find_lines_reference(template_mm, *, min_points: int = 3, tol_rel: float = 1e-6, max_lines: int | None = None) -> list[np.ndarray]:
+    """The search of :func:`find_lines` itself, without memoisation (same parameters and result)."""
     P = np.asarray(template_mm, dtype=float)
     M = P.shape[0]
     if M < min_points:
@@ -136,6 +164,183 @@ def _line_residuals(pts, group, n_groups, dpts=None):
     return res, jac
 
 
+@njit
+def _radial_scatter_kernel(d_mm, group, n_groups, k, c_mm):
+    """Undistort by radial terms and form each group's centred points and scatter (compiled).
+
+    The undistortion is Eq 11-16 with only ``k1..k_n`` (n = ``k.size`` <= 3)
+    non-zero: ``x = d + e (k1 r^2 + k2 r^4 + k3 r^6)``, ``e = d - c``.
+    The sums run in point order, as ``np.bincount`` adds them in
+    :func:`_line_residuals`, so the results equal the numpy reference's.
+
+    Parameters
+    ----------
+    d_mm : (N, 2) float64, measured points, mm
+    group : (N,) int64 in [0, n_groups)
+    n_groups : int
+    k : (n,) float64, radial coefficients k1 [mm^-2], k2 [mm^-4], k3 [mm^-6]
+    c_mm : (2,) float64, centre of distortion, mm
+
+    Returns
+    -------
+    q_mm : (N, 2), undistorted points minus their group's centroid, mm
+    cnt : (n_groups,) float64, points per group
+    abc_mm2 : (3, n_groups), the scatter ``[[a, b], [b, c]]`` of each group as rows a, b, c, mm^2
+    """
+    N = d_mm.shape[0]
+    nk = k.shape[0]
+    k1 = k[0] if nk > 0 else 0.0
+    k2 = k[1] if nk > 1 else 0.0
+    k3 = k[2] if nk > 2 else 0.0
+    x = np.empty((N, 2))
+    cnt = np.zeros(n_groups)
+    mean = np.zeros((n_groups, 2))
+    for i in range(N):
+        ex = d_mm[i, 0] - c_mm[0]
+        ey = d_mm[i, 1] - c_mm[1]
+        r2 = ex * ex + ey * ey
+        rad = r2 * (k1 + r2 * (k2 + r2 * k3))
+        x[i, 0] = d_mm[i, 0] + ex * rad
+        x[i, 1] = d_mm[i, 1] + ey * rad
+        g = group[i]
+        cnt[g] += 1.0
+        mean[g, 0] += x[i, 0]
+        mean[g, 1] += x[i, 1]
+    for g in range(n_groups):
+        mean[g, 0] = mean[g, 0] / cnt[g]
+        mean[g, 1] = mean[g, 1] / cnt[g]
+    q = np.empty((N, 2))
+    abc = np.zeros((3, n_groups))
+    for i in range(N):
+        g = group[i]
+        qx = x[i, 0] - mean[g, 0]
+        qy = x[i, 1] - mean[g, 1]
+        q[i, 0] = qx
+        q[i, 1] = qy
+        abc[0, g] += qx * qx
+        abc[1, g] += qx * qy
+        abc[2, g] += qy * qy
+    return q, cnt, abc
+
+
+@njit
+def _radial_line_residuals_kernel(d_mm, q_mm, group, cnt, abc, nx, ny, c_mm, z_scale, want_jac):
+    """Compiled :func:`_line_residuals` (and its Jacobian) from :func:`_radial_scatter_kernel`'s output.
+
+    ``(nx, ny)`` is each line's unit normal ``(-sin t, cos t)``,
+    ``t = atan2(2b, a - c) / 2``, computed by the caller with numpy (whose
+    ``arctan2`` need not agree to the last bit with the C library's; using
+    the same one keeps the result equal to the reference's). The
+    derivatives of the undistorted points by ``k_j`` are ``e r^(2j)``;
+    divided by ``z_scale[j]`` (the solver's unknown is ``z_j = k_j z_scale[j]``)
+    they are the ``dpts`` of :func:`_line_residuals`.
+
+    Parameters
+    ----------
+    d_mm : (N, 2) float64, measured points, mm
+    q_mm, group, cnt, abc : as :func:`_radial_scatter_kernel` gives them
+    nx, ny : (n_groups,) float64, line normals
+    c_mm : (2,) float64, centre of distortion, mm
+    z_scale : (n,) float64, scale of the unknowns (mm^2, mm^4, mm^6)
+    want_jac : bool
+
+    Returns
+    -------
+    res : (N,) residuals (dimensionless); jac : (N, n), or (0, n) without ``want_jac``
+    """
+    N = d_mm.shape[0]
+    n_groups = cnt.shape[0]
+    nk = z_scale.shape[0]
+    # spread of each group along its line, sqrt(lmax / cnt)
+    radg = np.empty(n_groups)
+    lmax = np.empty(n_groups)
+    spread = np.empty(n_groups)
+    for g in range(n_groups):
+        h = 0.5 * (abc[0, g] - abc[2, g])
+        radg[g] = math.sqrt(h * h + abc[1, g] * abc[1, g])
+        lmax[g] = 0.5 * (abc[0, g] + abc[2, g]) + radg[g]
+        spread[g] = math.sqrt(lmax[g] / cnt[g])
+    res = np.empty(N)
+    for i in range(N):
+        g = group[i]
+        res[i] = q_mm[i, 0] * (nx[g] / spread[g]) + q_mm[i, 1] * (ny[g] / spread[g])
+    if not want_jac:
+        return res, np.empty((0, nk))
+    # derivatives of the undistorted points by the unknowns
+    dx = np.empty((N, nk))
+    dy = np.empty((N, nk))
+    for i in range(N):
+        ex = d_mm[i, 0] - c_mm[0]
+        ey = d_mm[i, 1] - c_mm[1]
+        r2 = ex * ex + ey * ey
+        rp = r2
+        for j in range(nk):
+            dx[i, j] = ex * rp / z_scale[j]
+            dy[i, j] = ey * rp / z_scale[j]
+            rp = rp * r2
+    jac = np.empty((N, nk))
+    mdx = np.empty(n_groups)
+    mdy = np.empty(n_groups)
+    da = np.empty(n_groups)
+    db = np.empty(n_groups)
+    dc = np.empty(n_groups)
+    ddx = np.empty(N)
+    ddy = np.empty(N)
+    for j in range(nk):
+        mdx[:] = 0.0
+        mdy[:] = 0.0
+        da[:] = 0.0
+        db[:] = 0.0
+        dc[:] = 0.0
+        for i in range(N):
+            g = group[i]
+            mdx[g] += dx[i, j]
+            mdy[g] += dy[i, j]
+        for i in range(N):
+            g = group[i]
+            qx = q_mm[i, 0]
+            qy = q_mm[i, 1]
+            ddx[i] = dx[i, j] - mdx[g] / cnt[g]
+            ddy[i] = dy[i, j] - mdy[g] / cnt[g]
+            da[g] += qx * ddx[i]
+            dc[g] += qy * ddy[i]
+            db[g] += qx * ddy[i] + qy * ddx[i]
+        for i in range(N):
+            g = group[i]
+            a, b, c = abc[0, g], abc[1, g], abc[2, g]
+            den = (a - c) * (a - c) + 4.0 * b * b
+            if not den > 0.0:
+                den = 1.0
+            rad_safe = radg[g] if radg[g] > 0.0 else 1.0
+            dag = 2.0 * da[g]
+            dcg = 2.0 * dc[g]
+            # rotation of the line and change of its spread
+            dtheta = ((a - c) * db[g] - b * (dag - dcg)) / den
+            dlmax = 0.5 * (dag + dcg) + (0.25 * (a - c) * (dag - dcg) + b * db[g]) / rad_safe
+            dlog_spread = 0.5 * dlmax / lmax[g]
+            # n = (-sin t, cos t): dn = (-ny, nx) dt
+            dnx = -ny[g] * dtheta
+            dny = nx[g] * dtheta
+            jac[i, j] = (
+                ddx[i] * (nx[g] / spread[g])
+                + ddy[i] * (ny[g] / spread[g])
+                + (q_mm[i, 0] * dnx + q_mm[i, 1] * dny) / spread[g]
+                - res[i] * dlog_spread
+            )
+    return res, jac
+
+
+def _radial_line_residuals_jit(d_mm, group, n_groups, k, c_mm, z_scale, want_jac):
+    """Residuals (N,) and, with ``want_jac``, Jacobian (N, n) of the straightness cost, compiled.
+
+    Equal to :func:`_line_residuals` of ``undistort(d_mm, k, c_mm)`` with
+    ``dpts`` the derivatives by ``k / z_scale``'s unknowns.
+    """
+    q, cnt, abc = _radial_scatter_kernel(d_mm, group, n_groups, k, c_mm)
+    theta = 0.5 * np.arctan2(2 * abc[1], abc[0] - abc[2])
+    return _radial_line_residuals_kernel(d_mm, q, group, cnt, abc, -np.sin(theta), np.cos(theta), c_mm, z_scale, want_jac)
+
+
 def estimate_radial(points_mm, lines, *, c_mm=(0.0, 0.0), n_terms: int = 2) -> StraightnessResult:
     """Estimate k1 (and k2) that make the measured lines straight (Section 3.2).
 
@@ -172,16 +377,30 @@ def estimate_radial(points_mm, lines, *, c_mm=(0.0, 0.0), n_terms: int = 2) -> S
     # unknowns scaled so that k_i * rmax^(2i) is O(1)
     scale = np.array([rmax2 ** (i + 1) for i in range(n_terms)])
 
-    def fun(z):
-        coef = np.zeros(7)
-        coef[:n_terms] = z / scale
-        return _line_residuals(undistort(flat, coef, c), group, n_groups)
+    if _jit.enabled() and n_terms <= 3:
+        # the compiled kernel: same residuals and Jacobian as the numpy reference below
+        d_c = np.ascontiguousarray(flat)
+        g_c = np.ascontiguousarray(group, dtype=np.int64)
+        c_c = np.ascontiguousarray(c[:2])
 
-    def jac(z):
-        coef = np.zeros(7)
-        coef[:n_terms] = z / scale
-        u, _, _, du_dk = undistort(flat, coef, c, jacobians=True)
-        return _line_residuals(u, group, n_groups, du_dk[:, :, :n_terms] / scale)[1]
+        def fun(z):
+            return _radial_line_residuals_jit(d_c, g_c, n_groups, z / scale, c_c, scale, False)[0]
+
+        def jac(z):
+            return _radial_line_residuals_jit(d_c, g_c, n_groups, z / scale, c_c, scale, True)[1]
+
+    else:
+
+        def fun(z):
+            coef = np.zeros(7)
+            coef[:n_terms] = z / scale
+            return _line_residuals(undistort(flat, coef, c), group, n_groups)
+
+        def jac(z):
+            coef = np.zeros(7)
+            coef[:n_terms] = z / scale
+            u, _, _, du_dk = undistort(flat, coef, c, jacobians=True)
+            return _line_residuals(u, group, n_groups, du_dk[:, :, :n_terms] / scale)[1]
 
     from ._refine import SolverOptions, levenberg_marquardt
 
