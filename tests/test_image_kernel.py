@@ -55,6 +55,9 @@ def test_kernel_matches_numpy_evaluator(lens, k):
     np.testing.assert_allclose(r_f, r_r, rtol=0, atol=1e-12)
     scale = np.abs(J_r).max(axis=0) + 1e-30  # column scale: parameters differ by orders of magnitude
     assert np.max(np.abs(J_f - J_r) / scale) < 1e-9
+    A, g = fast.normal_equations(J_f, r_f)  # the block-sparse normal equations
+    np.testing.assert_allclose(A, J_f.T @ J_f, rtol=1e-12, atol=1e-12 * np.abs(A).max())
+    np.testing.assert_allclose(g, J_f.T @ r_f, rtol=1e-12, atol=1e-12 * np.abs(g).max())
     # the residual-only path agrees with the full one
     np.testing.assert_allclose(fast.residuals(z + 0.0), r_f, rtol=0, atol=1e-12)
     z2 = z.copy()
@@ -82,10 +85,9 @@ def test_kernel_reports_points_without_an_inverse():
     n = 400
     P = rng.uniform(-40, 40, size=(n, 2))
     coef = np.array([-0.02, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0])  # x = d (1 + k1 r^2) folds at r^2 = -1 / (3 k1): |x| <= 2.7 mm
-    rv = np.zeros((1, 3))
-    tv = np.array([[0.0, 0.0, 200.0]])
+    poses = np.array([[0.0, 0.0, 0.0, 0.0, 0.0, 200.0]])
     intr = np.array([20.0, 0.1, -0.2, 0.0, 20.0])
-    d, ok, _ = image_model(P, np.zeros(n, dtype=np.int64), rv, tv, intr, False, coef,
+    d, ok, _ = image_model(P, np.zeros(n, dtype=np.int64), np.concatenate([intr, coef]), False, poses,
                            np.full((n, 2), np.nan), P * 0.1, global_map(["f_mm"]), False, 1e-13, 50)
     x = P * 0.1 + intr[1:3]
     ref = distort(x, coef, intr[1:3])

@@ -186,16 +186,16 @@ def _fixed_point_start(x0, x1, coef, cx, cy):
 
 
 @njit
-def image_model(P, img, rv, tv, intr, separate_fy, coef, warm, meas, gmap, want_jac, tol_mm, max_iter):
+def image_model(P, img, theta, separate_fy, poses, warm, meas, gmap, want_jac, tol_mm, max_iter):
     """Modelled measured points of all observations, and their Jacobian.
 
     Parameters
     ----------
     P : (N, 2) template point of each observation, mm
     img : (N,) int, view of each observation
-    rv, tv : (n, 3) rotation vectors and translations (mm) of the views
-    intr : (5,) f, cx, cy, skew, fy (fy is used only when ``separate_fy``), mm
-    coef : (7,) k1, k2, k3, p1, p2, l1, l2
+    theta : (12,) the global parameters in the order of :data:`GLOBAL_ORDER`:
+        f, cx, cy (mm), skew, fy (mm, used only when ``separate_fy``), k1, k2, k3, p1, p2, l1, l2
+    poses : (n, 6) rotation vector and translation (mm) of each view
     warm : (N, 2) warm start of the Newton inverse (NaN: none), mm
     meas : (N, 2) measured points (the second start), mm
     gmap : (n_global,) int, column k of the Jacobian is derivative ``GLOBAL_ORDER[gmap[k]]``
@@ -209,11 +209,13 @@ def image_model(P, img, rv, tv, intr, separate_fy, coef, warm, meas, gmap, want_
     J : (2N, n_global + 6 n) Jacobian of d (rows x0, y0, x1, ...); (0, 0) without ``want_jac``
     """
     N = P.shape[0]
-    n = rv.shape[0]
+    n = poses.shape[0]
     ng = gmap.shape[0]
-    R, dR = _rotations(rv, want_jac)
-    f, cx, cy, sk = intr[0], intr[1], intr[2], intr[3]
-    fy = intr[4] if separate_fy else f
+    R, dR = _rotations(poses[:, :3], want_jac)
+    tv = poses[:, 3:]
+    f, cx, cy, sk = theta[0], theta[1], theta[2], theta[3]
+    fy = theta[4] if separate_fy else f
+    coef = theta[5:]
     d = np.empty((N, 2))
     ok = np.zeros(N, dtype=np.bool_)
     if want_jac:
@@ -323,3 +325,48 @@ def image_model(P, img, rv, tv, intr, separate_fy, coef, warm, meas, gmap, want_
 def global_map(names) -> np.ndarray:
     """``gmap`` of :func:`image_model` for the free global parameter names."""
     return np.array([GLOBAL_ORDER.index(n) for n in names], dtype=np.int64)
+
+
+@njit
+def normal_equations(J, r, img, ng):
+    """``J^T J`` and ``J^T r`` of a block-sparse Jacobian from :func:`image_model`.
+
+    Rows ``2i, 2i+1`` (observation ``i`` of view ``img[i]``) are non-zero
+    only in the ``ng`` global columns and the six columns of their view, so
+    each contributes a (ng+6)^2 block instead of a full outer product: the
+    cost is O(N (ng+6)^2), not O(N (ng+6n)^2).
+
+    Parameters
+    ----------
+    J : (2N, ng + 6 n), r : (2N,), img : (N,) int, ng : int
+
+    Returns
+    -------
+    A : (ng + 6 n, ng + 6 n), g : (ng + 6 n,)
+    """
+    m = J.shape[1]
+    A = np.zeros((m, m))
+    g = np.zeros(m)
+    N = img.shape[0]
+    cols = np.empty(ng + 6, dtype=np.int64)
+    for k in range(ng):
+        cols[k] = k
+    for i in range(N):
+        base = ng + 6 * img[i]
+        for k in range(6):
+            cols[ng + k] = base + k
+        for row in range(2 * i, 2 * i + 2):
+            ri = r[row]
+            for a in range(ng + 6):
+                ca = cols[a]
+                ja = J[row, ca]
+                if ja == 0.0:
+                    continue
+                g[ca] += ja * ri
+                for b in range(a + 1):
+                    cb = cols[b]
+                    A[ca, cb] += ja * J[row, cb]
+    for a in range(m):  # mirror the lower triangle
+        for b in range(a):
+            A[b, a] = A[a, b]
+    return A, g

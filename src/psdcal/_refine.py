@@ -188,11 +188,16 @@ class Evaluator:
             from . import _jit
 
             if _jit.enabled():  # the compiled image cost (psdcal._image_kernel); this class's numpy code is its reference
-                from ._image_kernel import global_map, image_model
+                from ._image_kernel import global_map, image_model, normal_equations
 
                 self._kernel = image_model
+                self._normal = normal_equations
                 self._gmap = global_map(prob.names)
                 self._no_warm = np.full(self.d_meas.shape, np.nan)
+                self._separate_fy = "fy_mm" in prob.names
+                skew = base_intr.skew if prob.spec.skew else 0.0
+                self._theta0 = np.array([base_intr.f_mm, base_intr.cx_mm, base_intr.cy_mm, skew, base_intr.fy,
+                                         *base_dist.as_array()], dtype=float)
 
     def unpack(self, z):
         return self.prob.unpack(z, *self.base)
@@ -238,6 +243,12 @@ class Evaluator:
 
     def jacobian(self, z):
         return self.evaluate(z)[1]
+
+    def normal_equations(self, J, r):
+        """``(J^T J, J^T r)``, from the block structure when the kernel is compiled."""
+        if self._kernel is not None:
+            return self._normal(J, r, self.img_idx, self._gmap.size)
+        return J.T @ J, J.T @ r
 
     def _rotations(self, rv, derivatives: bool = True):
         """R, dR of all poses, cached for the last rotation vectors (dR only when asked)."""
@@ -285,16 +296,16 @@ class Evaluator:
         cached (a Jacobian at the point whose residuals were just taken),
         otherwise from that of the last Jacobian evaluation.
         """
-        intr, coef, gains, rv, tv = self.unpack(z)
+        ng = self._gmap.size
+        theta = self._theta0.copy()
+        theta[self._gmap] = z[:ng]
         if self._dkey == key:
             warm = self._dval
         else:
             warm = self._anchor if self._anchor is not None else self._no_warm
-        fy = intr.fy_mm if intr.fy_mm is not None else intr.f_mm
         d, ok, J = self._kernel(
-            self.P, self.img_idx, np.ascontiguousarray(rv), np.ascontiguousarray(tv),
-            np.array([intr.f_mm, intr.cx_mm, intr.cy_mm, intr.skew, fy]), intr.fy_mm is not None,
-            np.ascontiguousarray(coef, dtype=float), warm, self.d_meas, self._gmap, want_jac, 1e-13, 50,
+            self.P, self.img_idx, theta, self._separate_fy, z[ng:].reshape(-1, 6), warm, self.d_meas,
+            self._gmap, want_jac, 1e-13, 50,
         )
         self._dkey, self._dval = key, d
         if want_jac:
@@ -459,7 +470,7 @@ def refine(prob: Problem, intr0: Intrinsics, dist0: Distortion, gains0, rvecs0, 
 
         raise DegenerateViewsError(f"{m // 2} observed points give {m} equations for {n} unknowns: add images or points")
     with _single_threaded_blas():
-        sol = levenberg_marquardt(ev.residuals, ev.jacobian, z0, options)
+        sol = levenberg_marquardt(ev.residuals, ev.jacobian, z0, options, normal=ev.normal_equations)
         r, J = ev.evaluate(sol.x)
         return _finish(prob, ev, sol, r, J, m, n, options)
 
@@ -495,7 +506,7 @@ class LMResult:
     nfev: int
 
 
-def levenberg_marquardt(fun, jac, x0, options: SolverOptions = SolverOptions()) -> LMResult:
+def levenberg_marquardt(fun, jac, x0, options: SolverOptions = SolverOptions(), normal=None) -> LMResult:
     """Levenberg-Marquardt on the normal equations with Marquardt's scaling.
 
     Minimises ``0.5 |fun(x)|^2``. Each iteration solves
@@ -512,15 +523,24 @@ def levenberg_marquardt(fun, jac, x0, options: SolverOptions = SolverOptions()) 
     times the scaled state, 3 when the actual and predicted relative
     reductions of the cost are both below ``ftol``, 4 on a zero residual, and
     0 (not converged) when ``max_iterations`` Jacobians have been evaluated.
+
+    ``normal(J, r)``, when given, returns ``(J^T J, J^T r)`` (e.g. exploiting
+    the sparsity of J); by default they are dense products.
     """
+    if normal is None:
+        def normal(J, r):
+            return J.T @ J, J.T @ r
+
+    from scipy.linalg.lapack import dpotrf, dpotrs  # Cholesky straight from LAPACK: these systems are small
+
     x = np.asarray(x0, dtype=float).copy()
     r = fun(x)
     J = jac(x)
     nfev, njev = 1, 1
     F = 0.5 * float(r @ r)
-    A = J.T @ J
-    g = J.T @ r
+    A, g = normal(J, r)
     D = np.maximum(np.diag(A).copy(), 1e-300)
+    diag = np.arange(x.size) * (x.size + 1)  # flat indices of the diagonal
     mu = 1e-8  # start near Gauss-Newton, like MINPACK's large initial trust region: a damped
     # first step from a poor closed-form start (C off by mm, Lens 1) can walk into a local minimum
     nu = 2.0
@@ -530,19 +550,21 @@ def levenberg_marquardt(fun, jac, x0, options: SolverOptions = SolverOptions()) 
         if F == 0.0:
             status, message = 4, "zero residual"
             break
-        colnorm = np.sqrt(np.maximum(np.diag(A), 1e-300))
+        colnorm = np.sqrt(np.maximum(A.flat[diag], 1e-300))
         if np.max(np.abs(g) / colnorm) <= options.gtol * np.sqrt(2 * F):
             status, message = 1, "gradient below gtol"
             break
-        try:
-            L = np.linalg.cholesky(A + np.diag(mu * D))
-        except np.linalg.LinAlgError:
+        Ad = A.copy()
+        Ad.flat[diag] += mu * D
+        L, info = dpotrf(Ad, lower=1, clean=0, overwrite_a=1)
+        if info != 0:  # not positive definite at this damping
             mu *= nu
             nu *= 2.0
             continue
-        h = -np.linalg.solve(L.T, np.linalg.solve(L, g))
+        h, info = dpotrs(L, g, lower=1)
+        h = -h
         sD = np.sqrt(D)
-        if np.linalg.norm(sD * h) <= options.xtol * (np.linalg.norm(sD * x) + options.xtol):
+        if np.sqrt((sD * h) @ (sD * h)) <= options.xtol * (np.sqrt((sD * x) @ (sD * x)) + options.xtol):
             status, message = 2, "step below xtol"
             break
         x_new = x + h
@@ -556,9 +578,8 @@ def levenberg_marquardt(fun, jac, x0, options: SolverOptions = SolverOptions()) 
             x, r, F = x_new, r_new, F_new
             J = jac(x)
             njev += 1
-            A = J.T @ J
-            g = J.T @ r
-            D = np.maximum(D, np.diag(A))
+            A, g = normal(J, r)
+            D = np.maximum(D, A.flat[diag])
             mu *= max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
             nu = 2.0
             if small:
@@ -576,7 +597,7 @@ def levenberg_marquardt(fun, jac, x0, options: SolverOptions = SolverOptions()) 
 def _finish(prob, ev, sol, r, J, m, n, options):
     dof = max(m - n, 1)
     sigma2 = float(r @ r) / dof
-    JtJ = J.T @ J
+    JtJ = ev.normal_equations(J, r)[0]
     try:
         cov = sigma2 * np.linalg.inv(JtJ)
     except np.linalg.LinAlgError:
