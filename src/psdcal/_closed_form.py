@@ -17,21 +17,25 @@ import numpy as np
 
 from .errors import DegenerateViewsError
 from .params import Intrinsics
-from .projection import nearest_rotation, r_from_R
+from .projection import nearest_rotation, nearest_rotation_batch, r_from_R, r_from_R_batch
 
 
-def _v(H, i, j):
-    """Zhang's v_ij over the full b = [b11, b12, b22, b13, b23, b33] (Eq 22)."""
-    hi, hj = H[:, i], H[:, j]
-    return np.array(
+def _v(Hs, i, j):
+    """Zhang's v_ij over the full b = [b11, b12, b22, b13, b23, b33] (Eq 22), per view.
+
+    Hs : (n, 3, 3) homographies; returns (n, 6).
+    """
+    hi, hj = Hs[:, :, i], Hs[:, :, j]
+    return np.stack(
         [
-            hi[0] * hj[0],
-            hi[0] * hj[1] + hi[1] * hj[0],
-            hi[1] * hj[1],
-            hi[2] * hj[0] + hi[0] * hj[2],
-            hi[2] * hj[1] + hi[1] * hj[2],
-            hi[2] * hj[2],
-        ]
+            hi[:, 0] * hj[:, 0],
+            hi[:, 0] * hj[:, 1] + hi[:, 1] * hj[:, 0],
+            hi[:, 1] * hj[:, 1],
+            hi[:, 2] * hj[:, 0] + hi[:, 0] * hj[:, 2],
+            hi[:, 2] * hj[:, 1] + hi[:, 1] * hj[:, 2],
+            hi[:, 2] * hj[:, 2],
+        ],
+        axis=-1,
     )
 
 
@@ -61,11 +65,9 @@ def intrinsics_from_homographies(Hs, *, skew: bool = False, aspect: bool = False
     need = 2 if not (skew or aspect) else 3
     if len(Hs) < need:
         raise DegenerateViewsError(f"{len(Hs)} usable views; the closed-form intrinsics need at least {need}")
-    rows = []
-    for H in Hs:
-        rows.append(_v(H, 0, 1))
-        rows.append(_v(H, 0, 0) - _v(H, 1, 1))
-    V = np.array(rows)
+    # two rows per view, v12 and v11 - v22 (Eq 22), for all views at once
+    Hst = np.stack(Hs)
+    V = np.stack([_v(Hst, 0, 1), _v(Hst, 0, 0) - _v(Hst, 1, 1)], axis=1).reshape(-1, 6)
     # Map the reduced unknown to the full b: columns of E (6, k).
     cols = [np.array([1.0, 0, 1.0 if not aspect else 0.0, 0, 0, 0])]
     if skew:
@@ -131,7 +133,40 @@ def extrinsics_from_homography(H, intr: Intrinsics):
 
 
 def poses_from_homographies(Hs, intr: Intrinsics):
-    """Poses of all views (:func:`extrinsics_from_homography` for each).
+    """Poses of all views: :func:`extrinsics_from_homography` of each (Eq 26-28), batched.
+
+    The same steps as the one-view function on a stack of homographies
+    (one inverse of A, one batched SVD for the nearest rotations);
+    :func:`poses_from_homographies_reference` is the one-by-one loop.
+
+    Parameters
+    ----------
+    Hs : (n_views, 3, 3) array_like or sequence of (3, 3) arrays
+        Template -> sensor homographies (mm -> mm).
+    intr : Intrinsics
+
+    Returns
+    -------
+    rvecs, tvecs_mm : (n_views, 3) arrays (rad, mm)
+    """
+    H = np.asarray(Hs, dtype=float).reshape(-1, 3, 3)
+    if H.shape[0] == 0:
+        return np.zeros((0, 3)), np.zeros((0, 3))
+    Ainv = np.linalg.inv(intr.matrix())
+    a = Ainv @ H  # columns: A^-1 h1, A^-1 h2, A^-1 h3 (Eq 26-28 before scaling)
+    a1, a2, a3 = a[:, :, 0], a[:, :, 1], a[:, :, 2]
+    # |a1|, |a2| as (1x3)(3x1) products: the dot product the one-view norm takes, so the same bits
+    norm1 = np.sqrt((a1[:, None, :] @ a1[:, :, None])[:, 0, 0])
+    norm2 = np.sqrt((a2[:, None, :] @ a2[:, :, None])[:, 0, 0])
+    lam = 2.0 / (norm1 + norm2)
+    lam = np.where(a3[:, 2] * lam < 0, -lam, lam)  # template in front: t_z > 0
+    r1, r2, t = lam[:, None] * a1, lam[:, None] * a2, lam[:, None] * a3
+    R = nearest_rotation_batch(np.stack([r1, r2, np.cross(r1, r2)], axis=-1))
+    return r_from_R_batch(R), t
+
+
+def poses_from_homographies_reference(Hs, intr: Intrinsics):
+    """:func:`poses_from_homographies` as a loop of :func:`extrinsics_from_homography` (the reference).
 
     Returns
     -------

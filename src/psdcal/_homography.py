@@ -19,6 +19,36 @@ def collinearity(pts) -> float:
     return float(s[-1] / s[0]) if s[0] > 0 else 0.0
 
 
+def collinearity_batch(pts, valid) -> np.ndarray:
+    """:func:`collinearity` of the valid points of each of many point sets at once.
+
+    Parameters
+    ----------
+    pts : (n, M, 2) array_like
+        Points, mm (any value where not valid).
+    valid : (n, M) bool
+        Which points of each set count.
+
+    Returns
+    -------
+    (n,) ndarray: smaller over larger singular value of each set's centred
+    valid points (0 = collinear, and for sets with no spread or no point).
+    The invalid rows are zeroed after centring, which leaves the singular
+    values unchanged: one batched SVD replaces n small ones.
+    """
+    pts = np.asarray(pts, dtype=float)
+    valid = np.asarray(valid, dtype=bool)
+    w = valid[..., None]
+    cnt = np.maximum(valid.sum(axis=1), 1)[:, None]
+    mean = np.where(w, pts, 0.0).sum(axis=1) / cnt
+    centred = np.where(w, pts - mean[:, None, :], 0.0)
+    s = np.linalg.svd(centred, compute_uv=False)  # (n, 2), descending
+    out = np.zeros(s.shape[0])
+    pos = s[:, 0] > 0
+    out[pos] = s[pos, -1] / s[pos, 0]
+    return out
+
+
 def homography(src, dst, *, normalize: bool = True, label: str = "view") -> np.ndarray:
     """Homography H (3, 3) with ``dst ~ H src`` by the DLT (Eq 17-18), optionally normalised.
 
@@ -78,12 +108,13 @@ def homographies(src, dst, *, normalize: bool = True, labels=None) -> np.ndarray
     n, M = dst.shape[:2]
     labels = [f"image {i}" for i in range(n)] if labels is None else list(labels)
     ok = np.all(np.isfinite(dst), axis=-1)  # (n, M)
-    for i in range(n):
-        cnt = int(ok[i].sum())
-        if cnt < 4:
-            raise DegenerateViewsError(f"{labels[i]}: {cnt} points, a homography needs at least 4")
-        if collinearity(src[ok[i]]) < 1e-6 or collinearity(dst[i][ok[i]]) < 1e-6:
-            raise DegenerateViewsError(f"{labels[i]}: its points are collinear, a homography needs points spread on the plane")
+    n_valid = ok.sum(axis=1)
+    flat = np.minimum(collinearity_batch(np.broadcast_to(src, dst.shape), ok), collinearity_batch(dst, ok)) < 1e-6
+    # the first view that fails either test names the error, as a loop over the views would
+    for i in np.flatnonzero((n_valid < 4) | flat)[:1]:
+        if n_valid[i] < 4:
+            raise DegenerateViewsError(f"{labels[i]}: {int(n_valid[i])} points, a homography needs at least 4")
+        raise DegenerateViewsError(f"{labels[i]}: its points are collinear, a homography needs points spread on the plane")
     w = ok.astype(float)
     cnt = w.sum(axis=1)
     if normalize:

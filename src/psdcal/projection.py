@@ -73,6 +73,40 @@ def nearest_rotation(M) -> np.ndarray:
     return U @ D @ Vt
 
 
+def nearest_rotation_batch(M) -> np.ndarray:
+    """:func:`nearest_rotation` of each of a stack of matrices, (n, 3, 3) -> (n, 3, 3).
+
+    One batched SVD; the same LAPACK routine per matrix as the one-by-one
+    function, so the same result.
+    """
+    M = np.asarray(M, dtype=float)
+    U, _, Vt = np.linalg.svd(M)
+    sign = np.sign(np.linalg.det(U @ Vt))
+    # U @ diag(1, 1, sign): scale U's last column
+    UD = U.copy()
+    UD[:, :, 2] *= sign[:, None]
+    return UD @ Vt
+
+
+def r_from_R_batch(R) -> np.ndarray:
+    """:func:`r_from_R` of each of a stack of rotation matrices, (n, 3, 3) -> (n, 3) rad.
+
+    ``theta = arccos((tr R - 1) / 2)``, ``r = w theta / (2 sin theta)`` with
+    ``w = (R32 - R23, R13 - R31, R21 - R12)``; ``w / 2`` for tiny angles; the
+    rare angles near pi go through :func:`r_from_R` one by one.
+    """
+    R = np.asarray(R, dtype=float).reshape(-1, 3, 3)
+    trace = R[:, 0, 0] + R[:, 1, 1] + R[:, 2, 2]
+    theta = np.arccos(np.clip((trace - 1.0) / 2.0, -1.0, 1.0))
+    w = np.stack([R[:, 2, 1] - R[:, 1, 2], R[:, 0, 2] - R[:, 2, 0], R[:, 1, 0] - R[:, 0, 1]], axis=-1)
+    small = theta < 1e-8
+    sin_t = np.where(small, 1.0, np.sin(theta))
+    r = np.where(small[:, None], 0.5 * w, w * (theta / (2.0 * sin_t))[:, None])
+    for i in np.flatnonzero(~small & (np.pi - theta < 1e-6)):
+        r[i] = r_from_R(R[i])
+    return r
+
+
 def transform(P, rvec, tvec, *, jacobians: bool = False):
     """Points in the sensor frame, ``Pc = R P + t`` (Eq 3).
 
