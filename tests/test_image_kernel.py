@@ -27,28 +27,29 @@ SPECS = [
 ]
 
 
-def _pair(lens, spec, seed):
+def _pair(lens, spec, seed, cost="image"):
     """A perturbed state and two evaluators of one problem: compiled and numpy."""
     s = simulate_set(lens, n_images=9, noise_mm=0.002, seed=seed, psd_l1=-0.002, tangential=(1e-4, -2e-4))
     pts = s.points_mm.copy()
     pts[1, 3] = np.nan
     pts[4, :2] = np.nan
-    prob = Problem(s.template_mm, pts, spec)
+    prob = Problem(s.template_mm, pts, spec, cost=cost)
     dist = Distortion.from_array(s.distortion.as_array() * np.array([1, 1, 1, 1, 1, 1, 1]))
     fast = Evaluator(prob, s.intrinsics, dist, np.ones(4))
     ref = Evaluator(prob, s.intrinsics, dist, np.ones(4))
-    ref._kernel = None
-    assert fast._kernel is not None
+    ref._kernel = ref._tkernel = ref._normal = None
+    assert (fast._kernel if cost == "image" else fast._tkernel) is not None
     z = prob.pack(s.intrinsics, dist, np.ones(4), s.rvecs, s.tvecs_mm)
     rng = np.random.default_rng(seed)
     z = z * (1 + 1e-3 * rng.standard_normal(z.size)) + 1e-6 * rng.standard_normal(z.size)
     return prob, fast, ref, z
 
 
+@pytest.mark.parametrize("cost", ["image", "template"])
 @pytest.mark.parametrize("lens", ["lens1", "lens2"])
 @pytest.mark.parametrize("k", range(len(SPECS)))
-def test_kernel_matches_numpy_evaluator(lens, k):
-    prob, fast, ref, z = _pair(lens, SPECS[k], seed=10 + k)
+def test_kernel_matches_numpy_evaluator(lens, k, cost):
+    prob, fast, ref, z = _pair(lens, SPECS[k], seed=10 + k, cost=cost)
     r_f, J_f = fast.evaluate(z)
     r_r, J_r = ref.evaluate(z)
     assert r_f.shape == r_r.shape and J_f.shape == J_r.shape
@@ -98,6 +99,7 @@ def test_kernel_reports_points_without_an_inverse():
 
 @pytest.mark.parametrize("lens,kw", [
     ("lens1", dict(radial=2, tangential=False)),
+    ("lens1", dict(radial=2, tangential=True, cost="template")),
     ("lens2", dict(radial=3, tangential=True, psd_radial=1)),
     ("lens2", dict(radial=2, tangential=True, skew=True)),
 ])

@@ -370,3 +370,141 @@ def normal_equations(J, r, img, ng):
         for b in range(a):
             A[b, a] = A[a, b]
     return A, g
+
+
+@njit
+def _inv3(M, out):
+    """Inverse of a 3x3 matrix by cofactors into ``out``; returns the determinant."""
+    a, b, c = M[0, 0], M[0, 1], M[0, 2]
+    d, e, f = M[1, 0], M[1, 1], M[1, 2]
+    g, h, i = M[2, 0], M[2, 1], M[2, 2]
+    A, B, C = e * i - f * h, -(d * i - f * g), d * h - e * g
+    det = a * A + b * B + c * C
+    out[0, 0], out[1, 0], out[2, 0] = A / det, B / det, C / det
+    out[0, 1], out[1, 1], out[2, 1] = -(b * i - c * h) / det, (a * i - c * g) / det, -(a * h - b * g) / det
+    out[0, 2], out[1, 2], out[2, 2] = (b * f - c * e) / det, -(a * f - c * d) / det, (a * e - b * d) / det
+    return det
+
+
+@njit
+def template_model(P, img, theta, separate_fy, poses, meas, gmap, want_jac):
+    """Residuals of the template-plane cost (the paper's Eq 29) and their Jacobian.
+
+    For observation ``i`` of view ``v``: ``x = undistort(d_i)`` (Eq 7-16),
+    ``q = (A [r1 r2 t])^-1 [x, 1]``, residual ``q[:2] / q[2] - P_i`` in mm on
+    the template plate (the numpy reference is ``Evaluator._template`` in
+    :mod:`psdcal._refine`). Arguments as :func:`image_model`; ``meas`` (N, 2)
+    are the measured points.
+
+    Returns
+    -------
+    r : (2N,) residuals, mm on the plate (rows x0, y0, x1, ...)
+    J : (2N, n_global + 6 n) their Jacobian; (0, 0) without ``want_jac``
+    """
+    N = P.shape[0]
+    n = poses.shape[0]
+    ng = gmap.shape[0]
+    R, dR = _rotations(poses[:, :3], want_jac)
+    f, cx, cy, sk = theta[0], theta[1], theta[2], theta[3]
+    fy = theta[4] if separate_fy else f
+    k1, k2, k3, p1, p2, l1, l2 = theta[5], theta[6], theta[7], theta[8], theta[9], theta[10], theta[11]
+    # per view: M = [r1 r2 t], H = A M, and their inverses
+    Hinv = np.empty((n, 3, 3))
+    Minv = np.empty((n, 3, 3))
+    Mm = np.empty((n, 3, 3))
+    H = np.empty((3, 3))
+    for v in range(n):
+        for a in range(3):
+            Mm[v, a, 0], Mm[v, a, 1], Mm[v, a, 2] = R[v, a, 0], R[v, a, 1], poses[v, 3 + a]
+        for b in range(3):
+            H[0, b] = f * Mm[v, 0, b] + sk * Mm[v, 1, b] + cx * Mm[v, 2, b]
+            H[1, b] = fy * Mm[v, 1, b] + cy * Mm[v, 2, b]
+            H[2, b] = Mm[v, 2, b]
+        _inv3(H, Hinv[v])
+        _inv3(Mm[v], Minv[v])
+    r = np.empty(2 * N)
+    if want_jac:
+        J = np.zeros((2 * N, ng + 6 * n))
+    else:
+        J = np.zeros((0, 0))
+    D = np.empty((2, 12))
+    V = np.empty((3, 5))
+    for i in range(N):
+        v = img[i]
+        d0, d1 = meas[i, 0], meas[i, 1]
+        h2 = d0 * d0 + d1 * d1
+        s = 1.0 + l1 * h2 + l2 * h2 * h2
+        ex, ey = d0 * s - cx, d1 * s - cy
+        r2 = ex * ex + ey * ey
+        rad = r2 * (k1 + r2 * (k2 + r2 * k3))
+        x0 = d0 * s + ex * rad + p1 * (r2 + 2 * ex * ex) + 2 * p2 * ex * ey  # Eq 7-16
+        x1 = d1 * s + ey * rad + p2 * (r2 + 2 * ey * ey) + 2 * p1 * ex * ey
+        q0 = Hinv[v, 0, 0] * x0 + Hinv[v, 0, 1] * x1 + Hinv[v, 0, 2]
+        q1 = Hinv[v, 1, 0] * x0 + Hinv[v, 1, 1] * x1 + Hinv[v, 1, 2]
+        q2 = Hinv[v, 2, 0] * x0 + Hinv[v, 2, 1] * x1 + Hinv[v, 2, 2]
+        iq = 1.0 / q2
+        row = 2 * i
+        r[row] = q0 * iq - P[i, 0]
+        r[row + 1] = q1 * iq - P[i, 1]
+        if not want_jac:
+            continue
+        # lens-correction Jacobian G = d(correction)/de; dx/dc = -G
+        g2 = 2 * (k1 + r2 * (2 * k2 + 3 * k3 * r2))
+        G00 = rad + g2 * ex * ex + 6 * p1 * ex + 2 * p2 * ey
+        G01 = g2 * ex * ey + 2 * p1 * ey + 2 * p2 * ex
+        G10 = g2 * ex * ey + 2 * p2 * ex + 2 * p1 * ey
+        G11 = rad + g2 * ey * ey + 6 * p2 * ey + 2 * p1 * ex
+        # dP/dq (2x3)
+        a00, a02 = iq, -q0 * iq * iq
+        a11, a12 = iq, -q1 * iq * iq
+        # intrinsics: dq = Hinv (dx~ - dA M q) (Eq 29 differentiated)
+        mq0 = Mm[v, 0, 0] * q0 + Mm[v, 0, 1] * q1 + Mm[v, 0, 2] * q2
+        mq1 = Mm[v, 1, 0] * q0 + Mm[v, 1, 1] * q1 + Mm[v, 1, 2] * q2
+        mq2 = Mm[v, 2, 0] * q0 + Mm[v, 2, 1] * q1 + Mm[v, 2, 2] * q2
+        V[0, 0], V[1, 0], V[2, 0] = -mq0, (0.0 if separate_fy else -mq1), 0.0  # f
+        V[0, 1], V[1, 1], V[2, 1] = -G00 - mq2, -G10, 0.0  # cx
+        V[0, 2], V[1, 2], V[2, 2] = -G01, -G11 - mq2, 0.0  # cy
+        V[0, 3], V[1, 3], V[2, 3] = -mq1, 0.0, 0.0  # skew
+        V[0, 4], V[1, 4], V[2, 4] = 0.0, (-mq1 if separate_fy else 0.0), 0.0  # fy
+        for j in range(5):
+            w0 = Hinv[v, 0, 0] * V[0, j] + Hinv[v, 0, 1] * V[1, j] + Hinv[v, 0, 2] * V[2, j]
+            w1 = Hinv[v, 1, 0] * V[0, j] + Hinv[v, 1, 1] * V[1, j] + Hinv[v, 1, 2] * V[2, j]
+            w2 = Hinv[v, 2, 0] * V[0, j] + Hinv[v, 2, 1] * V[1, j] + Hinv[v, 2, 2] * V[2, j]
+            D[0, j] = a00 * w0 + a02 * w2
+            D[1, j] = a11 * w1 + a12 * w2
+        # distortion coefficients: dq = Hinv [dx/dk, 0]
+        r4 = r2 * r2
+        c0 = (ex * r2, ex * r4, ex * r4 * r2, r2 + 2 * ex * ex, 2 * ex * ey, 0.0, 0.0)
+        c1 = (ey * r2, ey * r4, ey * r4 * r2, 2 * ex * ey, r2 + 2 * ey * ey, 0.0, 0.0)
+        for j in range(7):
+            if j < 5:
+                u0, u1 = c0[j], c1[j]
+            else:  # PSD terms act through u = d s: dx/dl = (I + G) d h2^(j-4)
+                hp = h2 if j == 5 else h2 * h2
+                u0 = (1 + G00) * d0 * hp + G01 * d1 * hp
+                u1 = G10 * d0 * hp + (1 + G11) * d1 * hp
+            w0 = Hinv[v, 0, 0] * u0 + Hinv[v, 0, 1] * u1
+            w1 = Hinv[v, 1, 0] * u0 + Hinv[v, 1, 1] * u1
+            w2 = Hinv[v, 2, 0] * u0 + Hinv[v, 2, 1] * u1
+            D[0, 5 + j] = a00 * w0 + a02 * w2
+            D[1, 5 + j] = a11 * w1 + a12 * w2
+        for k in range(ng):
+            J[row, k] = D[0, gmap[k]]
+            J[row + 1, k] = D[1, gmap[k]]
+        # poses: dq = -M^-1 (dM q); dM/dr_k q = dR_k[:, :2] q[:2], dM/dt q = q2 I
+        base = ng + 6 * v
+        for k in range(6):
+            if k < 3:
+                m0 = dR[v, k, 0, 0] * q0 + dR[v, k, 0, 1] * q1
+                m1 = dR[v, k, 1, 0] * q0 + dR[v, k, 1, 1] * q1
+                m2 = dR[v, k, 2, 0] * q0 + dR[v, k, 2, 1] * q1
+            else:
+                m0 = q2 if k == 3 else 0.0
+                m1 = q2 if k == 4 else 0.0
+                m2 = q2 if k == 5 else 0.0
+            w0 = -(Minv[v, 0, 0] * m0 + Minv[v, 0, 1] * m1 + Minv[v, 0, 2] * m2)
+            w1 = -(Minv[v, 1, 0] * m0 + Minv[v, 1, 1] * m1 + Minv[v, 1, 2] * m2)
+            w2 = -(Minv[v, 2, 0] * m0 + Minv[v, 2, 1] * m1 + Minv[v, 2, 2] * m2)
+            J[row, base + k] = a00 * w0 + a02 * w2
+            J[row + 1, base + k] = a11 * w1 + a12 * w2
+    return r, J

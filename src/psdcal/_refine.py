@@ -183,14 +183,17 @@ class Evaluator:
         self._rkey = self._rval = None
         self._dkey = self._dval = None
         self._anchor = None
-        self._kernel = None
-        if prob.cost == "image" and not prob.spec.fit_gains:
+        self._kernel = self._tkernel = self._normal = None  # compiled image / template cost
+        if not prob.spec.fit_gains:
             from . import _jit
 
-            if _jit.enabled():  # the compiled image cost (psdcal._image_kernel); this class's numpy code is its reference
-                from ._image_kernel import global_map, image_model, normal_equations
+            if _jit.enabled():  # the compiled costs (psdcal._image_kernel); this class's numpy code is their reference
+                from ._image_kernel import global_map, image_model, normal_equations, template_model
 
-                self._kernel = image_model
+                if prob.cost == "image":
+                    self._kernel = image_model
+                else:
+                    self._tkernel = template_model
                 self._normal = normal_equations
                 self._gmap = global_map(prob.names)
                 self._no_warm = np.full(self.d_meas.shape, np.nan)
@@ -209,6 +212,9 @@ class Evaluator:
             return self._val[0]
         if self.prob.cost == "image":
             r = (self.model_points(z) - self.d_meas).ravel()
+        elif self._tkernel is not None:
+            r = self._tkernel(self.P, self.img_idx, self._theta(z), self._separate_fy, self._poses(z), self.d_meas,
+                              self._gmap, False)[0]
         else:
             intr, coef, gains, rv, tv = self.unpack(z)
             x = undistort(self.d_meas, coef, intr.c)
@@ -227,6 +233,9 @@ class Evaluator:
         if self._kernel is not None:
             d, J = self._compiled(z, key, want_jac=True)
             val = ((d - self.d_meas).ravel(), J)
+        elif self._tkernel is not None:
+            val = self._tkernel(self.P, self.img_idx, self._theta(z), self._separate_fy, self._poses(z), self.d_meas,
+                                self._gmap, True)
         elif self.prob.cost == "image":
             val = self._image(z)
         else:
@@ -246,9 +255,18 @@ class Evaluator:
 
     def normal_equations(self, J, r):
         """``(J^T J, J^T r)``, from the block structure when the kernel is compiled."""
-        if self._kernel is not None:
+        if self._normal is not None:
             return self._normal(J, r, self.img_idx, self._gmap.size)
         return J.T @ J, J.T @ r
+
+    def _theta(self, z):
+        """The 12 global parameters of the compiled kernels (psdcal._image_kernel.GLOBAL_ORDER)."""
+        theta = self._theta0.copy()
+        theta[self._gmap] = z[: self._gmap.size]
+        return theta
+
+    def _poses(self, z):
+        return z[self._gmap.size :].reshape(-1, 6)
 
     def _rotations(self, rv, derivatives: bool = True):
         """R, dR of all poses, cached for the last rotation vectors (dR only when asked)."""
@@ -296,15 +314,12 @@ class Evaluator:
         cached (a Jacobian at the point whose residuals were just taken),
         otherwise from that of the last Jacobian evaluation.
         """
-        ng = self._gmap.size
-        theta = self._theta0.copy()
-        theta[self._gmap] = z[:ng]
         if self._dkey == key:
             warm = self._dval
         else:
             warm = self._anchor if self._anchor is not None else self._no_warm
         d, ok, J = self._kernel(
-            self.P, self.img_idx, theta, self._separate_fy, z[ng:].reshape(-1, 6), warm, self.d_meas,
+            self.P, self.img_idx, self._theta(z), self._separate_fy, self._poses(z), warm, self.d_meas,
             self._gmap, want_jac, 1e-13, 50,
         )
         self._dkey, self._dval = key, d
