@@ -109,7 +109,7 @@ def homographies(src, dst, *, normalize: bool = True, labels=None) -> np.ndarray
     labels = [f"image {i}" for i in range(n)] if labels is None else list(labels)
     ok = np.all(np.isfinite(dst), axis=-1)  # (n, M)
     n_valid = ok.sum(axis=1)
-    flat = np.minimum(collinearity_batch(np.broadcast_to(src, dst.shape), ok), collinearity_batch(dst, ok)) < 1e-6
+    flat = np.minimum(collinearity_batch(np.broadcast_to(src, dst.shape), ok), collinearity_batch(dst, ok)) < 1e-6  # (n,)
     # the first view that fails either test names the error, as a loop over the views would
     for i in np.flatnonzero((n_valid < 4) | flat)[:1]:
         if n_valid[i] < 4:
@@ -117,11 +117,14 @@ def homographies(src, dst, *, normalize: bool = True, labels=None) -> np.ndarray
         raise DegenerateViewsError(f"{labels[i]}: its points are collinear, a homography needs points spread on the plane")
     w = ok.astype(float)
     cnt = w.sum(axis=1)
+    dst0 = np.where(ok[..., None], dst, 0.0)  # missing points at 0 (their DLT rows are zero)
+    src_n = np.broadcast_to(src, dst.shape)
     if normalize:
         # per-view similarities of both point sets (Hartley), over the valid points
-        def norm_mats(p):  # p (n, M, 2)
-            mean = np.einsum("nm,nmk->nk", w, np.nan_to_num(p)) / cnt[:, None]
-            dist = np.einsum("nm,nm->n", w, np.hypot(*np.moveaxis(np.nan_to_num(p) - mean[:, None], -1, 0))) / cnt
+        def norm_mats(p):  # p (n, M, 2), finite
+            mean = np.einsum("nm,nmk->nk", w, p) / cnt[:, None]
+            d = p - mean[:, None]
+            dist = np.einsum("nm,nm->n", w, np.hypot(d[..., 0], d[..., 1])) / cnt
             s = np.sqrt(2.0) / dist
             T = np.zeros((n, 3, 3))
             T[:, 0, 0] = T[:, 1, 1] = s
@@ -129,13 +132,13 @@ def homographies(src, dst, *, normalize: bool = True, labels=None) -> np.ndarray
             T[:, 2, 2] = 1.0
             return T
 
-        Tp = norm_mats(np.broadcast_to(src, dst.shape))
-        Tq = norm_mats(dst)
-        p = np.einsum("nij,nmj->nmi", Tp[:, :2, :2], np.broadcast_to(src, dst.shape)) + Tp[:, None, :2, 2]
-        q = np.einsum("nij,nmj->nmi", Tq[:, :2, :2], np.nan_to_num(dst)) + Tq[:, None, :2, 2]
+        Tp = norm_mats(src_n)
+        Tq = norm_mats(dst0)
+        p = np.einsum("nij,nmj->nmi", Tp[:, :2, :2], src_n) + Tp[:, None, :2, 2]
+        q = np.einsum("nij,nmj->nmi", Tq[:, :2, :2], dst0) + Tq[:, None, :2, 2]
     else:
-        p = np.broadcast_to(src, dst.shape)
-        q = np.nan_to_num(dst)
+        p = src_n
+        q = dst0
     X, Y = p[..., 0] * w, p[..., 1] * w
     x, y = q[..., 0], q[..., 1]
     one, zero = w, np.zeros_like(w)
