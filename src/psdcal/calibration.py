@@ -320,6 +320,13 @@ def _jsonable(obj):
     if isinstance(obj, (list, tuple)):
         return [_jsonable(v) for v in obj]
     if isinstance(obj, np.ndarray):
+        if obj.dtype.kind == "f":  # fast path: non-finite -> None without walking the nested lists
+            bad = ~np.isfinite(obj)
+            if not bad.any():
+                return obj.tolist()
+            out = obj.astype(object)
+            out[bad] = None
+            return out.tolist()
         return _jsonable(obj.tolist())
     if isinstance(obj, np.generic):
         return obj.item()
