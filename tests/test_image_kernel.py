@@ -24,6 +24,7 @@ SPECS = [
     ModelSpec(radial=2, tangential=False, aspect=True),
     ModelSpec(radial=1, tangential=True, psd_radial=1),
     ModelSpec(radial=0, tangential=False),
+    ModelSpec(radial=2, tangential=False, fit_gains=True),
 ]
 
 
@@ -35,11 +36,14 @@ def _pair(lens, spec, seed, cost="image"):
     pts[4, :2] = np.nan
     prob = Problem(s.template_mm, pts, spec, cost=cost)
     dist = Distortion.from_array(s.distortion.as_array() * np.array([1, 1, 1, 1, 1, 1, 1]))
-    fast = Evaluator(prob, s.intrinsics, dist, np.ones(4))
-    ref = Evaluator(prob, s.intrinsics, dist, np.ones(4))
+    gains = np.array([1.0, 1.01, 0.98, 1.02]) if spec.fit_gains else np.ones(4)
+    fast = Evaluator(prob, s.intrinsics, dist, gains)
+    ref = Evaluator(prob, s.intrinsics, dist, gains)
     ref._kernel = ref._tkernel = ref._normal = None
+    if spec.fit_gains and cost == "template":
+        pytest.skip("gains are fitted with the image cost only")
     assert (fast._kernel if cost == "image" else fast._tkernel) is not None
-    z = prob.pack(s.intrinsics, dist, np.ones(4), s.rvecs, s.tvecs_mm)
+    z = prob.pack(s.intrinsics, dist, gains, s.rvecs, s.tvecs_mm)
     rng = np.random.default_rng(seed)
     z = z * (1 + 1e-3 * rng.standard_normal(z.size)) + 1e-6 * rng.standard_normal(z.size)
     return prob, fast, ref, z
@@ -88,8 +92,9 @@ def test_kernel_reports_points_without_an_inverse():
     coef = np.array([-0.02, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0])  # x = d (1 + k1 r^2) folds at r^2 = -1 / (3 k1): |x| <= 2.7 mm
     poses = np.array([[0.0, 0.0, 0.0, 0.0, 0.0, 200.0]])
     intr = np.array([20.0, 0.1, -0.2, 0.0, 20.0])
-    d, ok, _ = image_model(P, np.zeros(n, dtype=np.int64), np.concatenate([intr, coef]), False, poses,
-                           np.full((n, 2), np.nan), P * 0.1, global_map(["f_mm"]), False, 1e-13, 50)
+    d, ok, _, _ = image_model(P, np.zeros(n, dtype=np.int64), np.concatenate([intr, coef, np.ones(4)]), False, poses,
+                              np.full((n, 2), np.nan), P * 0.1, global_map(["f_mm"]), False, 1e-13, 50,
+                              np.zeros((0, 3, 3)))
     x = P * 0.1 + intr[1:3]
     ref = distort(x, coef, intr[1:3])
     assert 0 < ok.sum() < n  # the test covers both outcomes
@@ -102,6 +107,7 @@ def test_kernel_reports_points_without_an_inverse():
     ("lens1", dict(radial=2, tangential=True, cost="template")),
     ("lens2", dict(radial=3, tangential=True, psd_radial=1)),
     ("lens2", dict(radial=2, tangential=True, skew=True)),
+    ("lens2", dict(radial=2, tangential=False, fit_gains=True)),
 ])
 def test_calibration_is_the_same_with_and_without_the_kernel(lens, kw, monkeypatch):
     s = simulate_set(lens, n_images=10, noise_mm=0.002, seed=4, psd_l1=-0.002 if kw.get("psd_radial") else 0.0)

@@ -29,7 +29,8 @@ import numpy as np
 from ._jit import njit
 
 #: order of the global derivatives the kernel computes (``gmap`` indexes it)
-GLOBAL_ORDER = ("f_mm", "cx_mm", "cy_mm", "skew", "fy_mm", "k1", "k2", "k3", "p1", "p2", "l1", "l2")
+GLOBAL_ORDER = ("f_mm", "cx_mm", "cy_mm", "skew", "fy_mm", "k1", "k2", "k3", "p1", "p2", "l1", "l2",
+                "g_x1", "g_x2", "g_y1", "g_y2")
 
 
 @njit
@@ -186,27 +187,34 @@ def _fixed_point_start(x0, x1, coef, cx, cy):
 
 
 @njit
-def image_model(P, img, theta, separate_fy, poses, warm, meas, gmap, want_jac, tol_mm, max_iter):
+def image_model(P, img, theta, separate_fy, poses, warm, meas, gmap, want_jac, tol_mm, max_iter, gain_basis):
     """Modelled measured points of all observations, and their Jacobian.
 
     Parameters
     ----------
     P : (N, 2) template point of each observation, mm
     img : (N,) int, view of each observation
-    theta : (12,) the global parameters in the order of :data:`GLOBAL_ORDER`:
-        f, cx, cy (mm), skew, fy (mm, used only when ``separate_fy``), k1, k2, k3, p1, p2, l1, l2
+    theta : (16,) the global parameters in the order of :data:`GLOBAL_ORDER`:
+        f, cx, cy (mm), skew, fy (mm, used only when ``separate_fy``), k1, k2, k3, p1, p2, l1, l2,
+        and the four channel gains (used only with ``gain_basis``)
     poses : (n, 6) rotation vector and translation (mm) of each view
     warm : (N, 2) warm start of the Newton inverse (NaN: none), mm
     meas : (N, 2) measured points (the second start), mm
     gmap : (n_global,) int, column k of the Jacobian is derivative ``GLOBAL_ORDER[gmap[k]]``
     want_jac : bool
     tol_mm, max_iter : of the Newton inverse, as :func:`psdcal.distortion.distort`
+    gain_basis : (4, 3, 3) or (0, 3, 3)
+        With four matrices, the readout through unequal channel gains is
+        modelled: ``y ~ H [d, 1]`` with ``H = sum_j g_j gain_basis[j]``
+        (:func:`psdcal.readout.gain_homography` is linear in the gains; the
+        basis is its value at the unit vectors). Empty: ``y = d``.
 
     Returns
     -------
-    d : (N, 2) modelled measured points, mm (the last iterate where the inverse failed)
+    d : (N, 2) spot positions (before the gain readout), mm (the last iterate where the inverse failed)
     ok : (N,) bool, the inverse converged
-    J : (2N, n_global + 6 n) Jacobian of d (rows x0, y0, x1, ...); (0, 0) without ``want_jac``
+    y : (N, 2) modelled measured points (``d`` itself without gains), mm
+    J : (2N, n_global + 6 n) Jacobian of y (rows x0, y0, x1, ...); (0, 0) without ``want_jac``
     """
     N = P.shape[0]
     n = poses.shape[0]
@@ -215,14 +223,20 @@ def image_model(P, img, theta, separate_fy, poses, warm, meas, gmap, want_jac, t
     tv = poses[:, 3:]
     f, cx, cy, sk = theta[0], theta[1], theta[2], theta[3]
     fy = theta[4] if separate_fy else f
-    coef = theta[5:]
+    coef = theta[5:12]
+    gains_on = gain_basis.shape[0] == 4
+    Hg = np.zeros((3, 3))
+    if gains_on:
+        for j in range(4):
+            Hg += theta[12 + j] * gain_basis[j]
     d = np.empty((N, 2))
+    y = np.empty((N, 2)) if gains_on else d
     ok = np.zeros(N, dtype=np.bool_)
     if want_jac:
         J = np.zeros((2 * N, ng + 6 * n))
     else:
         J = np.zeros((0, 0))
-    D = np.empty((2, 12))
+    D = np.zeros((2, 16))
     for i in range(N):
         v = img[i]
         X, Y = P[i, 0], P[i, 1]
@@ -250,6 +264,11 @@ def image_model(P, img, theta, separate_fy, poses, warm, meas, gmap, want_jac, t
                 break
         d[i, 0], d[i, 1] = d0, d1
         ok[i] = conv
+        if gains_on:  # readout through unequal gains: a homography of the spot position
+            h0 = Hg[0, 0] * d0 + Hg[0, 1] * d1 + Hg[0, 2]
+            h1 = Hg[1, 0] * d0 + Hg[1, 1] * d1 + Hg[1, 2]
+            h2g = Hg[2, 0] * d0 + Hg[2, 1] * d1 + Hg[2, 2]
+            y[i, 0], y[i, 1] = h0 / h2g, h1 / h2g
         if not want_jac:
             continue
         # -- undistortion Jacobians at d (as distortion.undistort(..., jacobians=True))
@@ -300,16 +319,39 @@ def image_model(P, img, theta, separate_fy, poses, warm, meas, gmap, want_jac, t
             w1 = G10 * u0 + (1 + G11) * u1
             D[0, 10 + j] = -(I00 * w0 + I01 * w1)
             D[1, 10 + j] = -(I10 * w0 + I11 * w1)
-        row = 2 * i
-        for k in range(ng):
-            J[row, k] = D[0, gmap[k]]
-            J[row + 1, k] = D[1, gmap[k]]
         # poses: dd/dPc = inv @ dx/dPc, dPc/dr_k = dR_k[:, :2] P, dPc/dt = I
         iz = 1.0 / pcz
         B00, B01, B02 = f * iz, sk * iz, -(f * xn + sk * yn) * iz
         B11, B12 = fy * iz, -fy * yn * iz
         E00, E01, E02 = I00 * B00, I00 * B01 + I01 * B11, I00 * B02 + I01 * B12
         E10, E11, E12 = I10 * B00, I10 * B01 + I11 * B11, I10 * B02 + I11 * B12
+        if gains_on:
+            # chain everything upstream of d through dy/dd = dproj(H [d, 1]) H[:, :2]
+            ih = 1.0 / h2g
+            P00, P02 = ih, -h0 * ih * ih
+            P11, P12 = ih, -h1 * ih * ih
+            Y00 = P00 * Hg[0, 0] + P02 * Hg[2, 0]
+            Y01 = P00 * Hg[0, 1] + P02 * Hg[2, 1]
+            Y10 = P11 * Hg[1, 0] + P12 * Hg[2, 0]
+            Y11 = P11 * Hg[1, 1] + P12 * Hg[2, 1]
+            for j in range(12):
+                a, b = D[0, j], D[1, j]
+                D[0, j] = Y00 * a + Y01 * b
+                D[1, j] = Y10 * a + Y11 * b
+            E00, E01, E02, E10, E11, E12 = (
+                Y00 * E00 + Y01 * E10, Y00 * E01 + Y01 * E11, Y00 * E02 + Y01 * E12,
+                Y10 * E00 + Y11 * E10, Y10 * E01 + Y11 * E11, Y10 * E02 + Y11 * E12,
+            )
+            for j in range(4):  # dy/dg_j = dproj (gain_basis[j] [d, 1])
+                b0 = gain_basis[j, 0, 0] * d0 + gain_basis[j, 0, 1] * d1 + gain_basis[j, 0, 2]
+                b1 = gain_basis[j, 1, 0] * d0 + gain_basis[j, 1, 1] * d1 + gain_basis[j, 1, 2]
+                b2 = gain_basis[j, 2, 0] * d0 + gain_basis[j, 2, 1] * d1 + gain_basis[j, 2, 2]
+                D[0, 12 + j] = P00 * b0 + P02 * b2
+                D[1, 12 + j] = P11 * b1 + P12 * b2
+        row = 2 * i
+        for k in range(ng):
+            J[row, k] = D[0, gmap[k]]
+            J[row + 1, k] = D[1, gmap[k]]
         base = ng + 6 * v
         for k in range(3):
             g0 = dR[v, k, 0, 0] * X + dR[v, k, 0, 1] * Y
@@ -319,7 +361,7 @@ def image_model(P, img, theta, separate_fy, poses, warm, meas, gmap, want_jac, t
             J[row + 1, base + k] = E10 * g0 + E11 * g1 + E12 * g2
         J[row, base + 3], J[row, base + 4], J[row, base + 5] = E00, E01, E02
         J[row + 1, base + 3], J[row + 1, base + 4], J[row + 1, base + 5] = E10, E11, E12
-    return d, ok, J
+    return d, ok, y, J
 
 
 def global_map(names) -> np.ndarray:
@@ -427,7 +469,7 @@ def template_model(P, img, theta, separate_fy, poses, meas, gmap, want_jac):
         J = np.zeros((2 * N, ng + 6 * n))
     else:
         J = np.zeros((0, 0))
-    D = np.empty((2, 12))
+    D = np.zeros((2, 16))
     V = np.empty((3, 5))
     for i in range(N):
         v = img[i]

@@ -25,7 +25,7 @@ import numpy as np
 
 from .distortion import distort, distort_jacobians, undistort
 from .params import DISTORTION_NAMES, Distortion, Intrinsics, ModelSpec
-from .readout import LX_MM, LY_MM, gain_map
+from .readout import LX_MM, LY_MM, gain_homography, gain_map
 
 _INTR_COLS = {"f_mm": 0, "cx_mm": 1, "cy_mm": 2, "skew": 3, "fy_mm": 4}
 _GAIN_IDX = {"g_x2": 1, "g_y1": 2, "g_y2": 3}
@@ -184,7 +184,7 @@ class Evaluator:
         self._dkey = self._dval = None
         self._anchor = None
         self._kernel = self._tkernel = self._normal = None  # compiled image / template cost
-        if not prob.spec.fit_gains:
+        if prob.cost == "image" or not prob.spec.fit_gains:
             from . import _jit
 
             if _jit.enabled():  # the compiled costs (psdcal._image_kernel); this class's numpy code is their reference
@@ -200,7 +200,11 @@ class Evaluator:
                 self._separate_fy = "fy_mm" in prob.names
                 skew = base_intr.skew if prob.spec.skew else 0.0
                 self._theta0 = np.array([base_intr.f_mm, base_intr.cx_mm, base_intr.cy_mm, skew, base_intr.fy,
-                                         *base_dist.as_array()], dtype=float)
+                                         *base_dist.as_array(), *np.asarray(base_gains, dtype=float)], dtype=float)
+                if prob.spec.fit_gains:  # gain_homography is linear in the gains: its values at the unit vectors
+                    self._gain_basis = np.stack([gain_homography(e, *prob.sensor_mm) for e in np.eye(4)])
+                else:
+                    self._gain_basis = np.zeros((0, 3, 3))
 
     def unpack(self, z):
         return self.prob.unpack(z, *self.base)
@@ -260,7 +264,7 @@ class Evaluator:
         return J.T @ J, J.T @ r
 
     def _theta(self, z):
-        """The 12 global parameters of the compiled kernels (psdcal._image_kernel.GLOBAL_ORDER)."""
+        """The 16 global parameters of the compiled kernels (psdcal._image_kernel.GLOBAL_ORDER)."""
         theta = self._theta0.copy()
         theta[self._gmap] = z[: self._gmap.size]
         return theta
@@ -318,20 +322,20 @@ class Evaluator:
             warm = self._dval
         else:
             warm = self._anchor if self._anchor is not None else self._no_warm
-        d, ok, J = self._kernel(
+        d, ok, y, J = self._kernel(
             self.P, self.img_idx, self._theta(z), self._separate_fy, self._poses(z), warm, self.d_meas,
-            self._gmap, want_jac, 1e-13, 50,
+            self._gmap, want_jac, 1e-13, 50, self._gain_basis,
         )
-        self._dkey, self._dval = key, d
+        self._dkey, self._dval, self._yval = key, d, y
         if want_jac:
             self._anchor = d
-        return d, J
+        return y, J
 
     def model_points(self, z):
         """Modelled measured points (N, 2) of the valid observations, mm on the sensor."""
         if self._kernel is not None:
             key = z.tobytes()
-            return self._dval if self._dkey == key else self._compiled(z, key, want_jac=False)[0]
+            return self._yval if self._dkey == key else self._compiled(z, key, want_jac=False)[0]
         intr, coef, gains, dR, Pc, xn, yn, x = self._ideal(z, derivatives=False)
         d = self._solve_distort(z.tobytes(), x, coef, intr.c)
         if self.prob.spec.fit_gains:
