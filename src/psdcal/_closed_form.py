@@ -153,8 +153,11 @@ def poses_from_homographies(Hs, intr: Intrinsics):
     if H.shape[0] == 0:
         return np.zeros((0, 3)), np.zeros((0, 3))
     Ainv = np.linalg.inv(intr.matrix())
-    a = Ainv @ H  # columns: A^-1 h1, A^-1 h2, A^-1 h3 (Eq 26-28 before scaling)
-    a1, a2, a3 = a[:, :, 0], a[:, :, 1], a[:, :, 2]
+    # a[:, j] = A^-1 h_j (Eq 26-28 before scaling), as matrix-vector products (the one-view
+    # function's, which round as a matrix-matrix product need not)
+    h_cols = np.ascontiguousarray(H.transpose(0, 2, 1))[..., None]  # (n, 3, 3, 1): h_j as columns
+    a = np.matmul(Ainv, h_cols)[..., 0]
+    a1, a2, a3 = a[:, 0], a[:, 1], a[:, 2]
     # |a1|, |a2| as (1x3)(3x1) products: the dot product the one-view norm takes, so the same bits
     norm1 = np.sqrt((a1[:, None, :] @ a1[:, :, None])[:, 0, 0])
     norm2 = np.sqrt((a2[:, None, :] @ a2[:, :, None])[:, 0, 0])

@@ -132,7 +132,7 @@ def homographies(src, dst, *, normalize: bool = True, labels=None) -> np.ndarray
             T[:, 2, 2] = 1.0
             return T
 
-        Tp = norm_mats(src_n)
+        Tp = norm_mats(np.array(src_n))  # a copy (order "K"), summed in the same order as before
         Tq = norm_mats(dst0)
         p = np.einsum("nij,nmj->nmi", Tp[:, :2, :2], src_n) + Tp[:, None, :2, 2]
         q = np.einsum("nij,nmj->nmi", Tq[:, :2, :2], dst0) + Tq[:, None, :2, 2]
