@@ -251,19 +251,23 @@ def _radial_line_residuals_kernel(d_mm, q_mm, group, cnt, abc, nx, ny, c_mm, z_s
     N = d_mm.shape[0]
     n_groups = cnt.shape[0]
     nk = z_scale.shape[0]
-    # spread of each group along its line, sqrt(lmax / cnt)
+    # spread of each group along its line, sqrt(lmax / cnt), and the residual weights n / spread
     radg = np.empty(n_groups)
     lmax = np.empty(n_groups)
     spread = np.empty(n_groups)
+    wx = np.empty(n_groups)
+    wy = np.empty(n_groups)
     for g in range(n_groups):
         h = 0.5 * (abc[0, g] - abc[2, g])
         radg[g] = math.sqrt(h * h + abc[1, g] * abc[1, g])
         lmax[g] = 0.5 * (abc[0, g] + abc[2, g]) + radg[g]
         spread[g] = math.sqrt(lmax[g] / cnt[g])
+        wx[g] = nx[g] / spread[g]
+        wy[g] = ny[g] / spread[g]
     res = np.empty(N)
     for i in range(N):
         g = group[i]
-        res[i] = q_mm[i, 0] * (nx[g] / spread[g]) + q_mm[i, 1] * (ny[g] / spread[g])
+        res[i] = q_mm[i, 0] * wx[g] + q_mm[i, 1] * wy[g]
     if not want_jac:
         return res, np.empty((0, nk))
     # derivatives of the undistorted points by the unknowns
@@ -284,6 +288,9 @@ def _radial_line_residuals_kernel(d_mm, q_mm, group, cnt, abc, nx, ny, c_mm, z_s
     da = np.empty(n_groups)
     db = np.empty(n_groups)
     dc = np.empty(n_groups)
+    dnx = np.empty(n_groups)
+    dny = np.empty(n_groups)
+    dlog_spread = np.empty(n_groups)
     ddx = np.empty(N)
     ddy = np.empty(N)
     for j in range(nk):
@@ -296,17 +303,20 @@ def _radial_line_residuals_kernel(d_mm, q_mm, group, cnt, abc, nx, ny, c_mm, z_s
             g = group[i]
             mdx[g] += dx[i, j]
             mdy[g] += dy[i, j]
+        for g in range(n_groups):
+            mdx[g] = mdx[g] / cnt[g]
+            mdy[g] = mdy[g] / cnt[g]
+        # derivatives of the centred points and of the scatter (da, db, dc: halves of d(a), d(c))
         for i in range(N):
             g = group[i]
             qx = q_mm[i, 0]
             qy = q_mm[i, 1]
-            ddx[i] = dx[i, j] - mdx[g] / cnt[g]
-            ddy[i] = dy[i, j] - mdy[g] / cnt[g]
+            ddx[i] = dx[i, j] - mdx[g]
+            ddy[i] = dy[i, j] - mdy[g]
             da[g] += qx * ddx[i]
             dc[g] += qy * ddy[i]
             db[g] += qx * ddy[i] + qy * ddx[i]
-        for i in range(N):
-            g = group[i]
+        for g in range(n_groups):
             a, b, c = abc[0, g], abc[1, g], abc[2, g]
             den = (a - c) * (a - c) + 4.0 * b * b
             if not den > 0.0:
@@ -317,17 +327,31 @@ def _radial_line_residuals_kernel(d_mm, q_mm, group, cnt, abc, nx, ny, c_mm, z_s
             # rotation of the line and change of its spread
             dtheta = ((a - c) * db[g] - b * (dag - dcg)) / den
             dlmax = 0.5 * (dag + dcg) + (0.25 * (a - c) * (dag - dcg) + b * db[g]) / rad_safe
-            dlog_spread = 0.5 * dlmax / lmax[g]
+            dlog_spread[g] = 0.5 * dlmax / lmax[g]
             # n = (-sin t, cos t): dn = (-ny, nx) dt
-            dnx = -ny[g] * dtheta
-            dny = nx[g] * dtheta
+            dnx[g] = -ny[g] * dtheta
+            dny[g] = nx[g] * dtheta
+        for i in range(N):
+            g = group[i]
             jac[i, j] = (
-                ddx[i] * (nx[g] / spread[g])
-                + ddy[i] * (ny[g] / spread[g])
-                + (q_mm[i, 0] * dnx + q_mm[i, 1] * dny) / spread[g]
-                - res[i] * dlog_spread
+                ddx[i] * wx[g]
+                + ddy[i] * wy[g]
+                + (q_mm[i, 0] * dnx[g] + q_mm[i, 1] * dny[g]) / spread[g]
+                - res[i] * dlog_spread[g]
             )
     return res, jac
+
+
+def _radial_line_state(d_mm, group, n_groups, k, c_mm):
+    """Centred undistorted points, group sizes, scatters and line normals at ``k`` (compiled + numpy).
+
+    Returns the arguments ``q_mm, cnt, abc, nx, ny`` of
+    :func:`_radial_line_residuals_kernel`; the normal's angle is numpy's
+    (as in :func:`_line_residuals`).
+    """
+    q, cnt, abc = _radial_scatter_kernel(d_mm, group, n_groups, k, c_mm)
+    theta = 0.5 * np.arctan2(2 * abc[1], abc[0] - abc[2])
+    return q, cnt, abc, -np.sin(theta), np.cos(theta)
 
 
 def _radial_line_residuals_jit(d_mm, group, n_groups, k, c_mm, z_scale, want_jac):
@@ -336,9 +360,8 @@ def _radial_line_residuals_jit(d_mm, group, n_groups, k, c_mm, z_scale, want_jac
     Equal to :func:`_line_residuals` of ``undistort(d_mm, k, c_mm)`` with
     ``dpts`` the derivatives by ``k / z_scale``'s unknowns.
     """
-    q, cnt, abc = _radial_scatter_kernel(d_mm, group, n_groups, k, c_mm)
-    theta = 0.5 * np.arctan2(2 * abc[1], abc[0] - abc[2])
-    return _radial_line_residuals_kernel(d_mm, q, group, cnt, abc, -np.sin(theta), np.cos(theta), c_mm, z_scale, want_jac)
+    q, cnt, abc, nx, ny = _radial_line_state(d_mm, group, n_groups, k, c_mm)
+    return _radial_line_residuals_kernel(d_mm, q, group, cnt, abc, nx, ny, c_mm, z_scale, want_jac)
 
 
 def estimate_radial(points_mm, lines, *, c_mm=(0.0, 0.0), n_terms: int = 2) -> StraightnessResult:
@@ -382,12 +405,21 @@ def estimate_radial(points_mm, lines, *, c_mm=(0.0, 0.0), n_terms: int = 2) -> S
         d_c = np.ascontiguousarray(flat)
         g_c = np.ascontiguousarray(group, dtype=np.int64)
         c_c = np.ascontiguousarray(c[:2])
+        last = {}  # the solver asks for the Jacobian where it has just evaluated the residuals
+
+        def state(z):
+            key = z.tobytes()
+            if last.get("key") != key:
+                last["key"], last["state"] = key, _radial_line_state(d_c, g_c, n_groups, z / scale, c_c)
+            return last["state"]
 
         def fun(z):
-            return _radial_line_residuals_jit(d_c, g_c, n_groups, z / scale, c_c, scale, False)[0]
+            q, cnt, abc, nx, ny = state(z)
+            return _radial_line_residuals_kernel(d_c, q, g_c, cnt, abc, nx, ny, c_c, scale, False)[0]
 
         def jac(z):
-            return _radial_line_residuals_jit(d_c, g_c, n_groups, z / scale, c_c, scale, True)[1]
+            q, cnt, abc, nx, ny = state(z)
+            return _radial_line_residuals_kernel(d_c, q, g_c, cnt, abc, nx, ny, c_c, scale, True)[1]
 
     else:
 
