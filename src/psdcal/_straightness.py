@@ -373,11 +373,15 @@ def estimate_radial(points_mm, lines, *, c_mm=(0.0, 0.0), n_terms: int = 2) -> S
         Measured impact points, NaN where missing.
     lines : list of index arrays from :func:`find_lines`
     c_mm : (2,) centre of distortion (the electrical centre by default).
-    n_terms : 1 or 2
+    n_terms : 1 or 2 (3 also works: k3)
 
     Returns
     -------
     StraightnessResult (k has ``n_terms`` entries; zeros when there is no line).
+
+    With :func:`psdcal._jit.enabled`, the cost and its Jacobian come from
+    compiled kernels that reproduce :func:`_line_residuals` of
+    :func:`~psdcal.distortion.undistort` (the reference, used otherwise).
     """
     pts = np.asarray(points_mm, dtype=float)
     c = np.asarray(c_mm, dtype=float)
@@ -404,7 +408,7 @@ def estimate_radial(points_mm, lines, *, c_mm=(0.0, 0.0), n_terms: int = 2) -> S
         # the compiled kernel: same residuals and Jacobian as the numpy reference below
         d_c = np.ascontiguousarray(flat)
         g_c = np.ascontiguousarray(group, dtype=np.int64)
-        c_c = np.ascontiguousarray(c[:2])
+        c_c = np.ascontiguousarray(np.broadcast_to(c, (2,)), dtype=float)
         last = {}  # the solver asks for the Jacobian where it has just evaluated the residuals
 
         def state(z):
