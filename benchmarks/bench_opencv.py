@@ -27,6 +27,11 @@ on one core. Accuracy: the RMS over the sets of the error of f and of the
 distance |C - C_true| in mm. The two distortion models differ (the truth is
 generated with ours), so only the intrinsics are compared.
 
+Start-up (skipped with ``--no-startup``): seconds from a fresh interpreter
+to the end of its first calibration, imports included, for psdcal with an
+empty numba cache (its compiled kernels are built: once per machine and
+version), psdcal with the cache filled (every later process), and OpenCV.
+
 Usage::
 
     .venv/bin/python benchmarks/bench_opencv.py [--sets 20] [--repeats 3] [--markdown]
@@ -187,6 +192,63 @@ def run(n_sets: int, repeats: int, noise_mm: float, pitch_mm: float) -> list[dic
     return rows
 
 
+_FIRST_CALL = r"""
+import os, sys, time
+for v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ[v] = "1"
+import numpy as np
+data = np.load(sys.argv[2])
+t0 = time.perf_counter()
+if sys.argv[1] == "psdcal":
+    from psdcal.calibration import calibrate
+    calibrate(data["template"], data["points"], cost="image", radial=2, tangential=False)
+else:
+    import cv2
+    cv2.setNumThreads(1)
+    obj = np.concatenate([data["template"], np.zeros((len(data["template"]), 1))], axis=1).astype(np.float32)
+    imgs = [(p / 0.01 + 450.0).astype(np.float32).reshape(-1, 1, 2) for p in data["points"]]
+    flags = cv2.CALIB_FIX_ASPECT_RATIO | cv2.CALIB_ZERO_TANGENT_DIST | cv2.CALIB_FIX_K3
+    cv2.calibrateCamera([obj] * len(imgs), imgs, (900, 900), np.eye(3), np.zeros(5), flags=flags)
+print(time.perf_counter() - t0)
+"""
+
+
+def first_call_seconds(repeats: int = 3, cold: bool = True) -> dict:
+    """Seconds from a fresh interpreter to the end of its first calibration (imports included).
+
+    psdcal is measured twice: with an empty numba cache (``NUMBA_CACHE_DIR``
+    pointing at a new folder, so its kernels are compiled: once per machine
+    and psdcal version) and with that cache filled (every later process).
+    OpenCV has nothing to compile. Median of ``repeats`` processes each.
+    With ``cold=False`` only the warm case is run, on numba's default cache.
+    """
+    import subprocess
+    import tempfile
+
+    sset = simulate_set("lens2", n_images=12, noise_mm=0.002, seed=0)
+    out = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        data = Path(tmp) / "set.npz"
+        np.savez(data, template=sset.template_mm, points=sset.points_mm)
+
+        def once(which, cache):
+            env = dict(os.environ)
+            if cache is not None:
+                env["NUMBA_CACHE_DIR"] = str(cache)
+            res = subprocess.run([sys.executable, "-c", _FIRST_CALL, which, str(data)], env=env,
+                                 capture_output=True, text=True, check=True)
+            return float(res.stdout.strip().splitlines()[-1])
+
+        cache = None
+        if cold:
+            out["psdcal, kernels compiled (first use on a machine)"] = float(
+                np.median([once("psdcal", Path(tmp) / f"cold{k}") for k in range(repeats)]))
+            cache = Path(tmp) / "cold0"
+        out["psdcal, kernels from the disk cache"] = float(np.median([once("psdcal", cache) for _ in range(repeats)]))
+        out["OpenCV"] = float(np.median([once("opencv", cache) for _ in range(repeats)]))
+    return out
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--sets", type=int, default=20, help="synthetic sets per configuration")
@@ -194,6 +256,7 @@ def main(argv=None) -> int:
     ap.add_argument("--noise-mm", type=float, default=0.002)
     ap.add_argument("--pitch-um", type=float, default=10.0, help="pixel pitch given to OpenCV")
     ap.add_argument("--markdown", action="store_true", help="print a Markdown table (for the README)")
+    ap.add_argument("--no-startup", action="store_true", help="skip the fresh-process (start-up) timing")
     a = ap.parse_args(argv)
     import cv2
 
@@ -221,6 +284,11 @@ def main(argv=None) -> int:
         for r in rows
     ]
     print_table(head, lines, a.markdown)
+    if not a.no_startup:
+        print()
+        print("start-up: a fresh process to the end of its first calibration (lens2, 12 views), imports included; "
+              "median of 3 processes")
+        print_table(("what", "seconds"), [(k, f"{v:.2f}") for k, v in first_call_seconds().items()], a.markdown)
     return 0
 
 

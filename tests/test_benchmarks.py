@@ -59,13 +59,22 @@ def test_run_all_selects_by_name_and_reports_unknown_names():
 def test_bench_opencv_runs_end_to_end():
     pytest.importorskip("cv2")
     out = subprocess.run(
-        [sys.executable, str(BENCH / "run_all.py"), "opencv", "--", "--sets", "1", "--repeats", "1"],
+        [sys.executable, str(BENCH / "run_all.py"), "opencv", "--", "--sets", "1", "--repeats", "1", "--no-startup"],
         capture_output=True,
         text=True,
         timeout=300,
     )
     assert out.returncode == 0, out.stderr
     assert "ratio psdcal/OpenCV" in out.stdout and out.stdout.count("lens") >= 4
+
+
+def test_bench_opencv_start_up_timing_runs_fresh_processes():
+    pytest.importorskip("cv2")
+    bench = _load("bench_opencv")
+    out = bench.first_call_seconds(repeats=1, cold=False)
+    assert set(out) == {"psdcal, kernels from the disk cache", "OpenCV"}
+    # a fresh interpreter importing numpy and the library: well above a warm call, well below a minute
+    assert all(0.01 < v < 60 for v in out.values()), out
 
 
 def test_bench_montecarlo_runs(capsys):
