@@ -118,3 +118,37 @@ def test_calibration_is_the_same_with_and_without_the_kernel(lens, kw, monkeypat
         a, b = fast.parameter(name), ref.parameter(name)
         assert abs(a - b) <= 1e-6 * fast.std[name], name  # same minimum, well inside the noise
     assert abs(fast.rms_mm - ref.rms_mm) <= 1e-9 * ref.rms_mm
+
+
+from hypothesis import given, settings  # noqa: E402
+from hypothesis import strategies as st  # noqa: E402
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    k1=st.floats(-0.02, 0.02), k2=st.floats(-1e-4, 1e-4), p1=st.floats(-1e-3, 1e-3), p2=st.floats(-1e-3, 1e-3),
+    l1=st.floats(-5e-3, 5e-3), cx=st.floats(-1, 1), cy=st.floats(-1, 1), seed=st.integers(0, 2**16),
+)
+def test_kernel_inverse_is_an_inverse_over_the_sensor(k1, k2, p1, p2, l1, cx, cy, seed):
+    """Property: where the kernel's Newton inverse converges, undistort(d) == x.
+
+    It converges exactly where distort() converges from one of the kernel's
+    starts (here: the fixed-point start, or the measured point).
+    """
+    from psdcal._image_kernel import global_map, image_model
+    from psdcal.distortion import distort, undistort
+
+    coef = np.array([k1, k2, 0.0, p1, p2, l1, 0.0])
+    c = np.array([cx, cy])
+    d_true = np.random.default_rng(seed).uniform(-4.5, 4.5, size=(50, 2))  # on the 9 x 9 mm PSD
+    x = undistort(d_true, coef, c)
+    # a view straight on, f = 1, so that the ideal point is x = P + c for template point P = x - c
+    poses = np.array([[0.0, 0.0, 0.0, 0.0, 0.0, 1.0]])
+    theta = np.concatenate([[1.0, cx, cy, 0.0, 1.0], coef, np.ones(4)])
+    meas = d_true + 0.01
+    d, ok, y, _ = image_model(x - c, np.zeros(len(x), dtype=np.int64), theta, False, poses, np.full(x.shape, np.nan),
+                              meas, global_map(["f_mm"]), False, 1e-13, 50, np.zeros((0, 3, 3)))
+    ref = distort(x, coef, c).converged | distort(x, coef, c, d0_mm=meas).converged
+    np.testing.assert_array_equal(ok, ref)
+    np.testing.assert_array_equal(y, d)  # no gains: the modelled point is the spot position
+    np.testing.assert_allclose(undistort(d[ok], coef, c), x[ok], rtol=0, atol=1e-11)
