@@ -176,3 +176,19 @@ def test_bad_calibration_json(tmp_path):
     p.write_text("{}")
     with pytest.raises(InputError, match="intrinsics"):
         load_calibration(p)
+
+
+def test_a_converged_but_impossible_fit_is_flagged(tmp_path, simset, capsys):
+    """Template rows of two LEDs swapped: the solver converges, but far from any noise level."""
+    d, s = simset
+    code, out, err = run(["calibrate", d / "points.csv", "-t", d / "template.csv", "-o", tmp_path / "ok.json"], capsys)
+    assert code == 0 and "warning" not in out
+    assert json.loads((tmp_path / "ok.json").read_text())["warnings"] == []
+    T = s.template_mm.copy()
+    T[[6, 7]] = T[[7, 6]]  # (many other swaps: the closed form already refuses the views)
+    write_template(tmp_path / "wrong.csv", range(14), T)
+    code, out, err = run(["calibrate", d / "points.csv", "-t", tmp_path / "wrong.csv", "-o", tmp_path / "bad.json"], capsys)
+    assert code == 0, err  # a result is still written: the report shows what is wrong with it
+    assert "warning" in out and "template" in out
+    w = json.loads((tmp_path / "bad.json").read_text())["warnings"]
+    assert len(w) == 1 and "% of the points' spread" in w[0]

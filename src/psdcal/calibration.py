@@ -193,6 +193,29 @@ class CalibrationResult:
             return float(getattr(self.intrinsics, name))
         return float(getattr(self.distortion, name))
 
+    def warnings(self) -> list[str]:
+        """What looks wrong with this calibration although the solver converged (empty when nothing).
+
+        A residual RMS above :data:`MISFIT_FRACTION` of the measured points'
+        spread is far beyond any PSD noise (micrometres on a sensor of
+        millimetres) or lens-model mismatch: the solver found the best fit of
+        data that the model cannot explain, typically a wrong template, point
+        ids that do not match it, or swapped coordinates.
+        """
+        out = []
+        X = np.asarray(self.problem.get("points", {}).get("xy_mm", []), dtype=float) if self.problem else np.empty((0, 0, 2))
+        pts = X.reshape(-1, 2) if X.size else np.empty((0, 2))
+        pts = pts[np.all(np.isfinite(pts), axis=1)]
+        if len(pts) >= 2:
+            spread = float(np.max(np.ptp(pts, axis=0)))
+            if spread > 0 and self.rms_mm > MISFIT_FRACTION * spread:
+                out.append(
+                    f"the residual RMS ({self.rms_mm * 1e3:.3g} um) is {100 * self.rms_mm / spread:.2g} % of the points' "
+                    f"spread ({spread:.3g} mm): far above any PSD noise; check the template, the point ids and the "
+                    "coordinates' order and units"
+                )
+        return out
+
     def correlation(self) -> np.ndarray:
         """Correlation matrix of the free global parameters."""
         s = np.sqrt(np.diag(self.covariance))
@@ -247,6 +270,7 @@ class CalibrationResult:
             "problem": _jsonable(self.problem),
             "software": {"name": "psdcal", "version": __version__},
             "created": self.created,
+            "warnings": self.warnings(),
         }
 
     @classmethod
@@ -537,6 +561,11 @@ def implausible(result: CalibrationResult) -> str:
         return f"image {result.image_ids[i]} behind the sensor (t_z = {tz[i]:.3g} mm)"
     return ""
 
+
+#: A converged fit whose residual RMS exceeds this fraction of the measured
+#: points' spread is flagged by :meth:`CalibrationResult.warnings` (1 % of a
+#: 9 mm PSD is 90 um, some 30 times the noise at the paper's lowest SNR).
+MISFIT_FRACTION = 0.01
 
 #: Offsets (in units of the sensor's size) of the optical-centre starts tried
 #: when PSD terms are estimated (see :func:`_psd_multistart`).

@@ -223,6 +223,7 @@ def build_report(result, inputs: ReportInputs = ReportInputs(), *, k: float = DE
         ids = [str(result.image_ids[i]) for i in np.nonzero(flags.images)[0]]
         warnings.append(f"image(s) {', '.join(ids)} fit worse than the noise allows (chi-square test)")
     warnings += cov.warnings()
+    warnings += result.warnings()
     if np.asarray(result.covariance).size == 0:
         warnings.append("the calibration file holds no covariance matrix: the AoA uncertainty uses the standard errors "
                         "alone (correlations ignored)")
