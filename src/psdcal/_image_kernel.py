@@ -90,8 +90,15 @@ def _rotations(rv, want_d):
 
 
 @njit
-def _undistort_point(dx, dy, coef, cx, cy):
-    """x = undistort(d) and dx/dd (Eq 7-16) of one point; returns (x0, x1, J00, J01, J10, J11)."""
+def _model_terms(dx, dy, coef, cx, cy):
+    """The undistortion model at one measured point d (Eq 7-16) and the parts of its derivatives.
+
+    Returns ``(x0, x1, h2, ex, ey, r2, G00, G01, G10, G11, U00, U01, U11)``:
+    the ideal point x; ``h2 = |d|^2``; ``e = u - c`` with ``u = d s(h2)``
+    the PSD-corrected point and ``r2 = |e|^2``; ``G = d(lens correction)/de``
+    (so ``dx/du = I + G`` and ``dx/dc = -G``); ``U = du/dd`` (symmetric,
+    ``U10 = U01``).
+    """
     k1, k2, k3, p1, p2, l1, l2 = coef[0], coef[1], coef[2], coef[3], coef[4], coef[5], coef[6]
     h2 = dx * dx + dy * dy
     s = 1.0 + l1 * h2 + l2 * h2 * h2
@@ -102,15 +109,23 @@ def _undistort_point(dx, dy, coef, cx, cy):
     x0 = ux + ex * rad + p1 * (r2 + 2 * ex * ex) + 2 * p2 * ex * ey
     x1 = uy + ey * rad + p2 * (r2 + 2 * ey * ey) + 2 * p1 * ex * ey
     g = 2 * (k1 + r2 * (2 * k2 + 3 * k3 * r2))
-    G00 = 1 + rad + g * ex * ex + 6 * p1 * ex + 2 * p2 * ey
+    G00 = rad + g * ex * ex + 6 * p1 * ex + 2 * p2 * ey
     G01 = g * ex * ey + 2 * p1 * ey + 2 * p2 * ex
     G10 = g * ex * ey + 2 * p2 * ex + 2 * p1 * ey
-    G11 = 1 + rad + g * ey * ey + 6 * p2 * ey + 2 * p1 * ex
+    G11 = rad + g * ey * ey + 6 * p2 * ey + 2 * p1 * ex
     ds = 2 * (l1 + 2 * l2 * h2)
     U00 = s + ds * dx * dx
     U01 = ds * dx * dy
     U11 = s + ds * dy * dy
-    return (x0, x1, G00 * U00 + G01 * U01, G00 * U01 + G01 * U11, G10 * U00 + G11 * U01, G10 * U01 + G11 * U11)
+    return x0, x1, h2, ex, ey, r2, G00, G01, G10, G11, U00, U01, U11
+
+
+@njit
+def _undistort_point(dx, dy, coef, cx, cy):
+    """x = undistort(d) and dx/dd = (I + G) U (Eq 7-16) of one point; returns (x0, x1, J00, J01, J10, J11)."""
+    x0, x1, _, _, _, _, G00, G01, G10, G11, U00, U01, U11 = _model_terms(dx, dy, coef, cx, cy)
+    return (x0, x1, (1 + G00) * U00 + G01 * U01, (1 + G00) * U01 + G01 * U11,
+            G10 * U00 + (1 + G11) * U01, G10 * U01 + (1 + G11) * U11)
 
 
 @njit
@@ -272,21 +287,7 @@ def image_model(P, img, theta, separate_fy, poses, warm, meas, gmap, want_jac, t
         if not want_jac:
             continue
         # -- undistortion Jacobians at d (as distortion.undistort(..., jacobians=True))
-        k1, k2, k3, p1, p2, l1, l2 = coef[0], coef[1], coef[2], coef[3], coef[4], coef[5], coef[6]
-        h2 = d0 * d0 + d1 * d1
-        s = 1.0 + l1 * h2 + l2 * h2 * h2
-        ex, ey = d0 * s - cx, d1 * s - cy
-        r2 = ex * ex + ey * ey
-        rad = r2 * (k1 + r2 * (k2 + r2 * k3))
-        g2 = 2 * (k1 + r2 * (2 * k2 + 3 * k3 * r2))
-        G00 = rad + g2 * ex * ex + 6 * p1 * ex + 2 * p2 * ey
-        G01 = g2 * ex * ey + 2 * p1 * ey + 2 * p2 * ex
-        G10 = g2 * ex * ey + 2 * p2 * ex + 2 * p1 * ey
-        G11 = rad + g2 * ey * ey + 6 * p2 * ey + 2 * p1 * ex
-        ds = 2 * (l1 + 2 * l2 * h2)
-        U00 = s + ds * d0 * d0
-        U01 = ds * d0 * d1
-        U11 = s + ds * d1 * d1
+        _, _, h2, ex, ey, r2, G00, G01, G10, G11, U00, U01, U11 = _model_terms(d0, d1, coef, cx, cy)
         A00 = (1 + G00) * U00 + G01 * U01  # dx/dd = (I + G) dU/dd
         A01 = (1 + G00) * U01 + G01 * U11
         A10 = G10 * U00 + (1 + G11) * U01
@@ -449,7 +450,7 @@ def template_model(P, img, theta, separate_fy, poses, meas, gmap, want_jac):
     R, dR = _rotations(poses[:, :3], want_jac)
     f, cx, cy, sk = theta[0], theta[1], theta[2], theta[3]
     fy = theta[4] if separate_fy else f
-    k1, k2, k3, p1, p2, l1, l2 = theta[5], theta[6], theta[7], theta[8], theta[9], theta[10], theta[11]
+    coef = theta[5:12]
     # per view: M = [r1 r2 t], H = A M, and their inverses
     Hinv = np.empty((n, 3, 3))
     Minv = np.empty((n, 3, 3))
@@ -474,13 +475,8 @@ def template_model(P, img, theta, separate_fy, poses, meas, gmap, want_jac):
     for i in range(N):
         v = img[i]
         d0, d1 = meas[i, 0], meas[i, 1]
-        h2 = d0 * d0 + d1 * d1
-        s = 1.0 + l1 * h2 + l2 * h2 * h2
-        ex, ey = d0 * s - cx, d1 * s - cy
-        r2 = ex * ex + ey * ey
-        rad = r2 * (k1 + r2 * (k2 + r2 * k3))
-        x0 = d0 * s + ex * rad + p1 * (r2 + 2 * ex * ex) + 2 * p2 * ex * ey  # Eq 7-16
-        x1 = d1 * s + ey * rad + p2 * (r2 + 2 * ey * ey) + 2 * p1 * ex * ey
+        # x = undistort(d) (Eq 7-16); G = d(lens correction)/de, so dx/dc = -G
+        x0, x1, h2, ex, ey, r2, G00, G01, G10, G11, _, _, _ = _model_terms(d0, d1, coef, cx, cy)
         q0 = Hinv[v, 0, 0] * x0 + Hinv[v, 0, 1] * x1 + Hinv[v, 0, 2]
         q1 = Hinv[v, 1, 0] * x0 + Hinv[v, 1, 1] * x1 + Hinv[v, 1, 2]
         q2 = Hinv[v, 2, 0] * x0 + Hinv[v, 2, 1] * x1 + Hinv[v, 2, 2]
@@ -490,12 +486,6 @@ def template_model(P, img, theta, separate_fy, poses, meas, gmap, want_jac):
         r[row + 1] = q1 * iq - P[i, 1]
         if not want_jac:
             continue
-        # lens-correction Jacobian G = d(correction)/de; dx/dc = -G
-        g2 = 2 * (k1 + r2 * (2 * k2 + 3 * k3 * r2))
-        G00 = rad + g2 * ex * ex + 6 * p1 * ex + 2 * p2 * ey
-        G01 = g2 * ex * ey + 2 * p1 * ey + 2 * p2 * ex
-        G10 = g2 * ex * ey + 2 * p2 * ex + 2 * p1 * ey
-        G11 = rad + g2 * ey * ey + 6 * p2 * ey + 2 * p1 * ex
         # dP/dq (2x3)
         a00, a02 = iq, -q0 * iq * iq
         a11, a12 = iq, -q1 * iq * iq

@@ -181,7 +181,7 @@ class Evaluator:
         self._key = None
         self._val = None
         self._rkey = self._rval = None
-        self._dkey = self._dval = None
+        self._dkey = self._dval = self._yval = None
         self._anchor = None
         self._kernel = self._tkernel = self._normal = None  # compiled image / template cost
         if prob.cost == "image" or not prob.spec.fit_gains:
@@ -217,8 +217,7 @@ class Evaluator:
         if self.prob.cost == "image":
             r = (self.model_points(z) - self.d_meas).ravel()
         elif self._tkernel is not None:
-            r = self._tkernel(self.P, self.img_idx, self._theta(z), self._separate_fy, self._poses(z), self.d_meas,
-                              self._gmap, False)[0]
+            r = self._template_compiled(z, want_jac=False)[0]
         else:
             intr, coef, gains, rv, tv = self.unpack(z)
             x = undistort(self.d_meas, coef, intr.c)
@@ -238,8 +237,7 @@ class Evaluator:
             d, J = self._compiled(z, key, want_jac=True)
             val = ((d - self.d_meas).ravel(), J)
         elif self._tkernel is not None:
-            val = self._tkernel(self.P, self.img_idx, self._theta(z), self._separate_fy, self._poses(z), self.d_meas,
-                                self._gmap, True)
+            val = self._template_compiled(z, want_jac=True)
         elif self.prob.cost == "image":
             val = self._image(z)
         else:
@@ -330,6 +328,11 @@ class Evaluator:
         if want_jac:
             self._anchor = d
         return y, J
+
+    def _template_compiled(self, z, want_jac):
+        """Residuals (2N,) of the template cost and their Jacobian by the compiled kernel."""
+        return self._tkernel(self.P, self.img_idx, self._theta(z), self._separate_fy, self._poses(z), self.d_meas,
+                             self._gmap, want_jac)
 
     def model_points(self, z):
         """Modelled measured points (N, 2) of the valid observations, mm on the sensor."""
