@@ -49,5 +49,5 @@ def print_calibration(res, truth: dict | None = None, console=None) -> None:
     if worst is not None:
         console.print(f"per-image RMS {res.per_image_rms_mm.min() * 1e3:.4f}-{res.per_image_rms_mm.max() * 1e3:.4f} um "
                       f"(worst: image {res.image_ids[worst]})")
-    for w in res.warnings() if hasattr(res, "warnings") else ():
+    for w in res.warnings():
         console.print(f"[bold yellow]warning:[/] {w}", markup=True)
