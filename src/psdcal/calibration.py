@@ -203,8 +203,8 @@ class CalibrationResult:
         ids that do not match it, or swapped coordinates.
         """
         out = []
-        X = np.asarray(self.problem.get("points", {}).get("xy_mm", []), dtype=float) if self.problem else np.empty((0, 0, 2))
-        pts = X.reshape(-1, 2) if X.size else np.empty((0, 2))
+        xy = self.problem.get("points", {}).get("xy_mm", []) if self.problem else []
+        pts = np.asarray(xy, dtype=float).reshape(-1, 2)  # None (missing) -> NaN
         pts = pts[np.all(np.isfinite(pts), axis=1)]
         if len(pts) >= 2:
             spread = float(np.max(np.ptp(pts, axis=0)))
