@@ -32,14 +32,14 @@ from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from psdcal.aoa import angles_from_amplitudes  # noqa: E402
-from psdcal.distortion import distort  # noqa: E402
-from psdcal.locate import LocateConfig, locate_to_csv  # noqa: E402
-from psdcal.positioning import plane_position  # noqa: E402
-from psdcal.readout import photocurrents  # noqa: E402
-from psdcal.recording import open_recording  # noqa: E402
-from psdcal.sensor_model import SensorModel  # noqa: E402
-from psdcal.stream import MultiCarrierLockin  # noqa: E402
+from psdcal.measure.aoa import angles_from_amplitudes  # noqa: E402
+from psdcal.model.distortion import distort  # noqa: E402
+from psdcal.measure.locate import LocateConfig, locate_to_csv  # noqa: E402
+from psdcal.measure.positioning import plane_position  # noqa: E402
+from psdcal.model.readout import photocurrents  # noqa: E402
+from psdcal.signal.recording import open_recording  # noqa: E402
+from psdcal.measure.sensor_model import SensorModel  # noqa: E402
+from psdcal.signal.stream import MultiCarrierLockin  # noqa: E402
 
 RATE_HZ = 125_000.0  # per channel, PCI-6289 500 kS/s over 4 channels
 CARRIERS_HZ = (1000.0, 1300.0)

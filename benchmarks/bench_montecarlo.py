@@ -7,7 +7,7 @@ paper's model (k1, k2; template cost, preliminary correction, normalisation).
 "Signal excluded" replaces the signal chain by Gaussian noise on the impact
 points (the geometry-only simulator). Times are CPU seconds of this one
 process (one core); a process pool scales them by the number of cores
-(``psdcal.montecarlo.run_trials``).
+(``psdcal.study.montecarlo.run_trials``).
 
 Run: ``.venv/bin/python benchmarks/bench_montecarlo.py [--trials N]``
 """
@@ -18,11 +18,11 @@ import time
 
 import numpy as np
 
-from psdcal.calibration import calibrate
+from psdcal.calibration.core import calibrate
 from psdcal.errors import PsdcalError
-from psdcal.reproduce import chain_settings, simulate_trial
-from psdcal.signalchain import channel_gains
-from psdcal.simulate import simulate_set
+from psdcal.study.reproduce import chain_settings, simulate_trial
+from psdcal.signal.chain import channel_gains
+from psdcal.study.simulate import simulate_set
 
 
 def _cpu(fn, n):

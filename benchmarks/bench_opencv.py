@@ -54,9 +54,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))  # benchmarks/_table.py
 from _table import print_table  # noqa: E402
 
 import psdcal  # noqa: E402
-from psdcal.calibration import calibrate  # noqa: E402
-from psdcal.readout import LX_MM, LY_MM  # noqa: E402
-from psdcal.simulate import simulate_set  # noqa: E402
+from psdcal.calibration.core import calibrate  # noqa: E402
+from psdcal.model.readout import LX_MM, LY_MM  # noqa: E402
+from psdcal.study.simulate import simulate_set  # noqa: E402
 
 CONFIGS = (("lens1", 9), ("lens1", 12), ("lens2", 9), ("lens2", 12))
 ZHANG = Path(__file__).resolve().parent.parent / "tests" / "data" / "zhang1998"
@@ -200,7 +200,7 @@ import numpy as np
 data = np.load(sys.argv[2])
 t0 = time.perf_counter()
 if sys.argv[1] == "psdcal":
-    from psdcal.calibration import calibrate
+    from psdcal.calibration.core import calibrate
     calibrate(data["template"], data["points"], cost="image", radial=2, tangential=False)
 else:
     import cv2

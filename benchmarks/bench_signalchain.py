@@ -7,7 +7,7 @@ three repeats.  Rows:
 
 * ``simulate``: spot -> currents -> gains -> carrier + noise (the records);
 * ``demodulate``: records -> amplitudes (lock-in or band-pass);
-* ``chain``: the whole :func:`psdcal.signalchain.measure_points`, blocks included.
+* ``chain``: the whole :func:`psdcal.signal.chain.measure_points`, blocks included.
 
 Run: ``.venv/bin/python benchmarks/bench_signalchain.py [--points N]`` (about 15 s).
 """
@@ -41,7 +41,7 @@ def main(argv=None) -> int:
     parser.add_argument("--points", type=int, default=4000, help="spots per timed call (default 4000)")
     args, _ = parser.parse_known_args(argv)
 
-    from psdcal import signalchain as sc
+    from psdcal.signal import chain as sc
 
     n = max(1, args.points)
     xy = np.random.default_rng(0).uniform(-4.5, 4.5, (n, 2))

@@ -50,10 +50,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))  # benchmarks/_table.py
 from _table import print_table  # noqa: E402
 
 import psdcal
-from psdcal._refine import Evaluator, Problem
-from psdcal.calibration import calibrate
-from psdcal.params import ModelSpec
-from psdcal.simulate import simulate_set
+from psdcal.calibration._refine import Evaluator, Problem
+from psdcal.calibration.core import calibrate
+from psdcal.model.params import ModelSpec
+from psdcal.study.simulate import simulate_set
 
 PARAMS = ("f_mm", "cx_mm", "cy_mm", "k1")
 COSTS = ("image", "template")

@@ -3,9 +3,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from psdcal.distortion import distort
-from psdcal.readout import photocurrents
-from psdcal.sensor_model import SensorModel
+from psdcal.model.distortion import distort
+from psdcal.model.readout import photocurrents
+from psdcal.measure.sensor_model import SensorModel
 
 #: The paper's Lens 2 with the optical centre offset (MODEL.md 8), a little PSD distortion.
 BASE = {

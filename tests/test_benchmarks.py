@@ -9,8 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from psdcal.params import Distortion, Intrinsics
-from psdcal.simulate import simulate_set
+from psdcal.model.params import Distortion, Intrinsics
+from psdcal.study.simulate import simulate_set
 
 BENCH = Path(__file__).resolve().parent.parent / "benchmarks"
 

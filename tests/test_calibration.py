@@ -5,15 +5,15 @@ import numpy as np
 import pytest
 
 import psdcal
-from psdcal._closed_form import extrinsics_from_homography, intrinsics_from_homographies
-from psdcal._homography import homography
-from psdcal._refine import Evaluator, Problem, SolverOptions
-from psdcal._straightness import estimate_radial, find_lines
-from psdcal.calibration import initial_estimate, recalibrate
+from psdcal.calibration._closed_form import extrinsics_from_homography, intrinsics_from_homographies
+from psdcal.calibration._homography import homography
+from psdcal.calibration._refine import Evaluator, Problem, SolverOptions
+from psdcal.calibration._straightness import estimate_radial, find_lines
+from psdcal.calibration.core import initial_estimate, recalibrate
 from psdcal.errors import ConvergenceError, DegenerateViewsError, InputError
-from psdcal.params import Distortion, Intrinsics, ModelSpec
-from psdcal.projection import R_from_r, homography_from_pose
-from psdcal.simulate import LENSES, PAPER_L1, default_template, simulate_set
+from psdcal.model.params import Distortion, Intrinsics, ModelSpec
+from psdcal.model.projection import R_from_r, homography_from_pose
+from psdcal.study.simulate import LENSES, PAPER_L1, default_template, simulate_set
 
 CASES = {
     # name: (lens, extra distortion, intrinsics change, calibrate kwargs)
@@ -247,7 +247,7 @@ def test_parallel_views_are_degenerate():
     # every view fronto-parallel with the same orientation: the closed form cannot work
     intr, dist = LENSES["lens1"]
     P = default_template()
-    from psdcal.simulate import measured_points
+    from psdcal.study.simulate import measured_points
 
     rv = np.zeros((4, 3))
     tv = np.array([[0, 0, 900.0], [20, 10, 950.0], [-15, 5, 1000.0], [5, -20, 920.0]])
@@ -265,7 +265,7 @@ def test_non_convergence_is_an_error_carrying_the_last_iterate():
 
 @pytest.mark.parametrize("normalize", [True, False])
 def test_batched_homographies_equal_one_by_one(normalize):
-    from psdcal._homography import homographies
+    from psdcal.calibration._homography import homographies
 
     s = simulate_set("lens2", n_images=5, noise_mm=0.003, seed=8)
     pts = s.points_mm.copy()
@@ -314,7 +314,7 @@ def test_psd_term_fit_reaches_the_truth_with_noise(lens):
 
 
 def test_implausible_solutions_are_refused():
-    from psdcal.calibration import implausible
+    from psdcal.calibration.core import implausible
 
     s = simulate_set("lens2", n_images=9, noise_mm=0.002, seed=1)
     res = psdcal.calibrate(s.template_mm, s.points_mm)

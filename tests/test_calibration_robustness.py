@@ -18,8 +18,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from psdcal.calibration import calibrate
-from psdcal.simulate import simulate_set
+from psdcal.calibration.core import calibrate
+from psdcal.study.simulate import simulate_set
 
 NOISE_MM = 0.002
 SEEDS = range(20)

@@ -7,8 +7,8 @@ import pytest
 
 from psdcal.cli import main
 from psdcal.io import write_amplitudes, write_points, write_template
-from psdcal.readout import photocurrents
-from psdcal.simulate import simulate_set
+from psdcal.model.readout import photocurrents
+from psdcal.study.simulate import simulate_set
 
 
 def run(args, capsys):

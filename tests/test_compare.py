@@ -1,15 +1,15 @@
-"""Comparing calibrations in angle of arrival (psdcal.compare, psdcal compare)."""
+"""Comparing calibrations in angle of arrival (psdcal.report.compare, psdcal compare)."""
 import json
 from dataclasses import replace
 
 import numpy as np
 import pytest
 
-from psdcal.calibration import calibrate
-from psdcal.compare import VISIBLE_SIGMA, _mahalanobis, aoa_field, compare, fov_uncertainty, sensor_grid_mm
+from psdcal.calibration.core import calibrate
+from psdcal.report.compare import VISIBLE_SIGMA, _mahalanobis, aoa_field, compare, fov_uncertainty, sensor_grid_mm
 from psdcal.errors import InputError
-from psdcal.params import Distortion
-from psdcal.simulate import simulate_set
+from psdcal.model.params import Distortion
+from psdcal.study.simulate import simulate_set
 
 
 def _cal(lens, seed, n_images=12, noise_mm=0.003):
@@ -69,7 +69,7 @@ def test_mahalanobis():
 
 def test_aoa_covariance_matches_finite_differences(cals):
     """J Sigma J^T of the AoA field against a Jacobian from finite differences of an independent formula."""
-    from psdcal.distortion import undistort
+    from psdcal.model.distortion import undistort
 
     r = cals["a"]
     d = sensor_grid_mm(r.sensor_mm, 5)

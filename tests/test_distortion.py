@@ -5,8 +5,8 @@ from hypothesis import given
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from psdcal.distortion import distort, distort_jacobians, undistort
-from psdcal.params import Distortion
+from psdcal.model.distortion import distort, distort_jacobians, undistort
+from psdcal.model.params import Distortion
 
 C = np.array([0.5, -0.7])
 MODELS = {

@@ -4,14 +4,14 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from psdcal import gains as G
-from psdcal.calibration import calibrate
+from psdcal.calibration import gains as G
+from psdcal.calibration.core import calibrate
 from psdcal.errors import InputError
-from psdcal.params import Distortion
-from psdcal.readout import LX_MM, LY_MM, gain_homography, gain_map, impact_point, photocurrents
-from psdcal.reproduce import chain_settings, gain_trial, pooled_rms, simulate_trial
-from psdcal.signalchain import channel_gains
-from psdcal.simulate import LENSES, default_template, random_poses
+from psdcal.model.params import Distortion
+from psdcal.model.readout import LX_MM, LY_MM, gain_homography, gain_map, impact_point, photocurrents
+from psdcal.study.reproduce import chain_settings, gain_trial, pooled_rms, simulate_trial
+from psdcal.signal.chain import channel_gains
+from psdcal.study.simulate import LENSES, default_template, random_poses
 
 gain_vectors = st.lists(st.floats(0.7, 1.3), min_size=4, max_size=4).map(np.array)
 

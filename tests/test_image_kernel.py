@@ -1,4 +1,4 @@
-"""The compiled image cost (psdcal._image_kernel) against its numpy reference.
+"""The compiled image cost (psdcal.calibration._image_kernel) against its numpy reference.
 
 The numpy ``Evaluator`` code, ``distortion.distort`` and ``rodrigues_batch``
 are the reference (each tested against finite differences and closed forms
@@ -12,10 +12,10 @@ import numpy as np
 import pytest
 
 from psdcal import _jit
-from psdcal._refine import Evaluator, Problem, rodrigues_batch
-from psdcal.calibration import calibrate
-from psdcal.params import Distortion, ModelSpec
-from psdcal.simulate import simulate_set
+from psdcal.calibration._refine import Evaluator, Problem, rodrigues_batch
+from psdcal.calibration.core import calibrate
+from psdcal.model.params import Distortion, ModelSpec
+from psdcal.study.simulate import simulate_set
 
 pytestmark = pytest.mark.skipif(not _jit.enabled(), reason="numba not available or PSDCAL_JIT=0")
 
@@ -69,7 +69,7 @@ def test_kernel_matches_numpy_evaluator(lens, k, cost):
 
 
 def test_kernel_rotations_match_rodrigues_including_zero_angle():
-    from psdcal._image_kernel import _rotations
+    from psdcal.calibration._image_kernel import _rotations
 
     rng = np.random.default_rng(0)
     rv = np.concatenate([rng.normal(size=(5, 3)), np.zeros((1, 3)), 1e-14 * np.ones((1, 3))])
@@ -81,8 +81,8 @@ def test_kernel_rotations_match_rodrigues_including_zero_angle():
 
 def test_kernel_reports_points_without_an_inverse():
     """A strongly folding lens: the kernel's convergence flags equal distort()'s."""
-    from psdcal._image_kernel import image_model, global_map
-    from psdcal.distortion import distort
+    from psdcal.calibration._image_kernel import image_model, global_map
+    from psdcal.model.distortion import distort
 
     rng = np.random.default_rng(5)
     n = 400
@@ -133,8 +133,8 @@ def test_kernel_inverse_is_an_inverse_over_the_sensor(k1, k2, p1, p2, l1, cx, cy
     It converges exactly where distort() converges from one of the kernel's
     starts (here: the fixed-point start, or the measured point).
     """
-    from psdcal._image_kernel import global_map, image_model
-    from psdcal.distortion import distort, undistort
+    from psdcal.calibration._image_kernel import global_map, image_model
+    from psdcal.model.distortion import distort, undistort
 
     coef = np.array([k1, k2, 0.0, p1, p2, l1, 0.0])
     c = np.array([cx, cy])

@@ -9,21 +9,21 @@ import numpy as np
 import pytest
 
 import psdcal._jit
-from psdcal._closed_form import extrinsics_from_homography, poses_from_homographies, poses_from_homographies_reference
-from psdcal._homography import collinearity, collinearity_batch, homographies
-from psdcal._straightness import (
+from psdcal.calibration._closed_form import extrinsics_from_homography, poses_from_homographies, poses_from_homographies_reference
+from psdcal.calibration._homography import collinearity, collinearity_batch, homographies
+from psdcal.calibration._straightness import (
     _line_residuals,
     _radial_line_residuals_jit,
     estimate_radial,
     find_lines,
     find_lines_reference,
 )
-from psdcal.calibration import initial_estimate
-from psdcal.distortion import undistort
+from psdcal.calibration.core import initial_estimate
+from psdcal.model.distortion import undistort
 from psdcal.errors import DegenerateViewsError
-from psdcal.params import Intrinsics
-from psdcal.projection import R_from_r, nearest_rotation, nearest_rotation_batch, r_from_R, r_from_R_batch
-from psdcal.simulate import default_template, simulate_set
+from psdcal.model.params import Intrinsics
+from psdcal.model.projection import R_from_r, nearest_rotation, nearest_rotation_batch, r_from_R, r_from_R_batch
+from psdcal.study.simulate import default_template, simulate_set
 
 
 @pytest.fixture

@@ -1,4 +1,4 @@
-"""Angles of arrival, their uncertainty, positions (psdcal.aoa, psdcal.positioning, psdcal.sensor_model)."""
+"""Angles of arrival, their uncertainty, positions (psdcal.measure.aoa, psdcal.measure.positioning, psdcal.measure.sensor_model)."""
 from __future__ import annotations
 
 import json
@@ -7,12 +7,12 @@ import numpy as np
 import pytest
 
 from _locate_sim import amplitudes, calib_dict, model, signals, spot_for_angles
-from psdcal.aoa import angles_from_amplitudes, angles_from_points, impact_from_amplitudes
+from psdcal.measure.aoa import angles_from_amplitudes, angles_from_points, impact_from_amplitudes
 from psdcal.errors import InputError, ZeroSignalError
-from psdcal.positioning import error_map, plane_position, plot_error_map, triangulate, triangulate_aoa, SensorPose
-from psdcal.projection import R_from_r
-from psdcal.sensor_model import SensorModel
-from psdcal.stream import MultiCarrierLockin
+from psdcal.measure.positioning import error_map, plane_position, plot_error_map, triangulate, triangulate_aoa, SensorPose
+from psdcal.model.projection import R_from_r
+from psdcal.measure.sensor_model import SensorModel
+from psdcal.signal.stream import MultiCarrierLockin
 
 VARIANTS = {
     "plain": {},

@@ -8,9 +8,9 @@ import pytest
 
 from _locate_sim import amplitudes, calib_dict, signals, spot_for_angles
 from psdcal.cli import main
-from psdcal.locate import MULTI_COLUMNS
-from psdcal.projection import R_from_r
-from psdcal.sensor_model import SensorModel
+from psdcal.measure.locate import MULTI_COLUMNS
+from psdcal.model.projection import R_from_r
+from psdcal.measure.sensor_model import SensorModel
 
 RATE = 125_000.0
 

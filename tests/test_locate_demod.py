@@ -1,13 +1,13 @@
-"""Streaming multi-carrier lock-in and time multiplexing (psdcal.stream)."""
+"""Streaming multi-carrier lock-in and time multiplexing (psdcal.signal.stream)."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
 from _locate_sim import amplitudes, model, signals, spot_for_angles
-from psdcal.demod import lockin_amplitude
+from psdcal.signal.demod import lockin_amplitude
 from psdcal.errors import InputError
-from psdcal.stream import MultiCarrierLockin, ScheduleEntry, TdmSegmenter, check_carriers, load_schedule
+from psdcal.signal.stream import MultiCarrierLockin, ScheduleEntry, TdmSegmenter, check_carriers, load_schedule
 
 RATE = 100_000.0
 

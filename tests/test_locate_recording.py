@@ -1,4 +1,4 @@
-"""Recording readers (psdcal.recording) and constant-memory streaming."""
+"""Recording readers (psdcal.signal.recording) and constant-memory streaming."""
 from __future__ import annotations
 
 import sys
@@ -9,9 +9,9 @@ import pytest
 
 from _locate_sim import amplitudes, calib_dict, model, signals, spot_for_angles
 from psdcal.errors import InputError
-from psdcal.locate import LocateConfig, locate_to_csv
-from psdcal.recording import MissingDependencyError, open_recording
-from psdcal.sensor_model import SensorModel
+from psdcal.measure.locate import LocateConfig, locate_to_csv
+from psdcal.signal.recording import MissingDependencyError, open_recording
+from psdcal.measure.sensor_model import SensorModel
 
 RATE = 50_000.0
 

@@ -1,4 +1,4 @@
-"""Tests of the Monte Carlo runner (psdcal.montecarlo)."""
+"""Tests of the Monte Carlo runner (psdcal.study.montecarlo)."""
 from __future__ import annotations
 
 import concurrent.futures as cf
@@ -9,8 +9,8 @@ import math
 import numpy as np
 import pytest
 
-from psdcal import montecarlo as mc
-from psdcal.signalchain import ChainSettings, measure_point_trial
+from psdcal.study import montecarlo as mc
+from psdcal.signal.chain import ChainSettings, measure_point_trial
 
 FAIL_BELOW = 0.25
 

@@ -38,10 +38,10 @@ from functools import lru_cache
 import numpy as np
 import pytest
 
-from psdcal._refine import Evaluator, Problem
-from psdcal.calibration import calibrate
-from psdcal.params import ModelSpec
-from psdcal.simulate import simulate_set
+from psdcal.calibration._refine import Evaluator, Problem
+from psdcal.calibration.core import calibrate
+from psdcal.model.params import ModelSpec
+from psdcal.study.simulate import simulate_set
 
 LENS = "lens2"
 N_IMAGES = 12

@@ -1,18 +1,18 @@
-"""Outliers: robust noise, flags, rejection with refit (psdcal.outliers, calibrate --reject)."""
+"""Outliers: robust noise, flags, rejection with refit (psdcal.calibration.outliers, calibrate --reject)."""
 import json
 
 import numpy as np
 import pytest
 
-from psdcal.calibration import CalibrationResult, calibrate
+from psdcal.calibration.core import CalibrationResult, calibrate
 from psdcal.errors import InputError
-from psdcal.outliers import (
+from psdcal.calibration.outliers import (
     flag_outliers,
     reject_outliers,
     removed_points,
     robust_sigma_mm,
 )
-from psdcal.simulate import simulate_set
+from psdcal.study.simulate import simulate_set
 
 NOISE_MM = 0.003
 

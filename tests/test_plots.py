@@ -1,4 +1,4 @@
-"""psdcal.plots: every figure builds headless, has content, and works on a calibration read back from JSON."""
+"""psdcal.report.plots: every figure builds headless, has content, and works on a calibration read back from JSON."""
 import io
 import json
 
@@ -7,12 +7,12 @@ import numpy as np
 import pytest
 from matplotlib.figure import Figure
 
-from psdcal import plots
-from psdcal.calibration import CalibrationResult, calibrate
-from psdcal.compare import compare
-from psdcal.diagnostics import align_to_problem, coverage, measured_points_mm
-from psdcal.outliers import reject_outliers
-from psdcal.simulate import simulate_set
+from psdcal.report import plots
+from psdcal.calibration.core import CalibrationResult, calibrate
+from psdcal.report.compare import compare
+from psdcal.calibration.checks import align_to_problem, coverage, measured_points_mm
+from psdcal.calibration.outliers import reject_outliers
+from psdcal.study.simulate import simulate_set
 
 
 @pytest.fixture(scope="module")

@@ -5,9 +5,9 @@ from hypothesis import given
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from psdcal._refine import rodrigues_batch
-from psdcal.params import Intrinsics
-from psdcal.projection import R_from_r, backproject_to_plane, homography_from_pose, pinhole, project, r_from_R, rays, transform
+from psdcal.calibration._refine import rodrigues_batch
+from psdcal.model.params import Intrinsics
+from psdcal.model.projection import R_from_r, backproject_to_plane, homography_from_pose, pinhole, project, r_from_R, rays, transform
 
 rvecs = arrays(np.float64, 3, elements=st.floats(-3.0, 3.0, allow_nan=False)).filter(lambda r: np.linalg.norm(r) < 3.1)
 

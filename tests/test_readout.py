@@ -6,7 +6,7 @@ from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
 from psdcal.errors import ZeroSignalError
-from psdcal.readout import gain_homography, gain_map, impact_point, photocurrents
+from psdcal.model.readout import gain_homography, gain_map, impact_point, photocurrents
 
 spots = arrays(np.float64, (5, 2), elements=st.floats(-4.5, 4.5, allow_nan=False))
 gainss = arrays(np.float64, 4, elements=st.floats(0.7, 1.3, allow_nan=False))

@@ -11,7 +11,7 @@ import pytest
 
 from psdcal.cli import main
 from psdcal.io import write_points, write_template
-from psdcal.simulate import simulate_set
+from psdcal.study.simulate import simulate_set
 
 N_FIGURES = 8
 
@@ -158,8 +158,8 @@ def test_report_of_a_minimal_calibration_file(made, tmp_path):
 
 
 def test_identifiers_are_escaped():
-    from psdcal.calibration import calibrate
-    from psdcal.report import build_report
+    from psdcal.calibration.core import calibrate
+    from psdcal.report.page import build_report
 
     s = simulate_set("lens2", n_images=4, noise_mm=0.003, seed=8)
     ids = ["<b>img&0</b>", "img'1", 'img"2', "img<3"]

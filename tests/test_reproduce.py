@@ -4,8 +4,8 @@ import math
 import numpy as np
 import pytest
 
-from psdcal import reproduce as R
-from psdcal.montecarlo import ParameterSummary
+from psdcal.study import reproduce as R
+from psdcal.study.montecarlo import ParameterSummary
 
 
 def test_paper_values_transcribed_with_misprints_corrected():

@@ -11,9 +11,9 @@ import tracemalloc
 
 import numpy as np
 
-from psdcal._homography import homographies
-from psdcal.params import Intrinsics
-from psdcal.projection import project
+from psdcal.calibration._homography import homographies
+from psdcal.model.params import Intrinsics
+from psdcal.model.projection import project
 
 def _views(n_points: int):
     """Template (n_points, 2) and its exact images in two views (2, n_points, 2)."""

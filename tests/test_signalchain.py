@@ -1,4 +1,4 @@
-"""Tests of the simulated signal chain (psdcal.signalchain) and of the demodulation it uses."""
+"""Tests of the simulated signal chain (psdcal.signal.chain) and of the demodulation it uses."""
 from __future__ import annotations
 
 from dataclasses import replace
@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 from hypothesis import given, settings as hsettings, strategies as st
 
-from psdcal import demod
-from psdcal import signalchain as sc
+from psdcal.signal import demod
+from psdcal.signal import chain as sc
 from psdcal.errors import InputError, PsdcalError, ZeroSignalError
-from psdcal.readout import gain_homography, gain_map, impact_point
+from psdcal.model.readout import gain_homography, gain_map, impact_point
 
 METHODS = ("lockin", "bandpass")
 HALF = 4.5

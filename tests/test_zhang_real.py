@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from psdcal.calibration import calibrate
+from psdcal.calibration.core import calibrate
 from psdcal.io import read_points, read_template
 
 DATA = Path(__file__).parent / "data" / "zhang1998"

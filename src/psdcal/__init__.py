@@ -12,14 +12,14 @@ try:
 except PackageNotFoundError:  # pragma: no cover
     __version__ = "0.0.0+unknown"
 
-from .errors import ConvergenceError, DegenerateViewsError, InputError, PsdcalError, ZeroSignalError
-from .params import Distortion, Intrinsics, ModelSpec, Pose
+from psdcal.errors import ConvergenceError, DegenerateViewsError, InputError, PsdcalError, ZeroSignalError
+from psdcal.model.params import Distortion, Intrinsics, ModelSpec, Pose
 
 
 def __getattr__(name):
     # Lazy: keeps `import psdcal` (and the CLI's argument parsing) light.
     if name in {"calibrate", "CalibrationResult"}:
-        from . import calibration
+        from psdcal.calibration import core as calibration
 
         return getattr(calibration, name)
     raise AttributeError(f"module 'psdcal' has no attribute {name!r}")

@@ -3,7 +3,7 @@
 - Template CSV: ``point_id,X_mm,Y_mm``.
 - Impact points CSV: ``image_id,point_id,x_mm,y_mm`` (a missing point is a missing row),
   or raw amplitudes ``image_id,point_id,vx1,vx2,vy1,vy2``.
-- Calibration JSON: :meth:`psdcal.calibration.CalibrationResult.to_dict`.
+- Calibration JSON: :meth:`psdcal.calibration.core.CalibrationResult.to_dict`.
 
 Every reader validates as it goes and raises :class:`psdcal.errors.InputError`
 naming the file, the line (1-based; the header is line 1) and the field.
@@ -19,9 +19,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ._atomic import atomic_path, write_text_atomic
-from .errors import InputError
-from .readout import LX_MM, LY_MM, impact_point
+from psdcal._atomic import atomic_path, write_text_atomic
+from psdcal.errors import InputError
+from psdcal.model.readout import LX_MM, LY_MM, impact_point
 
 TEMPLATE_HEADER = ("point_id", "X_mm", "Y_mm")
 POINTS_HEADER = ("image_id", "point_id", "x_mm", "y_mm")
@@ -252,13 +252,13 @@ def read_json(path) -> dict:
 
 
 def save_calibration(path, result) -> None:
-    """Write a :class:`~psdcal.calibration.CalibrationResult` as calibration JSON (atomically)."""
+    """Write a :class:`~psdcal.calibration.core.CalibrationResult` as calibration JSON (atomically)."""
     write_json(path, result.to_dict())
 
 
 def load_calibration(path):
-    """Read a calibration JSON into a :class:`~psdcal.calibration.CalibrationResult`."""
-    from .calibration import CalibrationResult
+    """Read a calibration JSON into a :class:`~psdcal.calibration.core.CalibrationResult`."""
+    from psdcal.calibration.core import CalibrationResult
 
     d = read_json(path)
     if not isinstance(d, dict) or "intrinsics" not in d:

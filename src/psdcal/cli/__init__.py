@@ -11,7 +11,7 @@ import sys
 
 import click
 
-from ..errors import PsdcalError
+from psdcal.errors import PsdcalError
 
 
 @click.group(context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100})

@@ -1,5 +1,5 @@
 import sys
 
-from . import main
+from psdcal.cli import main
 
 sys.exit(main())

@@ -5,7 +5,7 @@ from pathlib import Path
 
 import click
 
-from . import cli
+from psdcal.cli import cli
 
 
 def model_options(f):
@@ -55,16 +55,16 @@ def calibrate_command(points, template, output, cost, radial, tangential, psd_ra
 
     Example: psdcal calibrate points.csv -t template.csv -o calib.json --psd-radial 1
     """
-    from ..calibration import calibrate
-    from ..errors import DegenerateViewsError, InputError
-    from ..io import read_points, read_template, save_calibration
-    from ..report_text import print_calibration
+    from psdcal.calibration.core import calibrate
+    from psdcal.errors import DegenerateViewsError, InputError
+    from psdcal.io import read_points, read_template, save_calibration
+    from psdcal.report.text import print_calibration
 
     tids, txy = read_template(template)
     pf = read_points(points, tids, sensor_mm=sensor_mm)
     if fit_gains and pf.kind != "amplitudes":
         raise InputError("--fit-gains needs raw amplitudes (header image_id,point_id,vx1,vx2,vy1,vy2)", path=points, line=1)
-    from .._refine import SolverOptions
+    from psdcal.calibration._refine import SolverOptions
 
     try:
         res = calibrate(
@@ -76,7 +76,7 @@ def calibrate_command(points, template, output, cost, radial, tangential, psd_ra
     except DegenerateViewsError as exc:
         raise DegenerateViewsError(f"{points}: {exc}") from None
     if reject_k is not None:
-        from ..outliers import reject_outliers
+        from psdcal.calibration.outliers import reject_outliers
 
         rej = reject_outliers(res, reject_k, line_numbers=pf.line_numbers)
         res = rej.result

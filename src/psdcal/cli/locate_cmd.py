@@ -1,10 +1,10 @@
 """``psdcal locate``, ``amplitudes``, ``aoa`` and ``errormap``: a thin layer over
-:mod:`psdcal.locate` and :mod:`psdcal.positioning` (no numerics here)."""
+:mod:`psdcal.measure.locate` and :mod:`psdcal.measure.positioning` (no numerics here)."""
 from __future__ import annotations
 
 import click
 
-from . import cli
+from psdcal.cli import cli
 
 _PROGRESS_MIN_SAMPLES = 2_000_000
 
@@ -72,10 +72,10 @@ def locate_command(recordings, calib, sensors, rate_hz, carriers, emitters, dist
     Recordings: .npy (n, 4), .csv (header vx1,vx2,vy1,vy2[,t_s]), .h5/.hdf5, .tdms.
     Sigmas are 1-sigma, from the signal noise and the calibration covariance.
     """
-    from ..errors import InputError
-    from ..locate import LocateConfig, locate_multi_to_csv, locate_to_csv
-    from ..recording import open_recording
-    from ..stream import load_schedule
+    from psdcal.errors import InputError
+    from psdcal.measure.locate import LocateConfig, locate_multi_to_csv, locate_to_csv
+    from psdcal.signal.recording import open_recording
+    from psdcal.signal.stream import load_schedule
 
     if (calib is None) == (sensors is None):
         raise InputError("give exactly one of --calib (one sensor) or --sensors (several)", field="calib")
@@ -93,14 +93,14 @@ def locate_command(recordings, calib, sensors, rate_hz, carriers, emitters, dist
     )
     opts = dict(channels=_channels(channels), dataset=dataset, group=group)
     if calib is not None:
-        from ..sensor_model import SensorModel
+        from psdcal.measure.sensor_model import SensorModel
 
         if len(recordings) != 1:
             raise InputError(f"give one RECORDING with --calib, got {len(recordings)}", field="RECORDING")
         model = SensorModel.load(calib)
         recs = [open_recording(recordings[0], rate_hz, **opts)]
     else:
-        from ..positioning import load_sensors
+        from psdcal.measure.positioning import load_sensors
 
         poses = load_sensors(sensors)
         paths = list(recordings) or [p.recording for p in poses]
@@ -161,9 +161,9 @@ def amplitudes_command(recording, rate_hz, carriers, emitters, window_s, tdm, sc
     With --image-id: a calibration points CSV (one view of the LED template):
       psdcal amplitudes view3.tdms --carrier-hz 1000 --tdm --image-id 3 -o view3.csv
     """
-    from ..locate import LocateConfig, amplitudes_to_csv
-    from ..recording import open_recording
-    from ..stream import load_schedule
+    from psdcal.measure.locate import LocateConfig, amplitudes_to_csv
+    from psdcal.signal.recording import open_recording
+    from psdcal.signal.stream import load_schedule
 
     sched = load_schedule(schedule) if schedule else None
     config = LocateConfig(carriers_hz=tuple(carriers), window_s=window_s, emitters=tuple(emitters) or None,
@@ -194,8 +194,8 @@ def aoa_command(points, calib, distance_mm, sigma_d_mm, output):
     Other columns (image_id, point_id, ...) are copied.  Output adds
     x_mm,y_mm,alpha_x_deg,alpha_y_deg[,X_mm,Y_mm],sigma_alpha_x_deg,sigma_alpha_y_deg[,sigma_X_mm,sigma_Y_mm].
     """
-    from ..locate import aoa_csv
-    from ..sensor_model import SensorModel
+    from psdcal.measure.locate import aoa_csv
+    from psdcal.measure.sensor_model import SensorModel
 
     model = SensorModel.load(calib)
     n = aoa_csv(points, model, output, distance_mm=distance_mm, sigma_d_mm=sigma_d_mm)
@@ -218,9 +218,9 @@ def errormap_command(calib, distance_mm, mode, grid, sigma_d_mm, csv_path, outpu
 
     Example: psdcal errormap --calib calib.json --distance-mm 5000 -o errormap.png
     """
-    from ..errors import InputError
-    from ..positioning import error_map, plot_error_map, write_error_map_csv
-    from ..sensor_model import SensorModel
+    from psdcal.errors import InputError
+    from psdcal.measure.positioning import error_map, plot_error_map, write_error_map_csv
+    from psdcal.measure.sensor_model import SensorModel
 
     if grid < 3:
         raise InputError(f"--grid must be at least 3, got {grid}", field="grid")

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import click
 
-from . import cli
+from psdcal.cli import cli
 
 
 @cli.command("report")
@@ -34,8 +34,8 @@ def report_command(calibration, points, template, output, k, cells, region_mm, t
 
     Example: psdcal report calib.json --points points.csv -t template.csv -o report.html
     """
-    from ..io import load_calibration
-    from ..report import ReportInputs, write_report
+    from psdcal.io import load_calibration
+    from psdcal.report.page import ReportInputs, write_report
 
     res = load_calibration(calibration)
     inputs = ReportInputs(calibration=str(calibration), points=None if points is None else str(points),
@@ -70,11 +70,11 @@ def compare_command(calib_a, calib_b, output, json_out, distance_mm, grid, margi
     from rich.console import Console
     from rich.table import Table
 
-    from ..compare import compare
-    from ..io import load_calibration, write_json
+    from psdcal.report.compare import compare
+    from psdcal.io import load_calibration, write_json
 
     if output is not None and output.suffix.lower() not in (".png", ".svg", ".pdf"):
-        from ..errors import InputError
+        from psdcal.errors import InputError
 
         raise InputError("the figure's suffix must be .png, .svg or .pdf", path=output, field="--output")
     a, b = load_calibration(calib_a), load_calibration(calib_b)
@@ -93,10 +93,10 @@ def compare_command(calib_a, calib_b, output, json_out, distance_mm, grid, margi
     con.print(f"combined 1-sigma AoA uncertainty (median over the sensor): {s['combined_sigma_deg_median']:.3g} deg")
     con.print(f"verdict: {c.verdict()}")
     if output is not None:
-        from .._atomic import atomic_path
-        from ..plots import compare_maps
+        from psdcal._atomic import atomic_path
+        from psdcal.report.plots import compare_maps
 
-        from ..errors import InputError
+        from psdcal.errors import InputError
 
         fig = compare_maps(c)
         try:
@@ -106,7 +106,7 @@ def compare_command(calib_a, calib_b, output, json_out, distance_mm, grid, margi
             raise InputError(f"cannot write the figure: {exc.strerror or exc}", path=output, field="--output") from None
         click.echo(f"wrote {output}")
     if json_out is not None:
-        from ..errors import InputError
+        from psdcal.errors import InputError
 
         try:
             write_json(json_out, {"a": str(calib_a), "b": str(calib_b), **s, "verdict": c.verdict()})

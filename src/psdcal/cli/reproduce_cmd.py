@@ -5,7 +5,7 @@ from pathlib import Path
 
 import click
 
-from . import cli
+from psdcal.cli import cli
 
 #: ``--quick``: trials per case and per remedy case (a smoke run for CI, under a minute).
 QUICK_TRIALS = (3, 2)
@@ -38,7 +38,7 @@ def reproduce_command(tables, trials, gain_trials, out_dir, quick, seed, workers
     """
     import time
 
-    from ..reproduce import PAPER_TRIALS, run_study, write_outputs
+    from psdcal.study.reproduce import PAPER_TRIALS, run_study, write_outputs
 
     chosen = tuple(tables) if tables else tuple(range(1, 11))
     n, g = (QUICK_TRIALS if quick else (trials, gain_trials if gain_trials is not None else max(4, trials // 8)))

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import click
 
-from . import cli
+from psdcal.cli import cli
 
 
 @cli.command("signal-noise")
@@ -32,7 +32,7 @@ def signal_noise(snr_db, method, rate_hz, duration_s, carrier_hz, x_mm, y_mm, tr
     from rich.console import Console
     from rich.table import Table
 
-    from ..signalchain import ChainSettings, point_noise_vs_snr
+    from psdcal.signal.chain import ChainSettings, point_noise_vs_snr
 
     changes = {"method": method}
     for name, value in (("rate_hz", rate_hz), ("duration_s", duration_s), ("carrier_hz", carrier_hz)):

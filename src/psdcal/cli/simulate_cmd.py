@@ -5,7 +5,7 @@ from pathlib import Path
 
 import click
 
-from . import cli
+from psdcal.cli import cli
 
 
 @cli.command("simulate")
@@ -47,8 +47,8 @@ def simulate_command(lens, f_mm, cx_mm, cy_mm, k1, k2, k3, p1, p2, l1, l2, image
     """
     from dataclasses import replace
 
-    from ..io import read_template, write_json, write_points, write_template
-    from ..simulate import LENSES, simulate_set
+    from psdcal.io import read_template, write_json, write_points, write_template
+    from psdcal.study.simulate import LENSES, simulate_set
 
     intr, dist = LENSES[lens]
     intr = replace(intr, **{k: v for k, v in dict(f_mm=f_mm, cx_mm=cx_mm, cy_mm=cy_mm).items() if v is not None})
@@ -63,10 +63,10 @@ def simulate_command(lens, f_mm, cx_mm, cy_mm, k1, k2, k3, p1, p2, l1, l2, image
     write_template(out_dir / "template.csv", tids, s.template_mm)
     truth = s.truth_dict()
     if amplitudes:
-        from ..gains import simulate_amplitudes
+        from psdcal.calibration.gains import simulate_amplitudes
 
         amps, gains, chain = simulate_amplitudes(s.ideal_points_mm, snr_db=snr_db, r_tol=r_tol, c_tol=c_tol, seed=seed)
-        from ..io import write_amplitudes
+        from psdcal.io import write_amplitudes
 
         write_amplitudes(out_dir / "points.csv", list(range(images)), tids, amps)
         truth.update(noise_mm=None, snr_db=snr_db, gains=[float(g) for g in gains],
@@ -95,9 +95,9 @@ def demo_command(cost, out):
     import json
     from importlib.resources import files
 
-    from ..calibration import calibrate
-    from ..io import read_points, read_template, save_calibration
-    from ..report_text import print_calibration
+    from psdcal.calibration.core import calibrate
+    from psdcal.io import read_points, read_template, save_calibration
+    from psdcal.report.text import print_calibration
 
     data = files("psdcal") / "data"
     tids, txy = read_template(data / "default_template.csv")

@@ -3,7 +3,7 @@
 Geometry only: template points through poses, the pinhole model and the
 distortion model (the measured point is ``distort(project(P))``), plus
 Gaussian noise on the impact points in mm. The signal-level simulator is
-:mod:`psdcal.signalchain`.
+:mod:`psdcal.signal.chain`.
 """
 from __future__ import annotations
 
@@ -11,11 +11,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .distortion import distort
-from .errors import InputError
-from .params import Distortion, Intrinsics
-from .projection import project
-from .readout import LX_MM, LY_MM
+from psdcal.model.distortion import distort
+from psdcal.errors import InputError
+from psdcal.model.params import Distortion, Intrinsics
+from psdcal.model.projection import project
+from psdcal.model.readout import LX_MM, LY_MM
 
 #: Optical centre offset from the electrical centre used by the paper, mm (Section 4.1).
 PAPER_CENTRE_MM = (0.5, -0.7)
@@ -108,7 +108,7 @@ def random_poses(
     -------
     rvecs, tvecs_mm : (n_images, 3) arrays.
     """
-    from .projection import R_from_r, r_from_R
+    from psdcal.model.projection import R_from_r, r_from_R
 
     P = np.asarray(template_mm, dtype=float)
     P3 = np.concatenate([P - P.mean(0), np.zeros((len(P), 1))], axis=1)

@@ -15,9 +15,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from .errors import DegenerateViewsError
-from .params import Intrinsics
-from .projection import nearest_rotation, nearest_rotation_batch, r_from_R, r_from_R_batch
+from psdcal.errors import DegenerateViewsError
+from psdcal.model.params import Intrinsics
+from psdcal.model.projection import nearest_rotation, nearest_rotation_batch, r_from_R, r_from_R_batch
 
 
 def _v(Hs, i, j):

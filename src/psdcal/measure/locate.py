@@ -1,8 +1,8 @@
 """From recordings to angles and positions: the ``psdcal locate`` pipeline.
 
-recording chunks (:mod:`psdcal.recording`) -> windowed joint lock-in
-(:mod:`psdcal.stream`) -> impact points and angles with uncertainty
-(:mod:`psdcal.aoa`) -> positions (:mod:`psdcal.positioning`) -> CSV rows
+recording chunks (:mod:`psdcal.signal.recording`) -> windowed joint lock-in
+(:mod:`psdcal.signal.stream`) -> impact points and angles with uncertainty
+(:mod:`psdcal.measure.aoa`) -> positions (:mod:`psdcal.measure.positioning`) -> CSV rows
 written as they come.  Memory is bounded by the chunk size, whatever the
 length of the recording.
 
@@ -29,13 +29,13 @@ from typing import Callable
 
 import numpy as np
 
-from ._atomic import atomic_path
-from .aoa import angles_from_amplitudes, angles_from_points, impact_from_amplitudes
-from .errors import InputError, ZeroSignalError
-from .positioning import plane_position, triangulate
-from .recording import DEFAULT_CHUNK, Recording
-from .sensor_model import SensorModel
-from .stream import MultiCarrierLockin, TdmSegmenter
+from psdcal._atomic import atomic_path
+from psdcal.measure.aoa import angles_from_amplitudes, angles_from_points, impact_from_amplitudes
+from psdcal.errors import InputError, ZeroSignalError
+from psdcal.measure.positioning import plane_position, triangulate
+from psdcal.signal.recording import DEFAULT_CHUNK, Recording
+from psdcal.measure.sensor_model import SensorModel
+from psdcal.signal.stream import MultiCarrierLockin, TdmSegmenter
 
 _DEG = 180.0 / math.pi
 
@@ -257,7 +257,7 @@ def locate_to_csv(recording: Recording, model: SensorModel, out_path, config: Lo
     Parameters
     ----------
     recording : Recording
-        From :func:`psdcal.recording.open_recording`.
+        From :func:`psdcal.signal.recording.open_recording`.
     model : SensorModel
     out_path : str or Path
         Output CSV, written atomically (an existing file is untouched on error).
@@ -319,7 +319,7 @@ def locate_multi_to_csv(recordings, sensors, out_path, config: LocateConfig,
     The recordings (one per sensor, same sampling rate, started together) are
     demodulated in lockstep; for every window and emitter the rays of the
     sensors that see it (total amplitude above ``min_snr`` sigma) are
-    intersected (:func:`psdcal.positioning.triangulate`).
+    intersected (:func:`psdcal.measure.positioning.triangulate`).
 
     Parameters
     ----------

@@ -5,7 +5,7 @@
 
 Conventions: points are (..., 2) arrays in mm on the sensor; ``c`` is the
 optical centre (2,) in mm; ``coeffs`` is (7,) in the order of
-:data:`psdcal.params.DISTORTION_NAMES` = (k1, k2, k3, p1, p2, l1, l2).
+:data:`psdcal.model.params.DISTORTION_NAMES` = (k1, k2, k3, p1, p2, l1, l2).
 """
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .params import Distortion
+from psdcal.model.params import Distortion
 
 
 def _as_coeffs(dist) -> np.ndarray:

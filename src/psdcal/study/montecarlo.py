@@ -19,8 +19,8 @@ first failing trial's index.  ``on_error="raise"`` raises
 
 Example
 -------
->>> from psdcal.montecarlo import run_trials
->>> from psdcal.signalchain import measure_point_trial
+>>> from psdcal.study.montecarlo import run_trials
+>>> from psdcal.signal.chain import measure_point_trial
 >>> table = run_trials(measure_point_trial, 200, seed=1, executor="serial",
 ...                    progress=False, snr_db=40.0)
 >>> [s.parameter for s in table.summary()]
@@ -42,8 +42,8 @@ from types import MappingProxyType
 
 import numpy as np
 
-from ._atomic import write_text_atomic
-from .errors import PsdcalError
+from psdcal._atomic import write_text_atomic
+from psdcal.errors import PsdcalError
 
 #: Columns every :class:`TrialTable` has, in this order.
 BASE_COLUMNS = ("trial", "parameter", "value", "error")

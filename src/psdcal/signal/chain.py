@@ -46,9 +46,9 @@ from dataclasses import dataclass, replace
 import numpy as np
 from scipy import signal as _sig
 
-from . import demod
-from .errors import ConvergenceError, InputError
-from .readout import LX_MM, LY_MM, impact_point, photocurrents
+from psdcal.signal import demod
+from psdcal.errors import ConvergenceError, InputError
+from psdcal.model.readout import LX_MM, LY_MM, impact_point, photocurrents
 
 #: Methods of amplitude estimation.
 METHODS = ("lockin", "bandpass")
@@ -108,7 +108,7 @@ class ChainSettings:
         The band-pass of ``method="bandpass"``: width (paper: 600 Hz, centred
         on the carrier), Butterworth prototype order, and carrier periods
         dropped at each end of the filtered record (see
-        :func:`psdcal.demod.bandpass_amplitude`).
+        :func:`psdcal.signal.demod.bandpass_amplitude`).
     """
 
     rate_hz: float = 50_000.0
@@ -290,7 +290,7 @@ def psd_distort(xy_mm, l1: float):
     """Readout position of a spot under the PSD's pin-cushion distortion.
 
     Solves ``d (1 + l1 |d|^2) = p`` for ``d`` (MODEL.md 5, PSD part, centre
-    (0, 0)) with :func:`psdcal.distortion.distort` (only ``l1`` set).
+    (0, 0)) with :func:`psdcal.model.distortion.distort` (only ``l1`` set).
 
     Parameters
     ----------
@@ -312,8 +312,8 @@ def psd_distort(xy_mm, l1: float):
     p = np.array(xy_mm, dtype=float)
     if l1 == 0.0:
         return p
-    from .distortion import distort
-    from .params import Distortion
+    from psdcal.model.distortion import distort
+    from psdcal.model.params import Distortion
 
     res = distort(p, Distortion(l1=float(l1)), (0.0, 0.0))
     finite = np.all(np.isfinite(p), axis=-1)
@@ -448,8 +448,8 @@ def simulate_signals(xy_mm, settings: ChainSettings | None = None, gains=None, r
 def estimate_amplitudes(samples, settings: ChainSettings | None = None):
     """Signed carrier amplitudes of the four channels from their records.
 
-    Magnitude by ``settings.method``: :func:`psdcal.demod.lockin_amplitude`
-    or :func:`psdcal.demod.bandpass_amplitude` (the paper's band-pass).  Sign:
+    Magnitude by ``settings.method``: :func:`psdcal.signal.demod.lockin_amplitude`
+    or :func:`psdcal.signal.demod.bandpass_amplitude` (the paper's band-pass).  Sign:
     that of ``Re(z_i conj(z_rest))``, ``z`` the lock-in phasors, ``z_rest``
     the sum of the other three channels (see the module docstring).
 
@@ -705,7 +705,7 @@ class NoiseVsSnr:
     measured_std_mm : (k, 2) ndarray
         Sample standard deviation of the measured ``(x, y)``, mm.
     measured_std_se_mm : (k, 2) ndarray
-        Its standard error (:func:`psdcal.montecarlo.std_standard_error`).
+        Its standard error (:func:`psdcal.study.montecarlo.std_standard_error`).
     predicted_std_mm : (k, 2) ndarray
         First-order prediction (:func:`predicted_point_std`).
     mean_mm : (k, 2) ndarray
@@ -769,7 +769,7 @@ def point_noise_vs_snr(
     -------
     NoiseVsSnr
     """
-    from .montecarlo import std_standard_error
+    from psdcal.study.montecarlo import std_standard_error
 
     s = ChainSettings() if settings is None else settings
     snrs = np.atleast_1d(np.asarray(snr_db_values, dtype=float))
@@ -801,7 +801,7 @@ def point_noise_vs_snr(
 def measure_point_trial(rng, *, x_mm: float = 0.0, y_mm: float = 0.0, snr_db: float | None = None,
                         method: str | None = None, settings: ChainSettings | None = None, gains=None,
                         l1: float = 0.0) -> dict:
-    """One noisy measurement of one spot: a trial function for :func:`psdcal.montecarlo.run_trials`.
+    """One noisy measurement of one spot: a trial function for :func:`psdcal.study.montecarlo.run_trials`.
 
     ``snr_db`` and ``method``, when given, override ``settings``.
 

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .errors import DegenerateViewsError
+from psdcal.errors import DegenerateViewsError
 
 
 def collinearity(pts) -> float:

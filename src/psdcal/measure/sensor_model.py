@@ -27,8 +27,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import InputError
-from .params import DISTORTION_NAMES, Distortion, Intrinsics
+from psdcal.errors import InputError
+from psdcal.model.params import DISTORTION_NAMES, Distortion, Intrinsics
 
 #: Every global parameter a calibration covariance may name, with its meaning.
 PARAMETER_NAMES = (

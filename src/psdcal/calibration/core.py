@@ -15,16 +15,16 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from . import __version__
-from ._closed_form import intrinsics_from_homographies, poses_from_homographies
-from ._homography import homographies
-from ._refine import Problem, SolverOptions, refine
-from ._straightness import estimate_radial, find_lines
-from .distortion import distort, undistort
-from .errors import ConvergenceError, DegenerateViewsError, InputError
-from .params import DISTORTION_NAMES, Distortion, Intrinsics, ModelSpec
-from .projection import project
-from .readout import LX_MM, LY_MM, gain_map
+from psdcal import __version__
+from psdcal.calibration._closed_form import intrinsics_from_homographies, poses_from_homographies
+from psdcal.calibration._homography import homographies
+from psdcal.calibration._refine import Problem, SolverOptions, refine
+from psdcal.calibration._straightness import estimate_radial, find_lines
+from psdcal.model.distortion import distort, undistort
+from psdcal.errors import ConvergenceError, DegenerateViewsError, InputError
+from psdcal.model.params import DISTORTION_NAMES, Distortion, Intrinsics, ModelSpec
+from psdcal.model.projection import project
+from psdcal.model.readout import LX_MM, LY_MM, gain_map
 
 COSTS = ("image", "template")
 #: The line-straightness step uses at most this many template lines (the longest):
@@ -432,13 +432,13 @@ def calibrate(
 
     Examples
     --------
-    >>> from psdcal.simulate import simulate_set
+    >>> from psdcal.study.simulate import simulate_set
     >>> s = simulate_set("lens2", n_images=12, noise_mm=0.002, seed=1)
     >>> res = calibrate(s.template_mm, s.points_mm)
     >>> round(res.intrinsics.f_mm, 1)
     8.0
     """
-    from ._refine import _single_threaded_blas
+    from psdcal.calibration._refine import _single_threaded_blas
 
     with _single_threaded_blas():  # small dense linear algebra: one BLAS thread is fastest
         return _calibrate(
@@ -456,7 +456,7 @@ def _calibrate(template_mm, points_mm, *, cost, radial, tangential, psd_radial, 
     if fit_gains and cost != "image":
         raise InputError("fit_gains needs the image cost", field="cost")
     if fit_gains and (skew or aspect or (radial == 0 and psd_radial == 0)):
-        # psdcal.gains.identifiability: unequal gains make the readout a homography of
+        # psdcal.calibration.gains.identifiability: unequal gains make the readout a homography of
         # the sensor plane; a general intrinsic matrix absorbs all three gain ratios
         # (and a pure single-f pinhole one combination of them) in a rotation of the poses.
         raise InputError(
@@ -470,12 +470,12 @@ def _calibrate(template_mm, points_mm, *, cost, radial, tangential, psd_radial, 
     known_gains = None
     if not fit_gains and not np.allclose(g0, 1.0):
         # Known gains held fixed: the raw readout is a homography of the equal-gain one
-        # (psdcal.gains); map it back once, so that every stage sees corrected points.
-        from .gains import correct_points
+        # (psdcal.calibration.gains); map it back once, so that every stage sees corrected points.
+        from psdcal.calibration.gains import correct_points
 
         known_gains, X, g0 = g0, correct_points(X, g0, *sensor_mm), np.ones(4)
     if fit_gains:
-        # Raw readout through unequal gains is a homography of the sensor plane (psdcal.gains):
+        # Raw readout through unequal gains is a homography of the sensor plane (psdcal.calibration.gains):
         # the single-f closed form may fail on it (f^2 < 0) or put C tens of mm off (the
         # projective part looks like a tilt); the general closed form absorbs it. Start from
         # its f with C at the electrical centre (a lens mount puts it within about 1 mm).

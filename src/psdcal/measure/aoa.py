@@ -9,7 +9,7 @@ Every step is differentiated analytically, so the covariance of the result
 is first-order propagation (``J Sigma J^T``) of two independent sources:
 
 * the **calibration**: the covariance of the sensor's global parameters
-  (:attr:`psdcal.sensor_model.SensorModel.covariance`); this part is
+  (:attr:`psdcal.measure.sensor_model.SensorModel.covariance`); this part is
   systematic: it is the same error for every measurement of a sensor;
 * the **signal noise**: the covariance of the impact point ``d``, itself
   propagated from the amplitude noise of the demodulation.
@@ -24,11 +24,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .distortion import undistort
-from .errors import ZeroSignalError
-from .params import DISTORTION_NAMES
-from .readout import impact_point
-from .sensor_model import GAIN_NAMES, SensorModel
+from psdcal.model.distortion import undistort
+from psdcal.errors import ZeroSignalError
+from psdcal.model.params import DISTORTION_NAMES
+from psdcal.model.readout import impact_point
+from psdcal.measure.sensor_model import GAIN_NAMES, SensorModel
 
 # Numerator signs of Eq 1 and Eq 2 over (vx1, vx2, vy1, vy2).
 _NUM_X = np.array([-1.0, 1.0, 1.0, -1.0])
@@ -59,7 +59,7 @@ def impact_from_amplitudes(a, model: SensorModel, var_a=None, *, on_zero: str = 
     """Impact point, its noise covariance and gain derivatives from amplitudes.
 
     The channels are divided by the sensor's relative gains, then Eq 1-2
-    (:func:`psdcal.readout.impact_point`) gives ``d``.
+    (:func:`psdcal.model.readout.impact_point`) gives ``d``.
 
     Parameters
     ----------

@@ -8,7 +8,7 @@ correction) a calibration gives the angle of arrival (MODEL.md 7)::
 and, from the covariance ``Sigma`` of its global parameters (poses
 marginalised), the covariance of ``alpha`` to first order,
 ``J Sigma J^T`` with ``J = d alpha / d p`` (analytic, through
-:func:`psdcal.aoa.angles_from_points`).  This part of the error is
+:func:`psdcal.measure.aoa.angles_from_points`).  This part of the error is
 *systematic*: the same for every measurement the sensor makes.
 
 Two calibrations A and B of one sensor read the same ``d`` as two directions.
@@ -24,7 +24,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .errors import InputError
+from psdcal.errors import InputError
 
 #: Above this maximum Mahalanobis length (over the field of view) two calibrations differ visibly.
 VISIBLE_SIGMA = 4.0
@@ -56,13 +56,13 @@ def sensor_grid_mm(sensor_mm=(9.0, 9.0), n: int = 41, *, margin_mm: float = 0.0)
 
 
 def sensor_model(result):
-    """The :class:`psdcal.sensor_model.SensorModel` of a calibration (parameters and covariance).
+    """The :class:`psdcal.measure.sensor_model.SensorModel` of a calibration (parameters and covariance).
 
     A calibration without a covariance matrix (a file with only ``std``) gets
     the diagonal covariance of its standard errors, as
-    :meth:`psdcal.sensor_model.SensorModel.from_dict` does.
+    :meth:`psdcal.measure.sensor_model.SensorModel.from_dict` does.
     """
-    from .sensor_model import PARAMETER_NAMES, SensorModel
+    from psdcal.measure.sensor_model import PARAMETER_NAMES, SensorModel
 
     names = tuple(result.param_names)
     cov = np.asarray(result.covariance, dtype=float)
@@ -127,7 +127,7 @@ def aoa_field(result, d_mm) -> AoAField:
     -------
     AoAField
     """
-    from .aoa import angles_from_points
+    from psdcal.measure.aoa import angles_from_points
 
     a = angles_from_points(np.asarray(d_mm, dtype=float), sensor_model(result))
     g = 1.0 / (1.0 + a.n * a.n)  # d atan(n) / dn
@@ -288,7 +288,7 @@ def compare(a, b, *, n: int = 41, margin_mm: float = 0.0, distance_mm: float | N
 
     Examples
     --------
-    >>> from psdcal.simulate import simulate_set
+    >>> from psdcal.study.simulate import simulate_set
     >>> from psdcal import calibrate
     >>> s = simulate_set("lens2", n_images=9, noise_mm=0.003, seed=1)
     >>> r = calibrate(s.template_mm, s.points_mm)

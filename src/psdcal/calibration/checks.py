@@ -1,7 +1,7 @@
 """Numbers behind the calibration report: where the data are, and which points to trust.
 
-Plain functions over a :class:`psdcal.calibration.CalibrationResult`; the
-figures are in :mod:`psdcal.plots`, the page in :mod:`psdcal.report`.
+Plain functions over a :class:`psdcal.calibration.core.CalibrationResult`; the
+figures are in :mod:`psdcal.report.plots`, the page in :mod:`psdcal.report.page`.
 """
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .errors import InputError
+from psdcal.errors import InputError
 
 
 def align_to_problem(result):
@@ -61,7 +61,6 @@ def with_points(result, point_ids, template_mm, points_mm):
     """
     import dataclasses
 
-    from .outliers import model_points_mm
 
     pids = tuple(point_ids)
     X = np.asarray(points_mm, dtype=float)
@@ -200,4 +199,29 @@ def coverage(points_mm, sensor_mm=(9.0, 9.0), *, n_cells: int = 6, region_mm=Non
     return Coverage(xe, ye, H.astype(int), inside, region)
 
 
-__all__ = ["Coverage", "align_to_problem", "coverage", "measured_points_mm", "with_points"]
+def model_points_mm(result, template_mm=None) -> np.ndarray:
+    """Modelled measured points (n_images, M, 2), mm, of every template point in every view.
+
+    ``distort(project(P))`` with the result's parameters and poses (and the
+    channel gains when they are not all one): what the calibration predicts
+    the sensor reads, also where the point is missing or was removed.
+
+    Parameters
+    ----------
+    result : CalibrationResult
+    template_mm : (M, 2) array_like, optional
+        Template points, mm (default: the result's problem record).
+    """
+    from psdcal.model.distortion import distort
+    from psdcal.model.projection import project
+    from psdcal.model.readout import gain_map
+
+    T = np.asarray(result.problem["template"]["xy_mm"] if template_mm is None else template_mm, dtype=float)
+    x = np.stack([project(T, result.intrinsics, r, t) for r, t in zip(result.rvecs, result.tvecs_mm)])
+    m = distort(x, result.distortion, result.intrinsics.c).d_mm
+    if not np.allclose(result.gains, 1.0):
+        m = gain_map(m, result.gains, *result.sensor_mm)
+    return m
+
+
+__all__ = ["Coverage", "align_to_problem", "coverage", "measured_points_mm", "model_points_mm", "with_points"]

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .params import Intrinsics
+from psdcal.model.params import Intrinsics
 
 
 def skew3(v) -> np.ndarray:

@@ -39,8 +39,8 @@ from typing import Iterator
 
 import numpy as np
 
-from .errors import InputError
-from .readout import CHANNELS
+from psdcal.errors import InputError
+from psdcal.model.readout import CHANNELS
 
 DEFAULT_CHUNK = 1 << 16
 _CSV_RATE_ROWS = 10_001

@@ -7,11 +7,11 @@ no font, no style sheet from the network):
 * the residual vectors of every point on the sensor (all images, and per
   image), their histogram against the noise the fit implies;
 * the per-image RMS, with outlier images and points flagged
-  (:mod:`psdcal.outliers`), and the points an outlier rejection removed;
+  (:mod:`psdcal.calibration.outliers`), and the points an outlier rejection removed;
 * the coverage of the sensor by calibration points, with a warning for
-  cells of the measurement region without data (:mod:`psdcal.diagnostics`);
+  cells of the measurement region without data (:mod:`psdcal.calibration.checks`);
 * the distortion field and the AoA uncertainty over the field of view
-  (:mod:`psdcal.compare`), in degrees;
+  (:mod:`psdcal.report.compare`), in degrees;
 * the provenance: input files with their SHA-256, the options, the software
   versions and the dates.
 
@@ -32,9 +32,9 @@ from pathlib import Path
 
 import numpy as np
 
-from . import __version__
-from .errors import InputError
-from .outliers import DEFAULT_K
+from psdcal import __version__
+from psdcal.errors import InputError
+from psdcal.calibration.outliers import DEFAULT_K
 
 #: Units of the global parameters, for the tables.
 UNITS = {
@@ -123,7 +123,7 @@ def _files_and_points(result, inputs: ReportInputs):
     Returns (result, points_mm or None, line_numbers or None, file records); the result is aligned to the
     files when it has no problem record of its own.
     """
-    from .io import read_points, read_template
+    from psdcal.io import read_points, read_template
 
     files = []
     pts = lines = None
@@ -148,11 +148,11 @@ def _files_and_points(result, inputs: ReportInputs):
         pts = pf.points_mm[order]
         lines = pf.line_numbers[order]
         if "template" not in (result.problem or {}):
-            from .diagnostics import with_points
+            from psdcal.calibration.checks import with_points
 
             result = with_points(result, tids, txy, pts)
         if "points" in result.problem:
-            from .diagnostics import measured_points_mm
+            from psdcal.calibration.checks import measured_points_mm
 
             used = measured_points_mm(result)
             both = np.all(np.isfinite(used), axis=-1)
@@ -195,10 +195,10 @@ def build_report(result, inputs: ReportInputs = ReportInputs(), *, k: float = DE
     InputError
         Files that do not match the calibration, or a calibration without points.
     """
-    from . import plots
-    from .compare import fov_uncertainty
-    from .diagnostics import align_to_problem, coverage, measured_points_mm
-    from .outliers import flag_outliers, removed_points
+    from psdcal.report import plots
+    from psdcal.report.compare import fov_uncertainty
+    from psdcal.calibration.checks import align_to_problem, coverage, measured_points_mm
+    from psdcal.calibration.outliers import flag_outliers, removed_points
 
     result = align_to_problem(result)
     result, pts, lines, files = _files_and_points(result, inputs)
@@ -390,7 +390,7 @@ def write_report(path, result, inputs: ReportInputs = ReportInputs(), **kwargs) 
 
     An existing file at ``path`` is replaced only when the whole report was built.
     """
-    from ._atomic import write_text_atomic
+    from psdcal._atomic import write_text_atomic
 
     text = build_report(result, inputs, **kwargs)
     try:

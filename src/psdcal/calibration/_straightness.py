@@ -16,9 +16,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import _jit
-from ._jit import njit
-from .distortion import undistort
+from psdcal import _jit
+from psdcal._jit import njit
+from psdcal.model.distortion import undistort
 
 
 def find_lines(template_mm, *, min_points: int = 3, tol_rel: float = 1e-6, max_lines: int | None = None) -> list[np.ndarray]:
@@ -381,7 +381,7 @@ def estimate_radial(points_mm, lines, *, c_mm=(0.0, 0.0), n_terms: int = 2) -> S
 
     With :func:`psdcal._jit.enabled`, the cost and its Jacobian come from
     compiled kernels that reproduce :func:`_line_residuals` of
-    :func:`~psdcal.distortion.undistort` (the reference, used otherwise).
+    :func:`~psdcal.model.distortion.undistort` (the reference, used otherwise).
     """
     pts = np.asarray(points_mm, dtype=float)
     c = np.asarray(c_mm, dtype=float)
@@ -438,7 +438,7 @@ def estimate_radial(points_mm, lines, *, c_mm=(0.0, 0.0), n_terms: int = 2) -> S
             u, _, _, du_dk = undistort(flat, coef, c, jacobians=True)
             return _line_residuals(u, group, n_groups, du_dk[:, :, :n_terms] / scale)[1]
 
-    from ._refine import SolverOptions, levenberg_marquardt
+    from psdcal.calibration._refine import SolverOptions, levenberg_marquardt
 
     # A starting value: 1e-9 relative is far below what the refinement needs
     # (noiseless data still converge to round-off, the residual reaching 0).

@@ -65,7 +65,7 @@ Spots at known positions on the bare PSD (lens removed, e.g. a focused LED on
 an x-y stage), read out through the electronics: the gains follow from a
 homogeneous linear system (each spot gives ``S x' = Lx/2 N_x``,
 ``S y' = Ly/2 N_y``, linear in ``g``; :func:`gains_linear`) refined by
-Levenberg-Marquardt through :func:`psdcal.readout.gain_map`
+Levenberg-Marquardt through :func:`psdcal.model.readout.gain_map`
 (:func:`calibrate_gains`).  Later raw amplitudes are corrected by
 :func:`apply_gains` before Eq 1-2.
 """
@@ -76,8 +76,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import least_squares
 
-from .errors import DegenerateViewsError, InputError
-from .readout import LX_MM, LY_MM, _NUM_X, _NUM_Y, _SPLIT, gain_homography, gain_map, impact_point
+from psdcal.errors import DegenerateViewsError, InputError
+from psdcal.model.readout import LX_MM, LY_MM, _NUM_X, _NUM_Y, _SPLIT, gain_homography, gain_map, impact_point
 
 GAIN_NAMES = ("g_x2", "g_y1", "g_y2")
 
@@ -187,7 +187,7 @@ def apply_gains(amplitudes, gains) -> np.ndarray:
 def correct_points(points_mm, gains, lx_mm: float = LX_MM, ly_mm: float = LY_MM) -> np.ndarray:
     """Impact points read out through ``gains`` mapped back to the equal-gain readout, (..., 2) mm.
 
-    The inverse homography of :func:`psdcal.readout.gain_homography`; the same
+    The inverse homography of :func:`psdcal.model.readout.gain_homography`; the same
     as :func:`apply_gains` on the amplitudes followed by Eq 1-2.
     """
     H = gain_homography(relative_gains(gains), lx_mm, ly_mm)
@@ -304,7 +304,7 @@ def calibrate_gains(spots_mm, measured_mm, lx_mm: float = LX_MM, ly_mm: float = 
 
     Minimises ``sum |gain_map(p_k, g) - d_k|^2`` over ``g_x2, g_y1, g_y2``
     (``g_x1 = 1``) by Levenberg-Marquardt with the analytic Jacobian of
-    :func:`psdcal.readout.gain_map`, started from :func:`gains_linear`.  The
+    :func:`psdcal.model.readout.gain_map`, started from :func:`gains_linear`.  The
     maximum-likelihood estimate when the readout noise is Gaussian on the
     points.
 
@@ -368,7 +368,7 @@ def simulate_electrical_calibration(gains, settings=None, rng=None, *, spots_mm=
     ----------
     gains : (4,) array_like
         The true channel gains, V/A.
-    settings : psdcal.signalchain.ChainSettings
+    settings : psdcal.signal.chain.ChainSettings
         Noise (``snr_db``), demodulation and record of the bench measurement.
     rng : numpy.random.Generator, int or None
     spots_mm : (n, 2), default :func:`calibration_spots` (7 x 7 over +-3.5 mm).
@@ -381,7 +381,7 @@ def simulate_electrical_calibration(gains, settings=None, rng=None, *, spots_mm=
     -------
     GainCalibration
     """
-    from .signalchain import ChainSettings, measure_amplitudes
+    from psdcal.signal.chain import ChainSettings, measure_amplitudes
 
     s = ChainSettings() if settings is None else settings
     spots = calibration_spots() if spots_mm is None else np.asarray(spots_mm, dtype=float)
@@ -456,10 +456,10 @@ def identifiability(template_mm, intrinsics, distortion, rvecs, tvecs_mm, gains=
     -------
     Identifiability
     """
-    from ._refine import Evaluator, Problem
-    from .distortion import distort
-    from .params import ModelSpec
-    from .projection import project
+    from psdcal.calibration._refine import Evaluator, Problem
+    from psdcal.model.distortion import distort
+    from psdcal.model.params import ModelSpec
+    from psdcal.model.projection import project
 
     T = np.asarray(template_mm, dtype=float)
     g = np.ones(4) if gains is None else relative_gains(gains)
@@ -488,7 +488,7 @@ def identifiability(template_mm, intrinsics, distortion, rvecs, tvecs_mm, gains=
 def simulate_amplitudes(points_mm, *, snr_db: float | None = None, r_tol: float = 0.0, c_tol: float = 0.0, seed=0):
     """Raw amplitudes of readout points through the paper's signal chain, for an amplitude points file.
 
-    The chain of :meth:`psdcal.signalchain.ChainSettings.paper` (band-pass,
+    The chain of :meth:`psdcal.signal.chain.ChainSettings.paper` (band-pass,
     Eq 43 gains); the four channels' R and C drawn within ``r_tol``,
     ``c_tol`` (none when both are 0), white noise at ``snr_db``.
 
@@ -509,7 +509,7 @@ def simulate_amplitudes(points_mm, *, snr_db: float | None = None, r_tol: float 
     """
     from dataclasses import asdict
 
-    from .signalchain import ChainSettings, channel_gains, measure_amplitudes
+    from psdcal.signal.chain import ChainSettings, channel_gains, measure_amplitudes
 
     chain = ChainSettings.paper(snr_db=snr_db, r_tol=float(r_tol), c_tol=float(c_tol))
     rng = np.random.default_rng(seed)

@@ -7,7 +7,7 @@ show it in a notebook by leaving it as a cell's value, or save it with
 
 Examples
 --------
->>> from psdcal.simulate import simulate_set
+>>> from psdcal.study.simulate import simulate_set
 >>> from psdcal import calibrate
 >>> from psdcal import plots
 >>> s = simulate_set("lens2", n_images=9, noise_mm=0.003, seed=1)
@@ -23,9 +23,9 @@ from __future__ import annotations
 import numpy as np
 from matplotlib.figure import Figure
 
-from .diagnostics import coverage as _coverage
-from .diagnostics import align_to_problem, measured_points_mm
-from .outliers import DEFAULT_K, flag_outliers, removed_points
+from psdcal.calibration.checks import coverage as _coverage
+from psdcal.calibration.checks import align_to_problem, measured_points_mm
+from psdcal.calibration.outliers import DEFAULT_K, flag_outliers, removed_points
 
 _UM = 1e3  # um per mm
 
@@ -143,7 +143,7 @@ def residuals(result, *, scale=None, k: float = DEFAULT_K, flags=None, points_mm
     k : float
         Outlier threshold (robust sigmas) for the red circles.
     flags : OutlierFlags or ``False``, optional
-        Points to circle (default: :func:`psdcal.outliers.flag_outliers` at ``k``;
+        Points to circle (default: :func:`psdcal.calibration.outliers.flag_outliers` at ``k``;
         ``False``: none).
     points_mm : (n_images, M, 2) array_like, optional
         Measured points (default: the calibration's own record).
@@ -250,7 +250,7 @@ def per_image_rms(result, *, k: float = DEFAULT_K, flags=None) -> Figure:
 
     The dashed line is the RMS expected from the fit's implied noise
     (``sqrt(2) sigma``); a red bar is an image whose residuals fail the
-    chi-square test of :func:`psdcal.outliers.flag_images`; a hatched bar holds
+    chi-square test of :func:`psdcal.calibration.outliers.flag_images`; a hatched bar holds
     an outlier point.
 
     Returns
@@ -289,7 +289,7 @@ def coverage(result, *, n_cells: int = 6, region_mm=None, points_mm=None) -> Fig
 
     Cells of the sensor coloured by their number of calibration points;
     cells of the measurement region without any point are hatched red
-    (:func:`psdcal.diagnostics.coverage`); the points are drawn on top with
+    (:func:`psdcal.calibration.checks.coverage`); the points are drawn on top with
     the convex hull of all of them.
 
     Returns
@@ -332,7 +332,7 @@ def distortion_field(result, *, n: int = 15) -> Figure:
     -------
     Figure
     """
-    from .compare import sensor_grid_mm
+    from psdcal.report.compare import sensor_grid_mm
 
     d = sensor_grid_mm(result.sensor_mm, n)
     corr = result.undistort(d) - d
@@ -358,14 +358,14 @@ def aoa_uncertainty(result, *, n: int = 41) -> Figure:
     """1-sigma calibration uncertainty of the angle of arrival over the field of view, degrees.
 
     ``sqrt(var alpha_x + var alpha_y)`` from the calibration covariance
-    (:func:`psdcal.compare.fov_uncertainty`), drawn at the angles each
+    (:func:`psdcal.report.compare.fov_uncertainty`), drawn at the angles each
     sensor point sees.
 
     Returns
     -------
     Figure
     """
-    from .compare import fov_uncertainty
+    from psdcal.report.compare import fov_uncertainty
 
     f = fov_uncertainty(result, n)
     a = f.alpha_deg
@@ -416,7 +416,7 @@ def compare_maps(comparison) -> Figure:
 
     Parameters
     ----------
-    comparison : psdcal.compare.Comparison
+    comparison : psdcal.report.compare.Comparison
 
     Returns
     -------

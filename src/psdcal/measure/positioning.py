@@ -20,10 +20,10 @@ from pathlib import Path
 
 import numpy as np
 
-from .aoa import AoAResult, angles_from_points
-from .errors import DegenerateViewsError, InputError
-from .projection import R_from_r
-from .sensor_model import SensorModel
+from psdcal.measure.aoa import AoAResult, angles_from_points
+from psdcal.errors import DegenerateViewsError, InputError
+from psdcal.model.projection import R_from_r
+from psdcal.measure.sensor_model import SensorModel
 
 
 # --------------------------------------------------------------------------- plane
@@ -360,8 +360,8 @@ def _regain(d_mm, model: SensorModel, shifted: SensorModel):
     """Impact points read through ``shifted``'s gains from the signals that give ``d_mm`` under ``model``."""
     if np.array_equal(model.gains, shifted.gains):
         return d_mm
-    from .aoa import impact_from_amplitudes
-    from .readout import photocurrents
+    from psdcal.measure.aoa import impact_from_amplitudes
+    from psdcal.model.readout import photocurrents
 
     v = photocurrents(d_mm, 1.0, model.lx_mm, model.ly_mm) * model.gains
     return impact_from_amplitudes(v, shifted).d_mm
@@ -374,7 +374,7 @@ def plot_error_map(emap: ErrorMap, path, *, title: str | None = None) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from ._atomic import atomic_path
+    from psdcal._atomic import atomic_path
 
     what = "1-sigma" if emap.mode == "sigma" else "parameters at mean + 2 std"
     fig, axes = plt.subplots(1, 2, figsize=(11, 4.6), constrained_layout=True)
@@ -398,7 +398,7 @@ def plot_error_map(emap: ErrorMap, path, *, title: str | None = None) -> None:
 
 def write_error_map_csv(emap: ErrorMap, path) -> None:
     """Write an :class:`ErrorMap` as CSV ``d_x_mm,d_y_mm,aoa_error_deg,position_error_mm`` (atomically)."""
-    from ._atomic import write_text_atomic
+    from psdcal._atomic import write_text_atomic
 
     xx, yy = np.meshgrid(emap.d_x_mm, emap.d_y_mm)
     lines = ["d_x_mm,d_y_mm,aoa_error_deg,position_error_mm"]

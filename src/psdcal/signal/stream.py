@@ -19,9 +19,9 @@
   calibration template), with segments found from the signal (windows whose
   total amplitude is significant) or given by a schedule.
 
-The single-record functions of :mod:`psdcal.demod` remain the reference;
+The single-record functions of :mod:`psdcal.signal.demod` remain the reference;
 ``MultiCarrierLockin`` with one carrier gives the same amplitude as
-:func:`psdcal.demod.lockin_amplitude` on each window.
+:func:`psdcal.signal.demod.lockin_amplitude` on each window.
 """
 from __future__ import annotations
 
@@ -32,7 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import InputError
+from psdcal.errors import InputError
 
 #: A window must hold at least this many periods of the lowest carrier.
 MIN_PERIODS = 3.0

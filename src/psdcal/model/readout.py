@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .errors import ZeroSignalError
+from psdcal.errors import ZeroSignalError
 
 #: Active area of the Hamamatsu S5991-01, mm (MODEL.md 1).
 LX_MM = 9.0

@@ -11,7 +11,7 @@ Two costs (MODEL.md 6.5):
 Both come with analytic Jacobians assembled per point from the chain rule:
 the pose columns of a point are non-zero only for its own image (the
 block-sparse structure), and the distortion map's Jacobian follows from the
-implicit function theorem (:func:`psdcal.distortion.distort_jacobians`).
+implicit function theorem (:func:`psdcal.model.distortion.distort_jacobians`).
 The problem is solved by :func:`levenberg_marquardt` on the normal equations
 with Marquardt's scaling (MINPACK's QR of the whole Jacobian is several times
 slower for these sizes; scipy's ``least_squares`` remains available to
@@ -23,9 +23,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .distortion import distort, distort_jacobians, undistort
-from .params import DISTORTION_NAMES, Distortion, Intrinsics, ModelSpec
-from .readout import LX_MM, LY_MM, gain_homography, gain_map
+from psdcal.model.distortion import distort, distort_jacobians, undistort
+from psdcal.model.params import DISTORTION_NAMES, Distortion, Intrinsics, ModelSpec
+from psdcal.model.readout import LX_MM, LY_MM, gain_homography, gain_map
 
 _INTR_COLS = {"f_mm": 0, "cx_mm": 1, "cy_mm": 2, "skew": 3, "fy_mm": 4}
 _GAIN_IDX = {"g_x2": 1, "g_y1": 2, "g_y2": 3}
@@ -185,10 +185,10 @@ class Evaluator:
         self._anchor = None
         self._kernel = self._tkernel = self._normal = None  # compiled image / template cost
         if prob.cost == "image" or not prob.spec.fit_gains:
-            from . import _jit
+            from psdcal import _jit
 
-            if _jit.enabled():  # the compiled costs (psdcal._image_kernel); this class's numpy code is their reference
-                from ._image_kernel import global_map, image_model, normal_equations, template_model
+            if _jit.enabled():  # the compiled costs (psdcal.calibration._image_kernel); this class's numpy code is their reference
+                from psdcal.calibration._image_kernel import global_map, image_model, normal_equations, template_model
 
                 if prob.cost == "image":
                     self._kernel = image_model
@@ -262,7 +262,7 @@ class Evaluator:
         return J.T @ J, J.T @ r
 
     def _theta(self, z):
-        """The 16 global parameters of the compiled kernels (psdcal._image_kernel.GLOBAL_ORDER)."""
+        """The 16 global parameters of the compiled kernels (psdcal.calibration._image_kernel.GLOBAL_ORDER)."""
         theta = self._theta0.copy()
         theta[self._gmap] = z[: self._gmap.size]
         return theta
@@ -488,7 +488,7 @@ def refine(prob: Problem, intr0: Intrinsics, dist0: Distortion, gains0, rvecs0, 
     m = 2 * len(ev.img_idx)
     n = z0.size
     if m < n:
-        from .errors import DegenerateViewsError
+        from psdcal.errors import DegenerateViewsError
 
         raise DegenerateViewsError(f"{m // 2} observed points give {m} equations for {n} unknowns: add images or points")
     with _single_threaded_blas():

@@ -2,10 +2,10 @@
 
 Each table is a list of *cases* (a lens, an SNR, gain imbalance or not, PSD
 distortion or not).  A case is a Monte Carlo setting run by
-:func:`psdcal.montecarlo.run_trials` with :func:`case_trial`: per trial a
-random set of 9 template views (:func:`psdcal.simulate.random_poses`, the
-14-LED template of :func:`psdcal.simulate.default_template`), the signal chain
-(:func:`psdcal.signalchain.measure_points`: current split, Eq 43 gains drawn
+:func:`psdcal.study.montecarlo.run_trials` with :func:`case_trial`: per trial a
+random set of 9 template views (:func:`psdcal.study.simulate.random_poses`, the
+14-LED template of :func:`psdcal.study.simulate.default_template`), the signal chain
+(:func:`psdcal.signal.chain.measure_points`: current split, Eq 43 gains drawn
 within R 1 %, C 15 %, 1 kHz carrier + white noise at the SNR, the paper's
 600 Hz Butterworth band-pass, Eq 1-2), and the paper's model
 (``radial=2, tangential=False``) calibrated with its Eq 29 ``template`` cost.
@@ -16,7 +16,7 @@ says where).
 
 What is compared (:func:`compare_rows`): our mean and std of each parameter
 beside the paper's, with standard errors from the Monte Carlo
-(:class:`psdcal.montecarlo.ParameterSummary`), an *agreement* flag
+(:class:`psdcal.study.montecarlo.ParameterSummary`), an *agreement* flag
 ``|ours - paper| <= 3 sqrt(se_ours^2 + se_paper^2)`` (the paper's SE from its
 std and 200 trials; for its single-set values, the set-to-set std is the
 error), and whether our mean is unbiased (``|mean - ideal| <= 3 sem``).
@@ -24,7 +24,7 @@ error), and whether our mean is unbiased (``|mean - ideal| <= 3 sem``).
 The gain remedies (part 4 of the issue; :func:`gain_trial`): on the same
 imbalanced data (Tables 5-6 cases), (a) the paper's model ignoring the
 imbalance, (b) an electrical calibration on the bare PSD
-(:func:`psdcal.gains.simulate_electrical_calibration`) applied to the raw
+(:func:`psdcal.calibration.gains.simulate_electrical_calibration`) applied to the raw
 amplitudes, (c) the joint calibration (``calibrate(fit_gains=True)``) and (d)
 a general intrinsic matrix (``aspect=True, skew=True``), against the same
 views through equal gains.  Each is scored by the angle of arrival of
@@ -40,16 +40,16 @@ from importlib import resources
 
 import numpy as np
 
-from .calibration import calibrate, implausible
-from .distortion import distort, undistort
-from .errors import ConvergenceError, InputError, PsdcalError
-from .gains import correct_points, simulate_electrical_calibration
-from .montecarlo import ParameterSummary, run_trials
-from .params import Distortion, Intrinsics
-from .projection import project
-from .readout import impact_point
-from .signalchain import ChainSettings, channel_gains, signal_amplitudes
-from .simulate import LENSES, PAPER_L1, default_template, random_poses
+from psdcal.calibration.core import calibrate, implausible
+from psdcal.model.distortion import distort, undistort
+from psdcal.errors import ConvergenceError, InputError, PsdcalError
+from psdcal.calibration.gains import correct_points, simulate_electrical_calibration
+from psdcal.study.montecarlo import ParameterSummary, run_trials
+from psdcal.model.params import Distortion, Intrinsics
+from psdcal.model.projection import project
+from psdcal.model.readout import impact_point
+from psdcal.signal.chain import ChainSettings, channel_gains, signal_amplitudes
+from psdcal.study.simulate import LENSES, PAPER_L1, default_template, random_poses
 
 #: Parameters of the paper's tables, in their order.
 TABLE_PARAMS = ("cx_mm", "cy_mm", "f_mm", "k1", "k2", "residual_mm", "iterations")
@@ -225,7 +225,7 @@ def simulate_trial(rng, lens: str, snr_db: float | None, gains, psd: bool, *, n_
     x = np.stack([project(T, intr, r, t) for r, t in zip(rvecs, tvecs)])
     spots = distort(x, dist, intr.c).d_mm  # where the light lands (lens distortion, Eq 7-16)
     s = chain_settings(snr_db)
-    from .signalchain import measure_amplitudes
+    from psdcal.signal.chain import measure_amplitudes
 
     if s.snr_db is None:
         # noiseless: the demodulated amplitudes equal the clean ones up to a factor common to
@@ -372,7 +372,7 @@ def gain_trial(rng, *, lens: str, snr_db: float | None, gains=None, psd: bool = 
       (the Tables 5-6 column), and ``a.`` the same with the image cost;
     * ``b.``: electrical calibration (7 x 7 known spots on the bare PSD
       through the same chain at ``bench_snr_db``, default the same SNR), the
-      raw amplitudes corrected by :func:`psdcal.gains.apply_gains`, then the
+      raw amplitudes corrected by :func:`psdcal.calibration.gains.apply_gains`, then the
       paper's model (image cost); held-out readings corrected the same way;
     * ``c.``: joint calibration ``calibrate(fit_gains=True)`` on the raw
       readout; held-out readings corrected with the fitted gains;
@@ -424,7 +424,7 @@ def _gain_errors(prefix: str, fitted, true_gains) -> dict:
 
 def _remedy_b(rng, imb: TrialData, gains, held_amps, rays, bench: ChainSettings) -> dict:
     """(b): electrical calibration on the bench, raw amplitudes corrected, then the paper's model."""
-    from .gains import apply_gains
+    from psdcal.calibration.gains import apply_gains
 
     s = imb.settings
     try:
@@ -453,7 +453,7 @@ def _remedy_c(imb: TrialData, gains, held_raw, rays) -> dict:
 def initial_trial(rng, *, lens: str) -> dict:
     """One noiseless set through the linear stage only (Tables 1-2): four variants."""
     data = simulate_trial(rng, lens, float("nan"), channel_gains(chain_settings(float("nan"))), False)
-    from .calibration import initial_estimate
+    from psdcal.calibration.core import initial_estimate
 
     out = {}
     for name, pre, norm in (("noprelim_dlt", False, False), ("noprelim_norm", False, True),
@@ -827,7 +827,7 @@ def plot_figure9(study: Study, path) -> None:
         ax.set_ylabel("y (mm)")
     fig.suptitle(f"Figure 9 reproduced ({study.n_trials} trials per case)")
     fig.tight_layout()
-    from ._atomic import atomic_path
+    from psdcal._atomic import atomic_path
 
     try:
         with atomic_path(path) as tmp:
@@ -1058,7 +1058,7 @@ def _scaling_lines(rows: list[ComparisonRow]) -> list[str]:
 
 def gains_markdown(study: Study) -> str:
     """gains.md: the derivation, identifiability and the remedy comparison."""
-    from .gains import identifiability
+    from psdcal.calibration.gains import identifiability
 
     rows = remedy_rows(study)
     lines = ["# Gain (electrical) calibration: remedies compared", "",
@@ -1092,7 +1092,7 @@ def gains_markdown(study: Study) -> str:
                          + ", ".join(f"{idf.std_per_unit_noise[n]:.2g}" for n in ("g_x2", "g_y1", "g_y2")))
     lines += ["",
               "Pose-marginalised Jacobian of `gain_map(distort(project(P)))` at 9 typical views "
-              "(`psdcal.gains.identifiability`). With a pure pinhole, any homography of the sensor plane followed by "
+              "(`psdcal.calibration.gains.identifiability`). With a pure pinhole, any homography of the sensor plane followed by "
               "the pinhole is a pinhole with a rotated frame (RQ decomposition), which the per-view poses absorb: "
               "with fx, fy and skew free, none of the three gain ratios is identifiable; with a single f and zero "
               "skew, one combination is not, exactly: `u_x, u_y` trade against a common tilt of the poses, C and f "
@@ -1194,7 +1194,7 @@ def write_outputs(study: Study, out_dir) -> list:
     """Write table_N.csv/.md, report.md, gains.md (+ gains.csv), figure_9.png (+ .csv); returns the paths."""
     from pathlib import Path
 
-    from ._atomic import write_text_atomic
+    from psdcal._atomic import write_text_atomic
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)

@@ -16,7 +16,7 @@ chance of a clean point exceeding ``k sigma`` is ``exp(-k^2 / 2)``: 3.7e-6 at
 improbable under that noise (a chi-square test, see :func:`flag_images`).
 
 :func:`reject_outliers` removes flagged points (sets them missing) and refits
-with :func:`psdcal.calibration.recalibrate` until none is left, largest first,
+with :func:`psdcal.calibration.core.recalibrate` until none is left, largest first,
 so that a gross error's pull on its neighbours does not get them removed too.
 """
 from __future__ import annotations
@@ -26,7 +26,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .errors import InputError, PsdcalError
+from psdcal.calibration.checks import align_to_problem, model_points_mm
+from psdcal.errors import InputError, PsdcalError
 
 #: Median of a unit Rayleigh distribution: median(|r|) = sigma * RAYLEIGH_MEDIAN.
 RAYLEIGH_MEDIAN = float(np.sqrt(2.0 * np.log(2.0)))
@@ -165,7 +166,6 @@ def flag_outliers(result, k: float = DEFAULT_K, *, alpha: float = 1e-3, refit: b
     -------
     OutlierFlags
     """
-    from .diagnostics import align_to_problem
 
     _check_k(k)
     result = align_to_problem(result)
@@ -269,36 +269,11 @@ def _points_array(problem) -> np.ndarray:
 
 
 def _refit(result, points_mm):
-    from .calibration import _jsonable, recalibrate
+    from psdcal.calibration.core import _jsonable, recalibrate
 
     d = result.to_dict()
     d["problem"] = {**d["problem"], "points": {**d["problem"]["points"], "xy_mm": _jsonable(points_mm)}}
     return recalibrate(d)
-
-
-def model_points_mm(result, template_mm=None) -> np.ndarray:
-    """Modelled measured points (n_images, M, 2), mm, of every template point in every view.
-
-    ``distort(project(P))`` with the result's parameters and poses (and the
-    channel gains when they are not all one): what the calibration predicts
-    the sensor reads, also where the point is missing or was removed.
-
-    Parameters
-    ----------
-    result : CalibrationResult
-    template_mm : (M, 2) array_like, optional
-        Template points, mm (default: the result's problem record).
-    """
-    from .distortion import distort
-    from .projection import project
-    from .readout import gain_map
-
-    T = np.asarray(result.problem["template"]["xy_mm"] if template_mm is None else template_mm, dtype=float)
-    x = np.stack([project(T, result.intrinsics, r, t) for r, t in zip(result.rvecs, result.tvecs_mm)])
-    m = distort(x, result.distortion, result.intrinsics.c).d_mm
-    if not np.allclose(result.gains, 1.0):
-        m = gain_map(m, result.gains, *result.sensor_mm)
-    return m
 
 
 def reject_outliers(
@@ -315,7 +290,7 @@ def reject_outliers(
     Each round removes the flagged points whose residual is at least half
     the largest residual (the gross errors first: their pull on the fit
     can push a clean neighbour over the threshold, which the refit undoes),
-    then refits with the same options (:func:`psdcal.calibration.recalibrate`).
+    then refits with the same options (:func:`psdcal.calibration.core.recalibrate`).
     It stops when no point is above ``k sigma_robust`` or after
     ``max_rounds`` refits.
 
@@ -349,7 +324,6 @@ def reject_outliers(
     ConvergenceError, DegenerateViewsError
         From a refit.
     """
-    from .diagnostics import align_to_problem
 
     _check_k(k)
     if "points" not in (result.problem or {}) or "template" not in (result.problem or {}):

@@ -1,8 +1,8 @@
 """Compiled image-plane cost: residuals and Jacobian in one pass over the points.
 
-The same mathematics as the numpy reference in :mod:`psdcal._refine`
-(``Evaluator._image``), :mod:`psdcal.distortion` (``undistort``, ``distort``,
-``distort_jacobians``) and :func:`psdcal._refine.rodrigues_batch`, written as
+The same mathematics as the numpy reference in :mod:`psdcal.calibration._refine`
+(``Evaluator._image``), :mod:`psdcal.model.distortion` (``undistort``, ``distort``,
+``distort_jacobians``) and :func:`psdcal.calibration._refine.rodrigues_batch`, written as
 scalar loops for numba (:mod:`psdcal._jit`). For each observation ``i`` of
 view ``v``:
 
@@ -26,7 +26,7 @@ import math
 
 import numpy as np
 
-from ._jit import njit
+from psdcal._jit import njit
 
 #: order of the global derivatives the kernel computes (``gmap`` indexes it)
 GLOBAL_ORDER = ("f_mm", "cx_mm", "cy_mm", "skew", "fy_mm", "k1", "k2", "k3", "p1", "p2", "l1", "l2",
@@ -144,7 +144,7 @@ def _monotone(dx, dy, coef, cx, cy):
 
 @njit
 def _newton(x0, x1, sx, sy, coef, cx, cy, tol, max_iter):
-    """d with undistort(d) = x from the start (sx, sy); as :func:`psdcal.distortion.distort`.
+    """d with undistort(d) = x from the start (sx, sy); as :func:`psdcal.model.distortion.distort`.
 
     Returns (d0, d1, converged).
     """
@@ -217,11 +217,11 @@ def image_model(P, img, theta, separate_fy, poses, warm, meas, gmap, want_jac, t
     meas : (N, 2) measured points (the second start), mm
     gmap : (n_global,) int, column k of the Jacobian is derivative ``GLOBAL_ORDER[gmap[k]]``
     want_jac : bool
-    tol_mm, max_iter : of the Newton inverse, as :func:`psdcal.distortion.distort`
+    tol_mm, max_iter : of the Newton inverse, as :func:`psdcal.model.distortion.distort`
     gain_basis : (4, 3, 3) or (0, 3, 3)
         With four matrices, the readout through unequal channel gains is
         modelled: ``y ~ H [d, 1]`` with ``H = sum_j g_j gain_basis[j]``
-        (:func:`psdcal.readout.gain_homography` is linear in the gains; the
+        (:func:`psdcal.model.readout.gain_homography` is linear in the gains; the
         basis is its value at the unit vectors). Empty: ``y = d``.
 
     Returns
@@ -436,7 +436,7 @@ def template_model(P, img, theta, separate_fy, poses, meas, gmap, want_jac):
     For observation ``i`` of view ``v``: ``x = undistort(d_i)`` (Eq 7-16),
     ``q = (A [r1 r2 t])^-1 [x, 1]``, residual ``q[:2] / q[2] - P_i`` in mm on
     the template plate (the numpy reference is ``Evaluator._template`` in
-    :mod:`psdcal._refine`). Arguments as :func:`image_model`; ``meas`` (N, 2)
+    :mod:`psdcal.calibration._refine`). Arguments as :func:`image_model`; ``meas`` (N, 2)
     are the measured points.
 
     Returns
