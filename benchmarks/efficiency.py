@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """Statistical efficiency of the two calibration costs against the Cramér-Rao bound.
 
-For each of the paper's lenses (MODEL.md 8) one pose set is fixed
+For each of the paper's lenses (docs/model.md#paper-simulation-setup) one pose set is fixed
 (``simulate_set(lens, n_images, seed=...)``); every Monte Carlo trial adds
 fresh Gaussian noise of ``sigma`` mm per coordinate to its noiseless impact
 points and calibrates with the ``image`` cost and with the ``template`` cost

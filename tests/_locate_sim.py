@@ -7,7 +7,7 @@ from psdcal.model.distortion import distort
 from psdcal.model.readout import photocurrents
 from psdcal.measure.sensor_model import SensorModel
 
-#: The paper's Lens 2 with the optical centre offset (MODEL.md 8), a little PSD distortion.
+#: The paper's Lens 2 with the optical centre offset (docs/model.md#paper-simulation-setup), a little PSD distortion.
 BASE = {
     "intrinsics": {"f_mm": 8.0, "cx_mm": 0.5, "cy_mm": -0.7, "skew": 0.0},
     "distortion": {"k1": 1e-2, "k2": 3e-5, "k3": 0.0, "p1": 0.0, "p2": 0.0, "l1": -1.3e-3, "l2": 0.0},

@@ -1,7 +1,7 @@
 """psdcal: model, calibration and measurement toolkit for PSD + lens AoA sensors.
 
 The reference model is Rodriguez-Navarro et al., Sensors 2016, 16(9), 1484,
-with the conventions and corrections of ``docs/conventions.md``.
+with the conventions and corrections of ``docs/model.md``.
 """
 from __future__ import annotations
 

@@ -1,6 +1,6 @@
 """Levenberg-Marquardt refinement of intrinsics, distortion and all poses (Section 3.1).
 
-Two costs (MODEL.md 6.5):
+Two costs (docs/model.md#refinement):
 
 - ``image``: residual ``G(distort(project(P))) - d`` in mm on the sensor, the
   maximum-likelihood estimate when the noise is on the measured points

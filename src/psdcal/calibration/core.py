@@ -1,4 +1,4 @@
-"""The calibration front door: ``psdcal.calibrate`` (the paper's Section 3, MODEL.md 6).
+"""The calibration front door: ``psdcal.calibrate`` (the paper's Section 3, docs/model.md#calibration).
 
 Steps, each usable on its own from its private module:
 
@@ -129,7 +129,7 @@ def initial_estimate(
 class CalibrationResult:
     """A calibration: parameters, their uncertainty, residuals and how it was obtained.
 
-    ``to_dict()`` is the calibration JSON of MODEL.md 9 (plus extra keys).
+    ``to_dict()`` is the calibration JSON of docs/model.md#calibration-json (plus extra keys).
 
     Attributes
     ----------
@@ -223,7 +223,7 @@ class CalibrationResult:
 
     # -- serialisation ------------------------------------------------------------------
     def to_dict(self) -> dict:
-        """The calibration JSON (MODEL.md 9); extra keys keep their meaning across versions."""
+        """The calibration JSON (docs/model.md#calibration-json); extra keys keep their meaning across versions."""
         valid = np.all(np.isfinite(self.residuals_mm), axis=-1)
         pts = []
         for i, iid in enumerate(self.image_ids):
@@ -381,7 +381,7 @@ def calibrate(
     """Calibrate a PSD + lens sensor from views of a planar LED template.
 
     The adapted Zhang method of the paper (Section 3), with the corrections of
-    MODEL.md 6: line-straightness preliminary distortion (3.2), Hartley
+    docs/model.md#calibration: line-straightness preliminary distortion (3.2), Hartley
     normalised DLT (3.3), closed-form intrinsics (Eq 19-25 corrected),
     extrinsics (Eq 26-28) and Levenberg-Marquardt over intrinsics,
     distortion and all poses on the chosen cost.

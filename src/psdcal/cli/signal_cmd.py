@@ -8,7 +8,7 @@ from psdcal.cli import cli
 
 @cli.command("signal-noise")
 @click.option("--snr-db", "snr_db", type=float, multiple=True, metavar="DB",
-              help="SNR in dB (MODEL.md 3); repeat for several. Default: 30 40 50 60.")
+              help="SNR in dB (docs/model.md#snr-definition); repeat for several. Default: 30 40 50 60.")
 @click.option("--method", type=click.Choice(["lockin", "bandpass"]), default="lockin", show_default=True,
               help="Amplitude estimation: lock-in, or the paper's 600 Hz Butterworth band-pass.")
 @click.option("--rate-hz", type=float, default=None, help="Sampling rate, Hz.  [default: 50000]")

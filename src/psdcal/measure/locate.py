@@ -288,7 +288,7 @@ def amplitudes_to_csv(recording: Recording, out_path, config: LocateConfig, *, i
     Without ``image_id`` the columns are :data:`AMPLITUDE_COLUMNS` (one row
     per window and emitter, or per time-multiplexed segment).  With
     ``image_id`` the output is a calibration points CSV from raw amplitudes
-    (MODEL.md 9): ``image_id,point_id,vx1,vx2,vy1,vy2``, ``point_id`` the
+    (docs/model.md#calibration-json): ``image_id,point_id,vx1,vx2,vy1,vy2``, ``point_id`` the
     emitter (segment or schedule name): one view of the calibration template.
 
     Rows whose total amplitude is below ``config.min_snr`` sigma are dropped.

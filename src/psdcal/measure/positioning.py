@@ -1,8 +1,8 @@
-"""Positions from angles of arrival (MODEL.md 7; the paper's Section 3.4 and Introduction).
+"""Positions from angles of arrival (docs/model.md#angle-of-arrival-and-position; the paper's Section 3.4 and Introduction).
 
 * One sensor and a known plane: a transmitter moving on a plane parallel to
   the sensor at distance ``S`` sits at ``X = S xn``, ``Y = S yn`` in the
-  camera frame (MODEL.md 7; ``X = S ex / f`` without skew and distortion).
+  camera frame (docs/model.md#angle-of-arrival-and-position; ``X = S ex / f`` without skew and distortion).
 * Two or more sensors with known poses: the 3D point is the weighted
   least-squares intersection of their rays (AoA positioning needs two
   receivers, the paper's Introduction).
@@ -29,7 +29,7 @@ from psdcal.measure.sensor_model import SensorModel
 # --------------------------------------------------------------------------- plane
 @dataclass(frozen=True)
 class PlanePosition:
-    """Position on a plane parallel to the sensor (MODEL.md 7).
+    """Position on a plane parallel to the sensor (docs/model.md#angle-of-arrival-and-position).
 
     Attributes
     ----------
@@ -51,7 +51,7 @@ class PlanePosition:
 
 
 def plane_position(aoa: AoAResult, distance_mm: float) -> PlanePosition:
-    """Transmitter position on the plane ``Zc = distance_mm`` (MODEL.md 7).
+    """Transmitter position on the plane ``Zc = distance_mm`` (docs/model.md#angle-of-arrival-and-position).
 
     ``X = S xn``, ``Y = S yn`` (the paper's ``X = S ex / f``); the covariance is
     ``S^2 cov(n)``.  ``S`` is taken as exact.

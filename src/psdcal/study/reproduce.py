@@ -11,7 +11,7 @@ within R 1 %, C 15 %, 1 kHz carrier + white noise at the SNR, the paper's
 (``radial=2, tangential=False``) calibrated with its Eq 29 ``template`` cost.
 The paper's numbers are transcribed in ``psdcal/data/paper_tables.csv``
 (Tables 3-4 from the project's corrected ``tables.csv``, the others from the
-paper's text with the misprints of MODEL.md corrected; the ``note`` column
+paper's text with the misprints of docs/model.md#misprints-in-the-paper corrected; the ``note`` column
 says where).
 
 What is compared (:func:`compare_rows`): our mean and std of each parameter
@@ -74,7 +74,7 @@ class Case:
     ----------
     lens : "lens1" | "lens2"
     snr_db : float
-        SNR, dB (MODEL.md 3); NaN for no noise.
+        SNR, dB (docs/model.md#signal-chain); NaN for no noise.
     imbalance : bool
         Draw the four channels' R, C within their tolerances (Section 4.4).
     psd : bool
@@ -264,7 +264,7 @@ def heldout_emitters(lens: str, n_per_side: int = 11, extent_mm: float = 4.0):
 
 
 def rays_from_points(d_mm, intrinsics: Intrinsics, distortion: Distortion) -> np.ndarray:
-    """Unit rays (n, 3) of measured points (n, 2) through a calibration (MODEL.md 7: undistort, A^-1)."""
+    """Unit rays (n, 3) of measured points (n, 2) through a calibration (docs/model.md#angle-of-arrival-and-position: undistort, A^-1)."""
     x = undistort(np.asarray(d_mm, dtype=float), distortion, intrinsics.c)
     h = np.concatenate([x, np.ones((x.shape[0], 1))], axis=1) @ np.linalg.inv(intrinsics.matrix()).T
     return h / np.linalg.norm(h, axis=1, keepdims=True)
@@ -920,7 +920,7 @@ _TABLE_TITLES = {
 _COMMON_NOTES = """\
 How ours was obtained and why it can differ from the paper (which leaves these open):
 
-* **SNR and sampling.** Our SNR follows MODEL.md 3: every channel of a spot gets
+* **SNR and sampling.** Our SNR follows docs/model.md#signal-chain: every channel of a spot gets
   white noise of std `A_mean / sqrt(2) / 10^(SNR/20)` (`A_mean` the mean of the four
   channel amplitudes), records of 20 ms at 50 kHz (1000 samples, 20 carrier periods),
   the paper's 600 Hz Butterworth band-pass and amplitude. The paper gives neither its
@@ -965,7 +965,7 @@ _TABLE_NOTES = {
        "which the paper states only as U[a, b] with a 4017.9 V/A variation; our draws give a wider spread of C than "
        "the paper's 1.1 mm. Failed trials (n failed) are views the closed form could not start from.",
     6: "As Table 5 for Lens 2 (f = 8 mm): the tilt that absorbs the projective part shifts C ten times less.",
-    7: "PSD distortion l1 = -1.3058e-3 mm^-2 about the electrical centre (MODEL.md 5); the paper's model has one "
+    7: "PSD distortion l1 = -1.3058e-3 mm^-2 about the electrical centre (docs/model.md#distortion); the paper's model has one "
        "radial centre, C, so its k1 can absorb k1 + l1 (ideal 6.9416e-4) only if C were at the electrical centre. "
        "With C 0.86 mm off, the best single-centre fit moves the distortion centre to about k1 C / (k1 + l1) "
        "(2.9 C for Lens 1, 1.15 C for Lens 2) and leaves a residual of several um even without noise; for Lens 1, "
