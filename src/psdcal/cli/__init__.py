@@ -19,7 +19,7 @@ from psdcal.errors import PsdcalError
 def cli():
     """psdcal: model, calibrate and use PSD + lens angle-of-arrival sensors.
 
-    Files are CSV in millimetres (see the README's "File formats"); a
+    Files are CSV in millimetres (docs/model.md#file-formats); a
     calibration is a JSON file.  Run `psdcal COMMAND --help` for details.
     """
 

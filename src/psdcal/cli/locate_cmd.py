@@ -71,6 +71,9 @@ def locate_command(recordings, calib, sensors, rate_hz, carriers, emitters, dist
 
     Recordings: .npy (n, 4), .csv (header vx1,vx2,vy1,vy2[,t_s]), .h5/.hdf5, .tdms.
     Sigmas are 1-sigma, from the signal noise and the calibration covariance.
+    Signs: seen from behind the sensor with the chip's +y edge up, alpha_x > 0
+    is an emitter right of the optical axis, alpha_y > 0 one below it (the lens
+    inverts the image; docs/model.md#hardware-conventions).
     """
     from psdcal.errors import InputError
     from psdcal.measure.locate import LocateConfig, locate_multi_to_csv, locate_to_csv
@@ -193,6 +196,10 @@ def aoa_command(points, calib, distance_mm, sigma_d_mm, output):
 
     Other columns (image_id, point_id, ...) are copied.  Output adds
     x_mm,y_mm,alpha_x_deg,alpha_y_deg[,X_mm,Y_mm],sigma_alpha_x_deg,sigma_alpha_y_deg[,sigma_X_mm,sigma_Y_mm].
+
+    Signs: seen from behind the sensor with the chip's +y edge up, alpha_x > 0
+    is an emitter right of the optical axis, alpha_y > 0 one below it (the lens
+    inverts the image; docs/model.md#hardware-conventions).
     """
     from psdcal.measure.locate import aoa_csv
     from psdcal.measure.sensor_model import SensorModel
