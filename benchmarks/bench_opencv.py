@@ -255,7 +255,7 @@ def main(argv=None) -> int:
     ap.add_argument("--repeats", type=int, default=3, help="timed calls per set and library (median)")
     ap.add_argument("--noise-mm", type=float, default=0.002)
     ap.add_argument("--pitch-um", type=float, default=10.0, help="pixel pitch given to OpenCV")
-    ap.add_argument("--markdown", action="store_true", help="print a Markdown table (for the README)")
+    ap.add_argument("--markdown", action="store_true", help="print a Markdown table (for docs/benchmarks.md)")
     ap.add_argument("--no-startup", action="store_true", help="skip the fresh-process (start-up) timing")
     a = ap.parse_args(argv)
     import cv2

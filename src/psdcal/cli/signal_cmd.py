@@ -62,4 +62,4 @@ def signal_noise(snr_db, method, rate_hz, duration_s, carrier_hz, x_mm, y_mm, tr
             f"{p[1]:.2e}",
         )
     Console().print(table)
-    Console().print("predicted: first-order propagation of the amplitude noise (README, Signal chain)")
+    Console().print("predicted: first-order propagation of the amplitude noise (docs/guide/signal-chain.md)")

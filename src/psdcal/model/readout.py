@@ -141,8 +141,7 @@ def gain_map(xy_mm, gains, lx_mm: float = LX_MM, ly_mm: float = LY_MM, *, jacobi
 def gain_homography(gains, lx_mm: float = LX_MM, ly_mm: float = LY_MM):
     """The 3x3 homography H with ``[x_meas, y_meas, 1] ~ H [x_true, y_true, 1]``.
 
-    Exact closed form of :func:`gain_map` (section "Gain calibration" of the
-    README derives it).
+    Exact closed form of :func:`gain_map` (docs/model.md#gain-homography derives it).
     """
     g = np.asarray(gains, dtype=float)
     w = g[:, None] * _SPLIT  # (4, 3): v = w @ (1, a, b)

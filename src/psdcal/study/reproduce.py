@@ -229,7 +229,7 @@ def simulate_trial(rng, lens: str, snr_db: float | None, gains, psd: bool, *, n_
 
     if s.snr_db is None:
         # noiseless: the demodulated amplitudes equal the clean ones up to a factor common to
-        # the four channels, which cancels in Eq 1-2 (README, signal chain); skip the records
+        # the four channels, which cancels in Eq 1-2 (docs/guide/signal-chain.md); skip the records
         amps = signal_amplitudes(spots, s, gains, l1)
     else:
         amps = measure_amplitudes(spots, s, gains, rng, l1)
