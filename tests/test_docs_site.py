@@ -55,3 +55,12 @@ def test_code_cites_only_existing_model_sections():
     cited |= {("README.md", a) for a in re.findall(r"model\.md#([\w-]+)", readme)}
     missing = sorted((f, a) for f, a in cited if a not in anchors)
     assert cited and not missing, missing
+
+
+def test_conventions_figure_script_runs(tmp_path):
+    """docs/img/conventions.png is made by a script that still runs."""
+    out = tmp_path / "conventions.png"
+    subprocess.run([sys.executable, str(DOCS / "img" / "conventions.py"), str(out)], check=True, cwd=ROOT,
+                   capture_output=True, timeout=120)
+    assert out.stat().st_size > 10_000
+    assert (DOCS / "img" / "conventions.png").is_file()

@@ -1,6 +1,6 @@
 """Draw docs/img/conventions.png: PSD anodes, sensor axes, and the sign of the angles.
 
-Run from the repository root: ``.venv/bin/python docs/img/conventions.py``.
+Run from the repository root: ``.venv/bin/python docs/img/conventions.py [OUT.png]``.
 The geometry follows docs/model.md#hardware-conventions: Eq 1-2 put the
 anodes X1, X2, Y1, Y2 at the corners (-,-), (+,+), (+,-), (-,+) of the
 sensor frame, and the lens turns the image by 180 degrees, so the camera
@@ -71,7 +71,7 @@ def back_view(ax):
     ax.set_ylim(-8, 7)
 
 
-def main() -> Path:
+def main(out: Path = OUT) -> Path:
     fig, axes = plt.subplots(1, 3, figsize=(13, 4.6))
     front_view(axes[0])
     side_view(axes[1])
@@ -80,9 +80,11 @@ def main() -> Path:
         ax.set_aspect("equal")
         ax.axis("off")
     fig.tight_layout()
-    fig.savefig(OUT, dpi=110)
-    return OUT
+    fig.savefig(out, dpi=110)
+    return out
 
 
 if __name__ == "__main__":
-    print(main())
+    import sys
+
+    print(main(Path(sys.argv[1]) if len(sys.argv) > 1 else OUT))
