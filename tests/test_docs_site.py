@@ -64,3 +64,30 @@ def test_conventions_figure_script_runs(tmp_path):
                    capture_output=True, timeout=120)
     assert out.stat().st_size > 10_000
     assert (DOCS / "img" / "conventions.png").is_file()
+
+
+#: README links to pages that other work adds; a link to anything else must resolve now.
+PENDING_PAGES = {"docs/tutorial.md": "the whole-chain tutorial (issue 12), pasted in at integration"}
+
+
+def test_readme_links_resolve():
+    """Every relative link of README.md names an existing file and, for docs pages, an existing heading."""
+    text = (ROOT / "README.md").read_text(encoding="utf-8")
+    slug = lambda h: re.sub(r"\s+", "-", re.sub(r"[^\w\s-]", "", h).strip().lower())  # noqa: E731
+    links = re.findall(r"\]\(([^)\s]+)\)", text)
+    assert len(links) > 10
+    bad = []
+    for link in links:
+        if re.match(r"[a-z]+://", link):
+            continue
+        path, _, anchor = link.partition("#")
+        target = ROOT / path if path else ROOT / "README.md"
+        if path in PENDING_PAGES and not target.exists():
+            continue
+        if not target.is_file():
+            bad.append(f"{link}: no such file")
+        elif anchor:
+            heads = {slug(h) for h in re.findall(r"^#{1,6} (.+)$", target.read_text(encoding="utf-8"), re.M)}
+            if anchor not in heads:
+                bad.append(f"{link}: no such heading")
+    assert bad == []
