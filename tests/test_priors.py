@@ -208,13 +208,18 @@ def test_gain_prior_file_combines_with_fitted_gains(tmp_path):
     res = calibrate(s.template_mm, X, fit_gains=True, priors=str(p))
     got = np.array([res.std[n] for n in ("g_x2", "g_y1", "g_y2")])
     assert np.all(got < 0.9 * sd)
-    # the information sum with the (correlated) free covariance of the gains
+    # centred on the free estimate (solution and Jacobian unchanged): exactly the information
+    # sum with the (correlated) free covariance of the gains
+    gf = np.concatenate([[1.0], [free.parameter(n) for n in ("g_x2", "g_y1", "g_y2")]])
+    p.write_text(json.dumps({"gains": gf.tolist(), "names": ["g_x2", "g_y1", "g_y2"], "covariance": np.diag(sd**2).tolist()}))
+    res = calibrate(s.template_mm, X, fit_gains=True, priors=str(p))
+    got = np.array([res.std[n] for n in ("g_x2", "g_y1", "g_y2")])
     P = np.zeros((len(free.param_names),) * 2)
     gi = [free.param_names.index(n) for n in ("g_x2", "g_y1", "g_y2")]
     P[np.ix_(gi, gi)] = np.diag(1 / sd**2)
     s2_ratio = res.sigma_mm**2 / free.sigma_mm**2
     expect = np.linalg.inv(np.linalg.inv(free.covariance) / s2_ratio + P)
-    np.testing.assert_allclose(got, np.sqrt(np.diag(expect)[gi]), rtol=0.02)
+    np.testing.assert_allclose(got, np.sqrt(np.diag(expect)[gi]), rtol=1e-5)
 
 
 def test_cli_fix_and_prior(tmp_path, capsys):
