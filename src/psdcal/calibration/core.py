@@ -752,6 +752,10 @@ def recalibrate(calib: dict | CalibrationResult) -> CalibrationResult:
     """Re-run a calibration exactly from the problem record saved inside it."""
     d = calib.to_dict() if isinstance(calib, CalibrationResult) else calib
     p = d["problem"]
+    if p.get("kind") == "directions":  # a rotation-stage calibration (psdcal.calibration.directions)
+        from psdcal.calibration.directions import recalibrate_directions
+
+        return recalibrate_directions(d)
     o = p["options"]
     X = np.array([[[np.nan if v is None else v for v in pt] for pt in img] for img in p["points"]["xy_mm"]], dtype=float)
     return calibrate(

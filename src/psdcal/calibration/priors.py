@@ -554,3 +554,65 @@ class _StartRecord:
         ie = stages.get("initial_extrinsics", [])
         self.rvecs = np.array([e["rvec"] for e in ie], dtype=float).reshape(-1, 3)
         self.tvecs_mm = np.array([e["tvec_mm"] for e in ie], dtype=float).reshape(-1, 3)
+
+
+@dataclass(frozen=True)
+class MapFit:
+    """Outcome of :func:`map_fit`."""
+
+    x: np.ndarray
+    residuals: np.ndarray  # data residuals (m,)
+    jacobian: np.ndarray  # data Jacobian (m, n)
+    covariance: np.ndarray  # s^2 (J^T J + s^2 W^T W)^-1, (n, n)
+    sigma2: float
+    dof: float
+    prior_dof: float
+    rounds: int
+    lm: object  # the last LMResult
+
+
+def map_fit(fun, jac, x0, W, b, options, sigma2_start: float | None = None, polish_steps: int = 4) -> MapFit:
+    """Least squares with optional whitened prior rows over the whole state (dense; small problems).
+
+    Minimises ``|fun(x)|^2 + s^2 |W x - b|^2`` with ``s^2`` re-estimated from
+    the data residuals (module docstring) until stable; with no prior rows
+    (``W`` of shape (0, n)) it is plain LM + :func:`polish` with
+    ``s^2 = |r|^2 / (m - n)``.
+    """
+    from psdcal.calibration._refine import levenberg_marquardt
+
+    x = np.asarray(x0, dtype=float).copy()
+    W = np.asarray(W, dtype=float).reshape(-1, x.size)
+    b = np.asarray(b, dtype=float).reshape(-1)
+    k, n = W.shape
+    WtW = W.T @ W
+    r0 = fun(x)
+    m = r0.size
+    s2 = float(sigma2_start) if sigma2_start is not None else max(float(r0 @ r0) / max(m - n, 1), 1e-300)
+    rounds = 0
+    while True:
+        rounds += 1
+        s = np.sqrt(s2)
+
+        def f_aug(z):
+            return np.concatenate([fun(z), s * (W @ z - b)])
+
+        def j_aug(z):
+            return np.vstack([jac(z), s * W])
+
+        opts = replace(options, xtol=XTOL_FACTOR * options.xtol) if k else options
+        sol = levenberg_marquardt(f_aug, j_aug, x, opts)
+        x = polish(f_aug, j_aug, lambda J, r: (J.T @ J, J.T @ r), sol.x, steps=polish_steps)
+        r = fun(x)
+        J = jac(x)
+        A = J.T @ J
+        Ai = _scaled_inverse(A + s2 * WtW)
+        t = float(np.trace(s2 * WtW @ Ai)) if k else 0.0
+        dof = max(m - n + t, 1e-12)
+        s2_new = float(r @ r) / dof
+        if k == 0 or s2_new <= 0 or abs(s2_new / s2 - 1.0) < 1e-10 or rounds >= 20:
+            s2 = s2_new
+            break
+        s2 = s2_new
+    Ai = _scaled_inverse(A + s2 * WtW) if k else _scaled_inverse(A)
+    return MapFit(x=x, residuals=r, jacobian=J, covariance=s2 * Ai, sigma2=s2, dof=dof, prior_dof=t, rounds=rounds, lm=sol)
