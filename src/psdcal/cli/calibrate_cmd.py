@@ -108,6 +108,7 @@ def calibrate_command(points, template, output, cost, radial, tangential, psd_ra
         save_calibration(output, res)
     if not quiet:
         print_calibration(res)
+        _echo_constraints(res)
         if output is not None:
             click.echo(f"wrote {output}")
 
@@ -121,3 +122,18 @@ def _with_inputs(res, template, points):
     for role, p in (("template", template), ("points", points)):
         files[role] = {"path": str(p), "sha256": hashlib.sha256(Path(p).read_bytes()).hexdigest()}
     return dataclasses.replace(res, problem={**res.problem, "files": files})
+
+
+def _echo_constraints(res):
+    """One line each for the fixed parameters and the priors of a constrained calibration (none otherwise)."""
+    o = res.problem.get("options", {}) if res.problem else {}
+    if o.get("fix"):
+        click.echo("fixed: " + ", ".join(f"{n} = {v:.6g}" for n, v in o["fix"].items()))
+    for p in o.get("priors") or []:
+        sd = [c[i] ** 0.5 if c[i] is not None else float("inf") for i, c in enumerate(p["covariance"])]
+        click.echo(f"prior ({p.get('source') or 'argument'}): " + ", ".join(
+            f"{n} = {m:.6g} +- {s:.2g}" for n, m, s in zip(p["names"], p["mean"], sd)))
+    pf = res.problem.get("prior_fit") if res.problem else None
+    if pf:
+        click.echo(f"degrees of freedom {pf['dof']:.2f} (the priors determine {pf['prior_dof']:.2f} parameters); "
+                   "noise estimated from the data residuals only")
