@@ -347,7 +347,7 @@ def refine_with_priors(prob, intr0, dist0, gains0, rvecs0, tvecs0, priors, sigma
         ``covariance`` is ``s^2 (J^T J + s^2 W^T W)^-1`` of the full state,
         ``sigma2`` the data-only ``s^2``.
     """
-    from psdcal.calibration._refine import Evaluator, _finish, _single_threaded_blas, levenberg_marquardt
+    from psdcal.calibration._refine import Evaluator, _single_threaded_blas, levenberg_marquardt
     from psdcal.errors import DegenerateViewsError
 
     names = list(prob.names)
@@ -401,14 +401,14 @@ def refine_with_priors(prob, intr0, dist0, gains0, rvecs0, tvecs0, priors, sigma
             s2 = s2_new
             if done:
                 break
-        base = _finish(prob, ev, sol, r, J, m, n, options)
     Aaug = A.copy()
     Aaug[:ng, :ng] += s2 * WtW
     Ai = _scaled_inverse(Aaug)
     t = float(np.trace(s2 * WtW @ Ai[:ng, :ng]))
     dof = max(m - n + t, 1e-12)
     s2 = max(float(r @ r) / dof, 1e-300) if float(r @ r) > 0 else 0.0
-    return replace(base, covariance=s2 * Ai, sigma2=s2), PriorFit(sigma2=s2, dof=dof, prior_dof=t, rounds=rounds)
+    ref = _refined(prob, ev, z, r, J, s2 * Ai, s2, int(sol.njev), bool(sol.status > 0), str(sol.message), options)
+    return ref, PriorFit(sigma2=s2, dof=dof, prior_dof=t, rounds=rounds)
 
 
 def polish(fun, jac, normal, x, steps: int = 4):
@@ -444,7 +444,7 @@ def polish(fun, jac, normal, x, steps: int = 4):
 
 def refine_fixed(prob, intr0, dist0, gains0, rvecs0, tvecs0, options):
     """:func:`psdcal.calibration._refine.refine` on a problem with fixed parameters, then :func:`polish`."""
-    from psdcal.calibration._refine import Evaluator, _finish, _single_threaded_blas, refine
+    from psdcal.calibration._refine import Evaluator, _single_threaded_blas, refine
 
     ref = refine(prob, intr0, dist0, gains0, rvecs0, tvecs0, options)
     if not ref.converged:
@@ -453,17 +453,52 @@ def refine_fixed(prob, intr0, dist0, gains0, rvecs0, tvecs0, options):
     with _single_threaded_blas():
         z = polish(ev.residuals, ev.jacobian, ev.normal_equations, ref.z)
         r, J = ev.evaluate(z)
-        sol = _LMLike(z, ref.message, ref.iterations)
-        return _finish(prob, ev, sol, r, J, r.size, z.size, options)
+        A = np.array(ev.normal_equations(J, r)[0], dtype=float)
+        s2 = float(r @ r) / max(r.size - z.size, 1)
+        return _refined(prob, ev, z, r, J, s2 * _scaled_inverse(A), s2, ref.iterations, ref.converged, ref.message,
+                        options)
 
 
 @dataclass(frozen=True)
-class _LMLike:
-    x: np.ndarray
+class Refined:
+    """The solver output :func:`psdcal.calibration.core._make_result` reads, from a dense
+    full-state covariance (these fits are small): the full matrix and its global /
+    pose / cross blocks, so that either form of the refinement's result is served."""
+
+    z: np.ndarray
+    intrinsics: object
+    coeffs: np.ndarray
+    gains: np.ndarray
+    rvecs: np.ndarray
+    tvecs: np.ndarray
+    covariance: np.ndarray  # (n, n) full state
+    covariance_global: np.ndarray
+    pose_covariance: np.ndarray  # (n_images, 6, 6)
+    cross_covariance: np.ndarray  # (n_images, n_global, 6)
+    sigma2: float
+    cost_rms: float
+    iterations: int
+    converged: bool
     message: str
-    njev: int
-    status: int = 1
-    nfev: int = 0
+    jacobian: np.ndarray
+    residuals: np.ndarray
+    model_mm: np.ndarray | None
+
+
+def _refined(prob, ev, z, r, J, cov, s2, iterations, converged, message, options) -> Refined:
+    intr, coef, gains, rv, tv = ev.unpack(z)
+    ng = prob.n_global
+    n = prob.n_images
+    pose = np.stack([cov[ng + 6 * v: ng + 6 * v + 6, ng + 6 * v: ng + 6 * v + 6] for v in range(n)]) if n else np.zeros((0, 6, 6))
+    cross = np.stack([cov[:ng, ng + 6 * v: ng + 6 * v + 6] for v in range(n)]) if n else np.zeros((0, ng, 6))
+    return Refined(
+        z=z, intrinsics=intr, coeffs=coef, gains=gains, rvecs=rv, tvecs=tv, covariance=cov,
+        covariance_global=cov[:ng, :ng], pose_covariance=pose, cross_covariance=cross, sigma2=float(s2),
+        cost_rms=float(np.sqrt(np.mean(r**2)) * np.sqrt(2.0)), iterations=int(iterations),
+        converged=bool(converged) and bool(np.all(np.isfinite(z))) and int(iterations) <= options.max_iterations,
+        message=str(message), jacobian=J, residuals=r,
+        model_mm=ev.model_points(z) if prob.cost == "image" else None,
+    )
 
 
 def apply_fix(intr, dist, gains, fix: dict):
