@@ -561,7 +561,10 @@ def constrain(result, fix: dict, priors: list, solver, merged_gain_fix: dict | N
                        p["options"]["preliminary"], p["options"]["normalize"], solver)
     out = replace(out, stages=st, gains=result.gains if not spec.fit_gains else out.gains)
     record_fix = {n: float(v) for n, v in fix.items()}
-    options = {**out.problem["options"], "fix": record_fix, "priors": [q.to_dict() for q in priors]}
+    # the user's switches (fixing skew / fy_mm switched them on only for the refit): recalibrate re-runs the same
+    # free fit, then the same constrained one
+    options = {**out.problem["options"], "skew": result.model.skew, "aspect": result.model.aspect,
+               "fix": record_fix, "priors": [q.to_dict() for q in priors]}
     if merged_gain_fix:
         options["fix_gains_applied"] = dict(merged_gain_fix)
     problem = {**result.problem, "options": options}
