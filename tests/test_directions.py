@@ -17,6 +17,7 @@ from psdcal.calibration.core import CalibrationResult, recalibrate
 from psdcal.calibration.directions import (
     DirectionsModel,
     calibrate_directions,
+    direction_warnings,
     predict_directions,
     read_directions,
     rotation_vector,
@@ -176,6 +177,8 @@ def test_finite_distance_held_out():
     # free, it is found with an honest, large error and f with it
     free_z = calibrate_directions(az, el, d, distance_mm=150.0)
     assert free_z.problem["stage"]["std"]["offset_z_mm"] > 5.0 and free_z.std["f_mm"] > 50 * res.std["f_mm"]
+    warn = direction_warnings(free_z)
+    assert any("f_mm" in w and "offset_z_mm" in w for w in warn) and direction_warnings(res) == []
     assert abs(free_z.intrinsics.f_mm - 8.0) < 3 * free_z.std["f_mm"]
     # ignoring the offsets (a source at infinity) leaves residuals far above the noise
     res_inf = calibrate_directions(az, el, d)
@@ -243,3 +246,26 @@ def test_cli_calibrate_directions_and_use(tmp_path, capsys):
     err = capsys.readouterr().err
     assert code == 2 and "bad.csv:3" in err and "el_deg" in err and len(err.strip().splitlines()) == 1
     assert not (tmp_path / "x.json").exists()
+
+
+def test_cli_amplitudes_with_fitted_gains(tmp_path, capsys):
+    """Raw amplitudes through unequal channel gains: --fit-gains recovers them."""
+    from psdcal.model.readout import photocurrents
+
+    az, el = sweep_grid(20, 20, 9, 9)
+    g = np.array([1.0, 1.03, 0.98, 1.01])
+    d = simulate_sweep(INTR, DIST, RVEC, az, el)
+    amps = photocurrents(d) * g
+    rows = ["az_deg,el_deg,vx1,vx2,vy1,vy2"] + [f"{a:.10g},{e:.10g}," + ",".join(f"{v:.15g}" for v in amp)
+                                                for a, e, amp in zip(az, el, amps)]
+    (tmp_path / "amps.csv").write_text("\n".join(rows) + "\n")
+    cal = tmp_path / "cal.json"
+    code = main(["calibrate-directions", str(tmp_path / "amps.csv"), "--fit-gains", "-o", str(cal), "-q"])
+    assert code == 0, capsys.readouterr().err
+    c = json.loads(cal.read_text())
+    np.testing.assert_allclose(c["gains"], g, rtol=1e-8)
+    assert c["intrinsics"]["f_mm"] == pytest.approx(8.0, rel=1e-8)
+    # points instead of amplitudes with --fit-gains: refused
+    write_directions(tmp_path / "pts.csv", az, el, d)
+    code = main(["calibrate-directions", str(tmp_path / "pts.csv"), "--fit-gains", "-o", str(tmp_path / "x.json")])
+    assert code == 2 and "amplitudes" in capsys.readouterr().err

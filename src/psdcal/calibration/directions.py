@@ -574,6 +574,39 @@ def check_result(result):
     return result
 
 
+#: Two fitted parameters whose correlation exceeds this are reported as (nearly) not separable
+#: by :func:`direction_warnings`.
+DEGENERATE_CORRELATION = 0.999
+
+
+def direction_warnings(result) -> list[str]:
+    """What a direction calibration cannot separate, and the misfit check of the template calibration.
+
+    A correlation above :data:`DEGENERATE_CORRELATION` between two fitted
+    parameters (e.g. the offset along the boresight and f with a near
+    source, or C and the stage rotation on a narrow sweep) means the sweep
+    determines only their combination: both standard errors are large and
+    honest, but a user reading one of them alone is misled. The fix is to
+    measure one and ``--fix`` it (or give it a ``--prior``), or sweep wider.
+    """
+    out = list(result.warnings())
+    fit = result.problem.get("fit") if result.problem else None
+    if not fit:
+        return out
+    names = fit["names"]
+    C = np.asarray(fit["covariance"], dtype=float)
+    s = np.sqrt(np.clip(np.diag(C), 1e-300, None))
+    rho = C / np.outer(s, s)
+    np.fill_diagonal(rho, 0.0)
+    done = set()
+    for i, j in zip(*np.nonzero(np.abs(rho) > DEGENERATE_CORRELATION)):
+        if i < j and i not in done and j not in done:
+            done.update((i, j))
+            out.append(f"{names[i]} and {names[j]} are not separable by this sweep (correlation {rho[i, j]:+.4f}): "
+                       f"measure one and --fix it (or give it a --prior), or sweep wider")
+    return out
+
+
 def recalibrate_directions(d: dict):
     """Re-run a direction calibration from the problem record inside its JSON dict."""
     from psdcal.calibration._refine import SolverOptions

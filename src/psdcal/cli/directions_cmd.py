@@ -55,7 +55,7 @@ def calibrate_directions_command(directions, output, distance_mm, radial, tangen
     Example: psdcal calibrate-directions sweep.csv -o calib.json
     """
     from psdcal.calibration._refine import SolverOptions
-    from psdcal.calibration.directions import calibrate_directions, check_result, read_directions
+    from psdcal.calibration.directions import calibrate_directions, check_result, direction_warnings, read_directions
     from psdcal.calibration.priors import parse_fix, parse_prior, read_prior_file
     from psdcal.errors import DegenerateViewsError, InputError
     from psdcal.io import save_calibration
@@ -90,6 +90,9 @@ def calibrate_directions_command(directions, output, distance_mm, radial, tangen
             click.echo("offsets (mm): " + ", ".join(
                 f"{n} {v:.4g} +- {std[n]:.2g}" if std.get(n) is not None else f"{n} {v:.4g} (fixed)"
                 for n, v in zip(("offset_x_mm", "offset_y_mm", "offset_z_mm"), st["offset_mm"])))
+        for w in direction_warnings(res):
+            if w not in res.warnings():  # print_calibration showed those
+                click.echo(f"warning: {w}")
         if output is not None:
             click.echo(f"wrote {output}")
 
