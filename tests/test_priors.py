@@ -234,6 +234,9 @@ def test_cli_fix_and_prior(tmp_path, capsys):
     assert d["intrinsics"]["f_mm"] == 8.0 and d["std"]["f_mm"] is None and d["std"]["k2"] is None
     assert d["problem"]["options"]["fix"] == {"f_mm": 8.0, "k2": 0.0}
     assert d["problem"]["options"]["priors"][0]["mean"] == [0.01]
+    # the constrained calibration is an ordinary calibration file for the other commands
+    assert main(["report", str(cal), "-o", str(tmp_path / "r.html")]) == 0
+    assert main(["compare", str(cal), str(cal)]) == 0
     capsys.readouterr()
     code = main(["calibrate", str(out / "points.csv"), "-t", str(out / "template.csv"), "-o", str(tmp_path / "x.json"),
                  "--fix", "focal=8"])
