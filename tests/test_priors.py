@@ -243,3 +243,17 @@ def test_cli_fix_and_prior(tmp_path, capsys):
     err = capsys.readouterr().err
     assert code == 2 and "NAME=VALUE" in err and len(err.strip().splitlines()) == 1
     assert not (tmp_path / "x.json").exists()
+
+
+def test_template_cost_prior_and_fix(data):
+    """The plate-plane cost (Eq 29): s^2 in plate mm^2; a wide prior is the free fit, a fix removes the parameter."""
+    s, _ = data
+    free = _fit(s, cost="template", priors={"f_mm": (8.0, np.inf)})
+    wide = _fit(s, cost="template", priors={"f_mm": (8.0, 1e12)})
+    for n in free.param_names:
+        assert wide.parameter(n) == pytest.approx(free.parameter(n), rel=1e-9, abs=1e-9 * free.std[n])
+    sf = free.std["f_mm"]
+    mid = _fit(s, cost="template", priors={"f_mm": (free.intrinsics.f_mm, sf)})
+    assert mid.std["f_mm"] == pytest.approx(sf / np.sqrt(2), rel=0.01)
+    fixed = _fit(s, cost="template", fix={"cx_mm": 0.5})
+    assert fixed.cost == "template" and fixed.std["cx_mm"] is None and fixed.intrinsics.cx_mm == 0.5
