@@ -203,6 +203,17 @@ def test_fix_and_prior_in_direction_calibration():
     expect = np.linalg.inv(np.linalg.inv(C_free) / s2r + P)
     np.testing.assert_allclose(np.array(pri.problem["fit"]["covariance"]), expect, rtol=1e-5,
                                atol=1e-9 * np.max(np.abs(np.diag(expect))))
+    # a prior on the stage rotation (the mount's drawing): the same information sum
+    i = free.problem["fit"]["names"].index("stage_rx")
+    sr = free.problem["stage"]["std"]["stage_rx"]
+    pr = calibrate_directions(az, el, d, priors={"stage_rx": (free.rvecs[0, 0], sr)})
+    P = np.zeros((n, n))
+    P[i, i] = 1 / sr**2
+    s2r = pr.sigma_mm**2 / free.sigma_mm**2
+    expect = np.linalg.inv(np.linalg.inv(C_free) / s2r + P)
+    np.testing.assert_allclose(np.array(pr.problem["fit"]["covariance"]), expect, rtol=1e-5,
+                               atol=1e-9 * np.max(np.abs(np.diag(expect))))
+    assert pr.std["cy_mm"] < 0.9 * free.std["cy_mm"]  # a rotation about x shifts the spots in y, like cy: both sharpen
 
 
 def test_json_round_trip_recalibrate_and_bad_sweeps(tmp_path):

@@ -475,11 +475,8 @@ def calibrate_directions(
 
 
 def _prior_rows_full(priors, model, prior_rows):
-    names = list(model.names)
-    W, b = prior_rows(priors, list(model.global_names))
-    Wf = np.zeros((W.shape[0], len(names)))
-    Wf[:, : W.shape[1]] = W
-    return Wf, b
+    """Whitened prior rows over the whole state (global parameters, stage rotation, offsets)."""
+    return prior_rows(priors, list(model.names))
 
 
 def _result(model, fit, az, el, X, ids, spec, g0, gains_arg, fit_gains, fix, priors, distance_mm, sensor_mm, solver, linear):

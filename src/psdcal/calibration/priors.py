@@ -41,6 +41,10 @@ from psdcal.model.params import DISTORTION_NAMES
 #: Every global parameter a calibration can fix or give a prior.
 PARAMETER_NAMES = ("f_mm", "cx_mm", "cy_mm", "skew", "fy_mm", *DISTORTION_NAMES, "g_x2", "g_y1", "g_y2")
 GAIN_NAMES = ("g_x2", "g_y1", "g_y2")
+#: Parameters of a direction (rotation-stage) calibration that may also get a prior
+#: (:mod:`psdcal.calibration.directions`): the stage rotation (rad) and the offsets (mm).
+STAGE_PARAMETER_NAMES = ("stage_rx", "stage_ry", "stage_rz", "offset_x_mm", "offset_y_mm", "offset_z_mm")
+_PRIOR_NAMES = PARAMETER_NAMES + STAGE_PARAMETER_NAMES
 _GAIN_INDEX = {"g_x2": 1, "g_y1": 2, "g_y2": 3}
 #: The LM step test compares the step with the state in Marquardt's scaled norm; a tight prior
 #: makes its parameter's scale dominate that norm, and the test would stop the other
@@ -77,8 +81,8 @@ class GaussianPrior:
             raise InputError(f"a prior on {k} parameters needs {k} means and a {k}x{k} covariance, "
                              f"got {mean.shape} and {cov.shape}", path=where)
         for n in names:
-            if n not in PARAMETER_NAMES:
-                raise InputError(f"unknown parameter {n!r} (one of {', '.join(PARAMETER_NAMES)})", path=where, field="names")
+            if n not in _PRIOR_NAMES:
+                raise InputError(f"unknown parameter {n!r} (one of {', '.join(_PRIOR_NAMES)})", path=where, field="names")
         if len(set(names)) != k:
             raise InputError("a parameter appears twice in one prior", path=where, field="names")
         if not np.all(np.isfinite(mean)):
@@ -155,8 +159,9 @@ def parse_prior(text: str) -> GaussianPrior:
     name, sep, rest = str(text).partition("=")
     name = name.strip()
     parts = rest.split(",")
-    if not sep or name not in PARAMETER_NAMES or len(parts) != 2:
-        raise InputError(f"--prior {text!r}: expected NAME=VALUE,STD with NAME one of {', '.join(PARAMETER_NAMES)}")
+    if not sep or name not in _PRIOR_NAMES or len(parts) != 2:
+        raise InputError(f"--prior {text!r}: expected NAME=VALUE,STD with NAME one of {', '.join(PARAMETER_NAMES)} "
+                         "(and for calibrate-directions stage_rx/ry/rz, offset_x_mm/y_mm/z_mm)")
     value = _number(parts[0].strip(), f"--prior {name} value")
     std = _number(parts[1].strip(), f"--prior {name} std")
     if not math.isfinite(value) or std < 0:
