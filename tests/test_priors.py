@@ -257,3 +257,30 @@ def test_template_cost_prior_and_fix(data):
     assert mid.std["f_mm"] == pytest.approx(sf / np.sqrt(2), rel=0.01)
     fixed = _fit(s, cost="template", fix={"cx_mm": 0.5})
     assert fixed.cost == "template" and fixed.std["cx_mm"] is None and fixed.intrinsics.cx_mm == 0.5
+
+
+def test_reads_the_electrical_calibration_json(tmp_path):
+    """The gains JSON of the electrical calibration (GainCalibration.to_dict) is a prior file as it is."""
+    from psdcal.calibration.gains import calibrate_gains
+    from psdcal.model.readout import gain_map
+
+    rng = np.random.default_rng(1)
+    spots = np.stack(np.meshgrid(np.linspace(-3.5, 3.5, 7), np.linspace(-3.5, 3.5, 7)), -1).reshape(-1, 2)
+    g = np.array([1.0, 1.02, 0.97, 1.01])
+    gc = calibrate_gains(spots, gain_map(spots, g) + rng.normal(0, 0.002, spots.shape))
+    p = tmp_path / "gains.json"
+    d = gc.to_dict()
+    p.write_text(json.dumps(d))
+    pr = read_prior_file(p)
+    assert pr.names == ("g_x2", "g_y1", "g_y2")
+    np.testing.assert_allclose(pr.mean, gc.gains[1:])
+    np.testing.assert_allclose(np.sqrt(np.diag(pr.covariance)), gc.std)
+    # with the full covariance and names (the 'gains' command's file), the covariance is used as it is
+    d.update(names=["g_x2", "g_y1", "g_y2"], covariance=gc.covariance.tolist())
+    p.write_text(json.dumps(d))
+    np.testing.assert_allclose(read_prior_file(p).covariance, gc.covariance)
+    # a 4 x 4 covariance over (g_x1, ...) with g_x1 exactly 1: its first row and column dropped
+    C4 = np.zeros((4, 4))
+    C4[1:, 1:] = gc.covariance
+    p.write_text(json.dumps({"names": ["g_x1", "g_x2", "g_y1", "g_y2"], "values": gc.gains.tolist(), "covariance": C4.tolist()}))
+    np.testing.assert_allclose(read_prior_file(p).covariance, gc.covariance)
