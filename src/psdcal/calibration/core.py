@@ -377,6 +377,8 @@ def calibrate(
     point_ids=None,
     sensor_mm: tuple[float, float] = (LX_MM, LY_MM),
     solver: SolverOptions = SolverOptions(),
+    fix: dict | None = None,
+    priors=None,
 ) -> CalibrationResult:
     """Calibrate a PSD + lens sensor from views of a planar LED template.
 
@@ -420,6 +422,14 @@ def calibrate(
         Identifiers carried into the result (default 0..n-1).
     sensor_mm : (Lx, Ly) active lengths of the PSD, mm.
     solver : SolverOptions
+    fix : dict name -> value, optional
+        Global parameters held at the given value (``{"f_mm": 8.0, "k2": 0.0}``;
+        any of :data:`psdcal.calibration.priors.PARAMETER_NAMES`). Their
+        standard error is None and they cost no degree of freedom.
+    priors : GaussianPrior, dict ``{name: (value, std)}``, prior-file path, or a list of these
+        Gaussian priors on free global parameters (:mod:`psdcal.calibration.priors`):
+        the maximum a-posteriori fit, with degrees of freedom and standard
+        errors that account for them (``s^2`` from the data residuals only).
 
     Returns
     -------
@@ -440,12 +450,64 @@ def calibrate(
     """
     from psdcal.calibration._refine import _single_threaded_blas
 
+    if fix or priors is not None:
+        return _calibrate_constrained(
+            template_mm, points_mm, cost=cost, radial=radial, tangential=tangential, psd_radial=psd_radial,
+            skew=skew, preliminary=preliminary, normalize=normalize, aspect=aspect, fit_gains=fit_gains,
+            gains=gains, image_ids=image_ids, point_ids=point_ids, sensor_mm=sensor_mm, solver=solver,
+            fix=fix, priors=priors,
+        )
     with _single_threaded_blas():  # small dense linear algebra: one BLAS thread is fastest
         return _calibrate(
             template_mm, points_mm, cost=cost, radial=radial, tangential=tangential, psd_radial=psd_radial,
             skew=skew, preliminary=preliminary, normalize=normalize, aspect=aspect, fit_gains=fit_gains,
             gains=gains, image_ids=image_ids, point_ids=point_ids, sensor_mm=sensor_mm, solver=solver,
         )
+
+
+def _calibrate_constrained(template_mm, points_mm, *, fix, priors, gains, fit_gains, solver, **kw) -> CalibrationResult:
+    """``calibrate`` with fixed parameters and Gaussian priors (:mod:`psdcal.calibration.priors`).
+
+    The free calibration (all start strategies) gives the start; the fixed /
+    prior-weighted problem is then refined from it. Known gains given by
+    ``fix`` (without ``fit_gains``) are applied like ``gains=``.
+    """
+    from psdcal.calibration._refine import _single_threaded_blas
+    from psdcal.calibration.priors import GAIN_NAMES, PARAMETER_NAMES, as_priors, constrain, split_priors
+
+    fix = {str(n): float(v) for n, v in (fix or {}).items()}
+    for n, v in fix.items():
+        if n not in PARAMETER_NAMES:
+            raise InputError(f"fix: unknown parameter {n!r} (one of {', '.join(PARAMETER_NAMES)})", field="fix")
+        if not np.isfinite(v):
+            raise InputError(f"fix: {n} must be finite", field="fix")
+    pri, fix = split_priors(as_priors(priors), fix)
+    merged = {}
+    if not fit_gains and any(n in GAIN_NAMES for n in fix):
+        g = np.ones(4) if gains is None else np.asarray(gains, dtype=float) / float(np.asarray(gains)[0])
+        for i, n in enumerate(GAIN_NAMES, start=1):
+            if n in fix:
+                merged[n] = fix.pop(n)
+                g[i] = merged[n]
+        gains = g
+    with _single_threaded_blas():
+        try:
+            free = _calibrate(template_mm, points_mm, gains=gains, fit_gains=fit_gains, solver=solver, **kw)
+        except ConvergenceError as exc:  # the constraints may be what makes the problem well posed
+            if exc.result is None:
+                raise
+            free = exc.result
+        # without any fix or informative prior this is the free fit, polished by Gauss-Newton steps
+        result = constrain(free, fix, pri, solver, merged_gain_fix=merged)
+    what = "constrained " + result.cost
+    if not result.converged:
+        raise ConvergenceError(f"the {what}-cost refinement did not converge in {result.iterations} iterations "
+                               f"({result.message}); check the fixed values and priors", result=result)
+    why = implausible(result)
+    if why:
+        raise ConvergenceError(f"the {what}-cost refinement stopped at a solution that is not a camera ({why}); "
+                               "check the fixed values and priors", result=result)
+    return result
 
 
 def _calibrate(template_mm, points_mm, *, cost, radial, tangential, psd_radial, skew, preliminary, normalize,
@@ -690,6 +752,10 @@ def recalibrate(calib: dict | CalibrationResult) -> CalibrationResult:
     """Re-run a calibration exactly from the problem record saved inside it."""
     d = calib.to_dict() if isinstance(calib, CalibrationResult) else calib
     p = d["problem"]
+    if p.get("kind") == "directions":  # a rotation-stage calibration (psdcal.calibration.directions)
+        from psdcal.calibration.directions import recalibrate_directions
+
+        return recalibrate_directions(d)
     o = p["options"]
     X = np.array([[[np.nan if v is None else v for v in pt] for pt in img] for img in p["points"]["xy_mm"]], dtype=float)
     return calibrate(
@@ -709,4 +775,12 @@ def recalibrate(calib: dict | CalibrationResult) -> CalibrationResult:
         point_ids=p["template"]["point_ids"],
         sensor_mm=tuple(o.get("sensor_mm", (LX_MM, LY_MM))),
         solver=SolverOptions(**o.get("solver", {})),
+        fix=o.get("fix") or None,
+        priors=[_prior_from_record(q) for q in o.get("priors") or []] or None,
     )
+
+
+def _prior_from_record(q: dict):
+    from psdcal.calibration.priors import GaussianPrior
+
+    return GaussianPrior.from_dict(q)

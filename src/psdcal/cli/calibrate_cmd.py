@@ -43,9 +43,19 @@ def model_options(f):
               help="Estimate the three relative channel gains jointly (POINTS must carry raw amplitudes vx1,vx2,vy1,vy2).")
 @click.option("--reject", "reject_k", type=click.FloatRange(min=0.0, min_open=True), default=None, metavar="K",
               help="Remove points whose residual exceeds K robust noise sigmas, refit, and list them (e.g. 5).")
+@click.option("--fix", "fix_items", multiple=True, metavar="NAME=VALUE",
+              help="Hold a global parameter at VALUE (repeatable): f_mm, cx_mm, cy_mm, skew, fy_mm, k1-k3, p1, p2, "
+                   "l1, l2, g_x2, g_y1, g_y2. E.g. --fix f_mm=8.0 --fix k2=0. Its std is reported as null.")
+@click.option("--prior", "prior_items", multiple=True, metavar="NAME=VALUE,STD",
+              help="Gaussian prior VALUE +- STD on a free global parameter (repeatable), e.g. --prior f_mm=8.0,0.05. "
+                   "STD 0 fixes it, inf is no prior.")
+@click.option("--prior-file", "prior_files", multiple=True, type=click.Path(dir_okay=False, path_type=Path),
+              help="JSON prior with a mean vector and covariance (keys names, values|mean|gains, covariance|std), "
+                   "e.g. the gains JSON of `psdcal gains` with --fit-gains (repeatable).")
 @click.option("--quiet", "-q", is_flag=True, help="Print nothing but errors.")
 def calibrate_command(points, template, output, cost, radial, tangential, psd_radial, skew, aspect, preliminary,
-                      normalize, sensor_mm, max_iterations, fit_gains, quiet, reject_k=None):
+                      normalize, sensor_mm, max_iterations, fit_gains, quiet, reject_k=None, fix_items=(),
+                      prior_items=(), prior_files=()):
     """Calibrate a PSD + lens sensor from views of a planar LED template.
 
     POINTS is a CSV of impact points, `image_id,point_id,x_mm,y_mm` (a missing
@@ -60,6 +70,10 @@ def calibrate_command(points, template, output, cost, radial, tangential, psd_ra
     from psdcal.io import read_points, read_template, save_calibration
     from psdcal.report.text import print_calibration
 
+    from psdcal.calibration.priors import parse_fix, parse_prior, read_prior_file
+
+    fix = parse_fix(fix_items) or None
+    priors = [parse_prior(t) for t in prior_items] + [read_prior_file(f) for f in prior_files]
     tids, txy = read_template(template)
     pf = read_points(points, tids, sensor_mm=sensor_mm)
     if fit_gains and pf.kind != "amplitudes":
@@ -72,6 +86,7 @@ def calibrate_command(points, template, output, cost, radial, tangential, psd_ra
             preliminary=preliminary, normalize=normalize, aspect=aspect, fit_gains=fit_gains,
             image_ids=pf.image_ids, point_ids=tids, sensor_mm=tuple(sensor_mm),
             solver=SolverOptions(max_iterations=max_iterations),
+            **({"fix": fix, "priors": priors} if (fix or priors) else {}),
         )
     except DegenerateViewsError as exc:
         raise DegenerateViewsError(f"{points}: {exc}") from None
@@ -93,6 +108,7 @@ def calibrate_command(points, template, output, cost, radial, tangential, psd_ra
         save_calibration(output, res)
     if not quiet:
         print_calibration(res)
+        _echo_constraints(res)
         if output is not None:
             click.echo(f"wrote {output}")
 
@@ -106,3 +122,18 @@ def _with_inputs(res, template, points):
     for role, p in (("template", template), ("points", points)):
         files[role] = {"path": str(p), "sha256": hashlib.sha256(Path(p).read_bytes()).hexdigest()}
     return dataclasses.replace(res, problem={**res.problem, "files": files})
+
+
+def _echo_constraints(res):
+    """One line each for the fixed parameters and the priors of a constrained calibration (none otherwise)."""
+    o = res.problem.get("options", {}) if res.problem else {}
+    if o.get("fix"):
+        click.echo("fixed: " + ", ".join(f"{n} = {v:.6g}" for n, v in o["fix"].items()))
+    for p in o.get("priors") or []:
+        sd = [c[i] ** 0.5 if c[i] is not None else float("inf") for i, c in enumerate(p["covariance"])]
+        click.echo(f"prior ({p.get('source') or 'argument'}): " + ", ".join(
+            f"{n} = {m:.6g} +- {s:.2g}" for n, m, s in zip(p["names"], p["mean"], sd)))
+    pf = res.problem.get("prior_fit") if res.problem else None
+    if pf:
+        click.echo(f"degrees of freedom {pf['dof']:.2f} (the priors determine {pf['prior_dof']:.2f} parameters); "
+                   "noise estimated from the data residuals only")
