@@ -16,7 +16,7 @@ lens' projection centre offset by ``t`` (``offset_*_mm``, stage frame) from
 that point, ``v = R_s (D u - t)`` (the offsets are fitted only then: for a
 source at infinity they do not matter).
 
-Then the template calibration's model (Eq 4 pinhole, the MODEL.md 5
+Then the template calibration's model (Eq 4 pinhole, the docs/model.md#distortion
 distortion, Eq 1-2 readout through the channel gains) gives the measured
 point ``d``. Levenberg-Marquardt over the intrinsics, distortion (same
 switches as :func:`psdcal.calibrate`), optional gains, the stage rotation and
