@@ -137,6 +137,9 @@ def simulate_template_command(lens, psd_l1, views, mux, fmt, rate_hz, carrier_hz
 @click.option("--speed-mm-s", type=float, default=500.0, show_default=True, help="Speed of the moving emitter.")
 @click.option("--radius-mm", type=float, default=600.0, show_default=True, help="Radius of the circle.")
 @click.option("--duration-s", type=float, default=1.0, show_default=True, help="Recording length.")
+@click.option("--survey-s", type=float, default=0.0, show_default=True,
+              help="Light the fixed emitters during the first SURVEY_S seconds only and the moving one after "
+                   "(a survey for `pose`, then the tracking); 0: all lit all the time.")
 @click.option("--mux", type=click.Choice(["fdm", "tdm"]), default="fdm", show_default=True,
               help="fdm: every emitter on its own carrier; tdm: the emitters take turns (schedule.csv).")
 @click.option("--slot-s", type=float, default=0.02, show_default=True, help="tdm: time each emitter is on.")
@@ -154,7 +157,7 @@ def simulate_template_command(lens, psd_l1, views, mux, fmt, rate_hz, carrier_hz
 @click.option("-o", "--out-dir", type=click.Path(file_okay=False, path_type=Path), required=True,
               help="Output folder.")
 def simulate_room_command(lens, psd_l1, calib, room_m, n_sensors, anchors, moving, speed_mm_s, radius_mm, duration_s,
-                          mux, slot_s, fmt, rate_hz, carrier_hz, carrier_step_hz, snr_db, gain_imbalance, seed,
+                          survey_s, mux, slot_s, fmt, rate_hz, carrier_hz, carrier_step_hz, snr_db, gain_imbalance, seed,
                           out_dir):
     """Recordings of emitters (fixed and moving) seen by sensors placed in a room.
 
@@ -181,7 +184,7 @@ def simulate_room_command(lens, psd_l1, calib, room_m, n_sensors, anchors, movin
     sensors, emitters = room_layout(truth_model, room_mm=np.array(room_m) * 1000.0, n_sensors=n_sensors,
                                     n_anchors=anchors, moving=None if moving == "none" else moving,
                                     speed_mm_s=speed_mm_s, radius_mm=radius_mm, carrier_hz=carrier_hz,
-                                    carrier_step_hz=carrier_step_hz, seed=seed)
+                                    carrier_step_hz=carrier_step_hz, seed=seed, survey_s=survey_s)
     if not emitters:
         raise InputError("no emitters: give --anchors > 0 or a --moving trajectory", field="anchors")
     rr = simulate_room(sensors, emitters, duration_s=duration_s, rate_hz=rate_hz, snr_db=snr_db, mux=mux,
@@ -223,3 +226,192 @@ def simulate_room_command(lens, psd_l1, calib, room_m, n_sensors, anchors, movin
                f"sensors.json, emitters.csv, truth.json, truth_track.csv to {out_dir}")
     if hidden:
         click.echo(f"warning: not always in view: {', '.join(f'{e} from {s}' for s, e in hidden)}", err=True)
+
+
+# --------------------------------------------------------------------------- pose
+def _merge_sensors_file(path: Path, entry: dict) -> None:
+    """Add ``entry`` to the sensors file ``path`` (replacing one of the same name); create it if missing."""
+    import json
+
+    from psdcal.errors import InputError
+    from psdcal.io import write_json
+
+    sensors = []
+    if path.exists():
+        try:
+            data = json.loads(path.read_text(encoding="utf-8"))
+        except json.JSONDecodeError as exc:
+            raise InputError(f"not valid JSON: {exc.msg}", path=path, line=exc.lineno) from None
+        sensors = data.get("sensors") if isinstance(data, dict) else data
+        if not isinstance(sensors, list):
+            raise InputError("expected a list of sensors", path=path, field="sensors")
+    sensors = [s for s in sensors if not (isinstance(s, dict) and s.get("name") == entry["name"])] + [entry]
+    write_json(path, {"sensors": sensors})
+
+
+def _read_table(path):
+    """(header, rows) of a CSV whose header names 'emitter' (a locate or amplitudes output), else None."""
+    import csv
+
+    with open(path, newline="", encoding="utf-8") as fh:
+        rows = list(csv.reader(fh))
+    if not rows or "emitter" not in [h.strip() for h in rows[0]]:
+        return None
+    return [h.strip() for h in rows[0]], [r for r in rows[1:] if r and any(c.strip() for c in r)]
+
+
+def _table_means(path, header, rows, model):
+    import numpy as np
+
+    from psdcal.errors import InputError
+    from psdcal.measure.pose import mean_amplitudes, mean_points
+
+    def column(name):
+        i = header.index(name)
+        out = []
+        for lineno, r in enumerate(rows, start=2):
+            try:
+                out.append(float(r[i]))
+            except (ValueError, IndexError):
+                raise InputError(f"not a number: {r[i] if i < len(r) else ''!r}", path=path, line=lineno,
+                                 field=name) from None
+        return np.array(out)
+
+    names = [r[header.index("emitter")].strip() for r in rows]
+    amp = ("vx1", "vx2", "vy1", "vy2")
+    if all(c in header for c in amp):
+        a = np.stack([column(c) for c in amp], -1)
+        if all(f"sigma_{c}" in header for c in amp):
+            v = np.stack([column(f"sigma_{c}") for c in amp], -1) ** 2
+        else:
+            v = np.ones_like(a)
+        return mean_amplitudes(names, a, v, model)
+    if all(c in header for c in ("x_mm", "y_mm")):
+        d = np.stack([column("x_mm"), column("y_mm")], -1)
+        if all(c in header for c in ("sigma_x_mm", "sigma_y_mm")):
+            s = np.stack([column("sigma_x_mm"), column("sigma_y_mm")], -1)
+        else:
+            s = np.full_like(d, 1e-3)
+        return mean_points(names, d, s)
+    raise InputError("the table must have x_mm,y_mm (a locate output) or vx1,vx2,vy1,vy2 (amplitudes)",
+                     path=path, line=1)
+
+
+@cli.command("pose")
+@click.argument("source", type=click.Path(dir_okay=False, path_type=Path))
+@click.option("--calib", required=True, type=click.Path(dir_okay=False, path_type=Path),
+              help="Calibration JSON of the sensor (its covariance enters the pose's).")
+@click.option("--emitters", "emitters_csv", required=True, type=click.Path(dir_okay=False, path_type=Path),
+              help="CSV emitter,X_m,Y_m,Z_m[,carrier_hz]: the known emitters in the room frame (metres).")
+@click.option("--rate-hz", type=float, help="Sampling rate (when the recording does not carry one).")
+@click.option("--carrier-hz", "carriers", type=float, multiple=True,
+              help="Carrier of an emitter, repeat (default: the emitters file's carrier_hz column).")
+@click.option("--emitter", "emitter_names", multiple=True, help="Name of each --carrier-hz's emitter.")
+@click.option("--also-carrier-hz", "also", type=float, multiple=True,
+              help="Other carriers in the recording (emitters not in the file, e.g. a moving tag): fitted "
+                   "jointly so they do not leak into the known emitters' amplitudes; repeat.")
+@click.option("--window-s", type=float, default=0.01, show_default=True, help="Demodulation window.")
+@click.option("--schedule", type=click.Path(dir_okay=False), help="TDM schedule CSV (implies --tdm).")
+@click.option("--tdm", is_flag=True, help="Time multiplexing (one carrier; names from --schedule).")
+@click.option("--min-snr", type=float, default=10.0, show_default=True, help="Drop windows below this many sigma.")
+@click.option("--known-rvec", type=(float, float, float), default=None,
+              help="Known orientation (rotation vector world -> camera, rad): only the position is estimated.")
+@click.option("--known-height-m", type=float, default=None, help="Known height of the sensor's centre, m.")
+@click.option("--name", default="s1", show_default=True, help="Sensor name in the sensors file.")
+@click.option("--recording", "rec_key", type=click.Path(dir_okay=False, path_type=Path),
+              help="Recording the sensors-file entry names (default: SOURCE when it is a recording).")
+@click.option("--into", type=click.Path(dir_okay=False, path_type=Path),
+              help="Add (or replace, by name) the entry in this sensors file (created if missing).")
+@click.option("-o", "--output", type=click.Path(dir_okay=False, path_type=Path),
+              help="Write the entry alone as JSON.")
+def pose_command(source, calib, emitters_csv, rate_hz, carriers, emitter_names, also, window_s, schedule, tdm, min_snr,
+                 known_rvec, known_height_m, name, rec_key, into, output):
+    """Estimate a calibrated sensor's rotation and position in the room (PnP + maximum likelihood).
+
+    SOURCE is the sensor's recording of >= 3 emitters at known positions
+    (2 with --known-rvec, 1 with --known-rvec and --known-height-m), or a table
+    with an 'emitter' column: a `locate` output (x_mm,y_mm,sigma_x_mm,sigma_y_mm)
+    or an `amplitudes` output.  The windows of each emitter are averaged.
+
+    \b
+    Writes the sensors-file entry `locate --sensors` reads: name, calib, rvec, tvec_mm,
+    recording, plus pose_covariance (6x6 over omega_x,y,z rad and tx,ty,tz mm, the angle
+    noise and the calibration covariance) and pose (centre, 1-sigma, chi2, warnings).
+    \b
+    Example:
+      psdcal pose room/s1.npy --rate-hz 20000 --calib calib.json --emitters room/emitters.csv \\
+          --name s1 --into sensors.json
+    Collinear or too few emitters: an error; a poor layout or angles that do not fit
+    the coordinates (chi2, 0.1 % false alarms): a warning on stderr and in the entry.
+    """
+    import os
+    import tempfile
+
+    import numpy as np
+
+    from psdcal.errors import InputError
+    from psdcal.io import write_json
+    from psdcal.measure.pose import pose_from_means, read_emitters
+    from psdcal.measure.sensor_model import SensorModel
+
+    if into is None and output is None:
+        raise InputError("give --into SENSORS.json and/or -o ENTRY.json", field="output")
+    model = SensorModel.load(calib)
+    names_w, P, carriers_w = read_emitters(emitters_csv)
+    table = _read_table(source) if source.suffix.lower() == ".csv" and source.exists() else None
+    if table is not None:
+        means = _table_means(source, *table, model)
+        recording = rec_key
+    else:
+        from psdcal.measure.locate import LocateConfig, amplitudes_to_csv
+        from psdcal.signal.recording import open_recording
+        from psdcal.signal.stream import load_schedule
+
+        sched = load_schedule(schedule) if schedule else None
+        is_tdm = bool(tdm or sched is not None)
+        if carriers:
+            cs, ems = tuple(carriers), tuple(emitter_names) or None
+        elif is_tdm:
+            raise InputError("time multiplexing: give the --carrier-hz", field="carrier_hz")
+        elif carriers_w is None:
+            raise InputError("give --carrier-hz (or a carrier_hz column in the emitters file)", path=emitters_csv,
+                             field="carrier_hz")
+        else:
+            cs, ems = tuple(float(f) for f in carriers_w), tuple(names_w)
+        if also:
+            if is_tdm:
+                raise InputError("--also-carrier-hz is for frequency multiplexing", field="also_carrier_hz")
+            ems = (ems or tuple(f"{f:g}Hz" for f in cs)) + tuple(f"other{j + 1}" for j in range(len(also)))
+            cs = cs + tuple(also)
+        config = LocateConfig(carriers_hz=cs, window_s=window_s, emitters=ems, min_snr=min_snr, tdm=is_tdm,
+                              schedule=sched)
+        rec = open_recording(source, rate_hz)
+        with tempfile.TemporaryDirectory() as tmp:
+            amp = Path(tmp) / "amp.csv"
+            amplitudes_to_csv(rec, amp, config)
+            header, rows = _read_table(amp)
+            means = _table_means(amp, header, rows, model)
+        recording = rec_key or source
+    moved = [nm for nm, p in zip(means.names, means.scatter_p) if np.isfinite(p) and p < 1e-6]
+    res = pose_from_means(means, model, names_w, P, known_rvec=known_rvec,
+                          known_height_mm=None if known_height_m is None else known_height_m * 1000.0)
+    base = (into or output).resolve().parent
+
+    def rel(p):
+        return None if p is None else os.path.relpath(Path(p).resolve(), base)
+
+    entry = res.sensors_entry(name, rel(calib), rel(recording))
+    if moved:
+        entry["pose"]["warnings"].append(f"emitter(s) {moved} scatter more than their noise between windows "
+                                         "(moving, or a changing signal)")
+    if output is not None:
+        write_json(output, entry)
+    if into is not None:
+        _merge_sensors_file(into, entry)
+    c = res.center_w_mm / 1000.0
+    sc = res.sigma_center_mm
+    click.echo(f"{name}: centre ({c[0]:.4f}, {c[1]:.4f}, {c[2]:.4f}) m +- ({sc[0]:.3g}, {sc[1]:.3g}, {sc[2]:.3g}) mm, "
+               f"rotation +- {res.sigma_rotation_deg.max():.3g} deg, {res.n_emitters} emitters, chi2 {res.chi2:.3g} "
+               f"for {res.dof} dof; wrote {', '.join(str(p) for p in (output, into) if p is not None)}")
+    for w in entry["pose"]["warnings"]:
+        click.echo(f"warning: {w}", err=True)

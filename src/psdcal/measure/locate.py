@@ -32,7 +32,7 @@ import numpy as np
 from psdcal._atomic import atomic_path
 from psdcal.measure.aoa import angles_from_amplitudes, angles_from_points, impact_from_amplitudes
 from psdcal.errors import InputError, ZeroSignalError
-from psdcal.measure.positioning import plane_position, triangulate
+from psdcal.measure.positioning import plane_position, pose_covariances, triangulate
 from psdcal.signal.recording import DEFAULT_CHUNK, Recording
 from psdcal.measure.sensor_model import SensorModel
 from psdcal.signal.stream import MultiCarrierLockin, TdmSegmenter
@@ -350,6 +350,7 @@ def locate_multi_to_csv(recordings, sensors, out_path, config: LocateConfig,
     R = np.stack([s.R for s in sensors])
     t = np.stack([np.asarray(s.tvec_mm, dtype=float) for s in sensors])
     names_arr = np.array(names, dtype=object)
+    cov_pose = pose_covariances(sensors)  # poses from `psdcal pose` carry their covariance
     n_samples = n_windows = n_rows = n_skipped = 0
     with atomic_path(out_path, suffix=".csv") as tmp:
         with open(tmp, "w", encoding="utf-8", newline="") as fh:
@@ -374,7 +375,7 @@ def locate_multi_to_csv(recordings, sensors, out_path, config: LocateConfig,
                         res = angles_from_amplitudes(a_safe, sp.model, v, on_zero="nan")
                         ns.append(np.where(seen[:, None], res.n, np.nan))
                         covs.append(np.where(seen[:, None, None], res.cov_n, np.nan))
-                    tri = triangulate(np.stack(ns), np.stack(covs), R, t)
+                    tri = triangulate(np.stack(ns), np.stack(covs), R, t, cov_pose=cov_pose)
                     ok = tri.n_sensors >= 2
                     n_skipped += int((~ok).sum())
                     sig = tri.sigma_p_mm

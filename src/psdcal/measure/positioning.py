@@ -72,6 +72,9 @@ class SensorPose:
     rvec: np.ndarray
     tvec_mm: np.ndarray
     recording: str | None = None
+    #: Covariance (6, 6) of the pose over ``(omega_rad, t_mm)``, ``R = exp([omega]) R_hat``
+    #: (the sensors file's optional ``pose_covariance``, from ``psdcal pose``); None: exact pose.
+    cov_pose: np.ndarray | None = None
 
     @property
     def R(self) -> np.ndarray:
@@ -138,9 +141,30 @@ def load_sensors(path) -> list[SensorPose]:
                 rvec=vecs["rvec"],
                 tvec_mm=vecs["tvec_mm"],
                 recording=None if rec is None else str(path.parent / str(rec)),
+                cov_pose=_pose_covariance(item.get("pose_covariance"), path, f"{where}.pose_covariance"),
             )
         )
     return out
+
+
+def _pose_covariance(obj, path, where):
+    """The optional ``pose_covariance`` of a sensors-file entry: (6, 6) over (omega_rad, t_mm), or None."""
+    if obj is None:
+        return None
+    from psdcal.measure.pose import POSE_COV_NAMES
+
+    if not isinstance(obj, dict) or list(obj.get("names", [])) != list(POSE_COV_NAMES):
+        raise InputError(f"'pose_covariance' must be an object with names {list(POSE_COV_NAMES)} and a matrix",
+                         path=path, field=where)
+    try:
+        c = np.asarray(obj.get("matrix"), dtype=float)
+    except (TypeError, ValueError):
+        c = np.zeros(0)
+    if c.shape != (6, 6) or not np.all(np.isfinite(c)) or not np.allclose(c, c.T, rtol=1e-6, atol=1e-300) \
+            or np.any(np.diag(c) < 0):
+        raise InputError("'pose_covariance.matrix' must be a symmetric 6x6 matrix with a non-negative diagonal",
+                         path=path, field=f"{where}.matrix")
+    return 0.5 * (c + c.T)
 
 
 @dataclass(frozen=True)
@@ -171,7 +195,7 @@ class Triangulation:
         return np.sqrt(np.clip(np.diagonal(self.cov_p_mm2, axis1=-2, axis2=-1), 0.0, None))
 
 
-def triangulate(n, cov_n, R, t_mm, *, iterations: int = 8) -> Triangulation:
+def triangulate(n, cov_n, R, t_mm, *, iterations: int = 8, cov_pose=None) -> Triangulation:
     """3D point from the normalised image coordinates seen by several sensors.
 
     Minimises ``sum_i r_i^T W_i r_i`` with ``r_i = n_i - pi(R_i P + t_i)``,
@@ -191,6 +215,12 @@ def triangulate(n, cov_n, R, t_mm, *, iterations: int = 8) -> Triangulation:
         Rotations world -> camera.
     t_mm : (k, 3) array_like
         Translations, ``Pc = R Pw + t``.
+    cov_pose : (k, 6, 6) array_like or None, optional
+        Covariance of each sensor's pose over ``(omega_rad, t_mm)`` with
+        ``R = exp([omega]) R_hat`` (NaN or zeros for an exact pose).  Each
+        ray's covariance then gains ``J_pose C_pose J_pose^T`` evaluated at the
+        current point, ``J_pose = d pi / d Pc [-[R P]_x, I]``, so the point's
+        covariance includes the poses' uncertainty.
 
     Returns
     -------
@@ -225,6 +255,9 @@ def triangulate(n, cov_n, R, t_mm, *, iterations: int = 8) -> Triangulation:
     p = np.linalg.solve(A_safe, b[..., None])[..., 0]
     info = np.broadcast_to(np.eye(3), batch + (3, 3))
     chi2 = np.zeros(batch)
+    cp = None
+    if cov_pose is not None:
+        cp = np.nan_to_num(np.asarray(cov_pose, dtype=float))[expand]  # (k, 1.., 6, 6)
     for it in range(iterations + 1):
         pc = np.einsum("k...ij,...j->k...i", Rb, p) + tb
         z = pc[..., 2]
@@ -241,6 +274,8 @@ def triangulate(n, cov_n, R, t_mm, *, iterations: int = 8) -> Triangulation:
             axis=-2,
         )
         J = dpred_dpc @ Rb
+        if cp is not None:
+            W = _pose_weights(cov, cp, pc - tb, dpred_dpc, ok)
         JtW = np.swapaxes(J, -1, -2) @ W
         info = (JtW @ J).sum(0)
         grad = np.einsum("k...ij,k...j->...i", JtW, r)  # sums over the sensors k
@@ -260,6 +295,17 @@ def triangulate(n, cov_n, R, t_mm, *, iterations: int = 8) -> Triangulation:
     return Triangulation(p_w_mm=p, cov_p_mm2=cov_p, chi2=chi2, n_sensors=n_used)
 
 
+def _pose_weights(cov, cov_pose, rp, dpred_dpc, ok):
+    """Inverse of the ray covariance ``cov`` plus the pose part ``Jp Cp Jp^T``, ``Jp = dpi/dPc [-[R P]_x, I]``."""
+    x, y, zz = rp[..., 0], rp[..., 1], rp[..., 2]
+    zero = np.zeros_like(x)
+    # -[v]_x for v = R P
+    neg_skew = np.stack([np.stack([zero, zz, -y], -1), np.stack([-zz, zero, x], -1), np.stack([y, -x, zero], -1)], -2)
+    Jp = np.concatenate([dpred_dpc @ neg_skew, dpred_dpc], axis=-1)  # (k, ..., 2, 6)
+    total = cov + Jp @ cov_pose @ np.swapaxes(Jp, -1, -2)
+    return np.linalg.inv(total) * ok[..., None, None]
+
+
 def triangulate_aoa(results, sensors) -> Triangulation:
     """Triangulate from one :class:`AoAResult` per sensor (same leading shape).
 
@@ -274,7 +320,14 @@ def triangulate_aoa(results, sensors) -> Triangulation:
     cov = np.stack([r.cov_n for r in results])
     R = np.stack([s.R for s in sensors])
     t = np.stack([np.asarray(s.tvec_mm, dtype=float) for s in sensors])
-    return triangulate(n, cov, R, t)
+    return triangulate(n, cov, R, t, cov_pose=pose_covariances(sensors))
+
+
+def pose_covariances(sensors):
+    """Stacked pose covariances (k, 6, 6) of sensors (zeros for exact poses), or None when all are exact."""
+    if all(getattr(s, "cov_pose", None) is None for s in sensors):
+        return None
+    return np.stack([np.zeros((6, 6)) if s.cov_pose is None else np.asarray(s.cov_pose, float) for s in sensors])
 
 
 # --------------------------------------------------------------------------- error maps

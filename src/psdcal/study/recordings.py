@@ -356,6 +356,8 @@ class Emitter:
     radius_mm: float = 0.0
     speed_mm_s: float = 0.0
     carrier_hz: float = 1000.0
+    #: Times the emitter is lit, s: ``[t_on, t_off)``.
+    lit_s: tuple = (0.0, math.inf)
 
     def position(self, t_s) -> np.ndarray:
         """World position (..., 3), mm, at times ``t_s`` (...)."""
@@ -377,7 +379,8 @@ class Emitter:
     def to_dict(self) -> dict:
         return {"name": self.name, "kind": self.kind, "p0_mm": list(self.p0_mm),
                 "p1_mm": None if self.p1_mm is None else list(self.p1_mm), "radius_mm": self.radius_mm,
-                "speed_mm_s": self.speed_mm_s, "carrier_hz": self.carrier_hz}
+                "speed_mm_s": self.speed_mm_s, "carrier_hz": self.carrier_hz,
+                "lit_s": [self.lit_s[0], None if math.isinf(self.lit_s[1]) else self.lit_s[1]]}
 
 
 @dataclass(frozen=True)
@@ -479,6 +482,8 @@ def simulate_room(sensors, emitters, *, duration_s: float = 1.0, rate_hz: float 
         for j in range(len(emitters)):
             on[j] = in_slot & (idx % len(emitters) == j)
         sched = [e for e in sched]
+    for j, e in enumerate(emitters):
+        on[j] &= (t >= e.lit_s[0]) & (t < e.lit_s[1])
     xs, vis, used_gains = [], np.zeros((len(sensors), len(emitters)), dtype=bool), []
     for si, s in enumerate(sensors):
         m = s.model
@@ -523,14 +528,18 @@ def _in_view(m: SensorModel, P_mm, rvec, tvec_mm, margin: float = 0.9) -> np.nda
 def room_layout(model_truth: SensorModel, *, room_mm=(6000.0, 4000.0, 3000.0), n_sensors: int = 2,
                 n_anchors: int = 5, moving: str | None = "circle", speed_mm_s: float = 500.0,
                 radius_mm: float = 600.0, carrier_hz: float = 1000.0, carrier_step_hz: float = 150.0,
-                seed: int = 0, max_tries: int = 20000):
+                seed: int = 0, max_tries: int = 20000, survey_s: float = 0.0):
     """Sensors around a room and emitters every sensor sees.
 
     ``n_anchors`` fixed emitters ``a1, a2, ...`` at random positions (at
     least 0.3 m apart, between 0.2 m and 60 % of the room's height) on 80 %
     of every sensor's active area, and (``moving``) one emitter ``tag`` on a
     circle about the room's centre at 1 m, or on a line across it.  The
-    carriers are ``carrier_hz + k carrier_step_hz`` in that order.
+    carriers are ``carrier_hz + k carrier_step_hz`` in that order (the tag's
+    four steps further: a moving emitter's changing amplitude leaks into
+    nearby carriers).  With ``survey_s > 0`` the fixed emitters are lit during
+    ``[0, survey_s)`` only and the tag afterwards only (a survey for
+    ``psdcal pose``, then the tracking), so that neither disturbs the other.
 
     Returns
     -------
@@ -554,16 +563,19 @@ def room_layout(model_truth: SensorModel, *, room_mm=(6000.0, 4000.0, 3000.0), n
             continue
         if all(_in_view(s.model, p, s.rvec, s.tvec_mm, 0.8) for s in sensors):
             anchors.append(p)
-    emitters = [Emitter(f"a{i + 1}", "static", tuple(p), carrier_hz=carrier_hz + i * carrier_step_hz)
+    lit_a = (0.0, survey_s) if survey_s > 0 else (0.0, math.inf)
+    lit_t = (survey_s, math.inf)
+    emitters = [Emitter(f"a{i + 1}", "static", tuple(p), carrier_hz=carrier_hz + i * carrier_step_hz, lit_s=lit_a)
                 for i, p in enumerate(anchors)]
-    f_tag = carrier_hz + len(anchors) * carrier_step_hz
+    f_tag = carrier_hz + (len(anchors) + 4) * carrier_step_hz  # apart: its changing amplitude leaks less
     if moving == "circle":
         emitters.append(Emitter("tag", "circle", tuple(centre), radius_mm=radius_mm, speed_mm_s=speed_mm_s,
-                                carrier_hz=f_tag))
+                                carrier_hz=f_tag, lit_s=lit_t))
     elif moving == "line":
         a = centre - np.array([radius_mm, radius_mm / 2, 0.0])
         b = centre + np.array([radius_mm, radius_mm / 2, 300.0])
-        emitters.append(Emitter("tag", "line", tuple(a), tuple(b), speed_mm_s=speed_mm_s, carrier_hz=f_tag))
+        emitters.append(Emitter("tag", "line", tuple(a), tuple(b), speed_mm_s=speed_mm_s, carrier_hz=f_tag,
+                                lit_s=lit_t))
     elif moving is not None:
         raise InputError(f"unknown trajectory {moving!r}; use 'circle' or 'line'", field="moving")
     return sensors, emitters

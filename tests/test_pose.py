@@ -1,0 +1,184 @@
+"""Sensor pose from emitters at known positions (psdcal.measure.pose, `psdcal pose`).
+
+Simulated rooms with known truth: the calibration handed to the pose is the
+true sensor moved by a draw from its own covariance (so the calibration error
+is real, and systematic across the emitters), and the impact points carry
+noise.  The pose's NEES must average 6 within its Monte Carlo error, and
+positions triangulated with the estimated poses (their covariance included)
+must fall within their stated 3 sigma in >= 99 % of windows.
+"""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from psdcal.errors import DegenerateViewsError
+from psdcal.measure.aoa import angles_from_points
+from psdcal.measure.pose import estimate_pose, read_emitters
+from psdcal.measure.positioning import SensorPose, triangulate_aoa
+from psdcal.measure.sensor_model import SensorModel
+from psdcal.model.projection import R_from_r
+from psdcal.study.recordings import calib_dict, project_world, room_layout, spot_for_normalised
+
+TRUE = SensorModel.from_dict(calib_dict(seed=4))
+
+
+def _calibrated(rng, scale=1.0):
+    """The calibration a user would hold: the truth moved by a draw from (scale^2 x) its covariance."""
+    draw = rng.multivariate_normal(np.zeros(len(TRUE.names)), TRUE.covariance) * scale
+    return TRUE.with_values({nm: TRUE.value(nm) + dv for nm, dv in zip(TRUE.names, draw)})
+
+
+def _observe(cal, sensor, P, sigma_d_mm, rng):
+    """AoA results of world points P (k, 3) seen by ``sensor`` (true model TRUE) through calibration ``cal``."""
+    n, _ = project_world(P, sensor.rvec, sensor.tvec_mm)
+    d = spot_for_normalised(TRUE, n)
+    assert np.all(np.isfinite(d))
+    d = d + sigma_d_mm * rng.standard_normal(d.shape)
+    cov_d = np.broadcast_to(sigma_d_mm**2 * np.eye(2), d.shape + (2,))
+    return angles_from_points(d, cal, cov_d)
+
+
+def _centre(s):
+    return -R_from_r(s.rvec).T @ s.tvec_mm
+
+
+def test_pose_exact_without_noise():
+    rng = np.random.default_rng(0)
+    sensors, em = room_layout(TRUE, n_sensors=1, n_anchors=6, moving=None, seed=1)
+    s = sensors[0]
+    P = np.array([e.p0_mm for e in em])
+    res = _observe(TRUE, s, P, 0.0, rng)
+    r = estimate_pose(res.n, np.broadcast_to(1e-14 * np.eye(2), (6, 2, 2)), P)
+    np.testing.assert_allclose(r.center_w_mm, _centre(s), atol=1e-6)
+    np.testing.assert_allclose(r.R, R_from_r(s.rvec), atol=1e-10)
+
+
+def test_pose_nees_monte_carlo_honest_calibration():
+    """The calibration error drawn from the very covariance the pose is given: NEES ~ chi2(6)."""
+    rng = np.random.default_rng(11)
+    nees, alarms = [], 0
+    for trial in range(200):
+        sensors, em = room_layout(TRUE, n_sensors=1, n_anchors=int(rng.integers(4, 8)), moving=None,
+                                  seed=300 + trial)
+        s = sensors[0]
+        P = np.array([e.p0_mm for e in em])
+        cal = _calibrated(rng)
+        # 0.03 .. 1 um on the impact points (the noise of the windows' mean)
+        res = _observe(cal, s, P, 10 ** rng.uniform(-4.5, -3), rng)
+        r = estimate_pose(res.n, res.cov_n_noise, P, dn_dp=res.dn_dp, cov_params=cal.covariance)
+        nees.append(r.nees(s.rvec, _centre(s)))
+        alarms += any("do not fit" in w for w in r.warnings)
+    nees = np.array(nees)
+    assert alarms <= 2  # the chi2 check's false-alarm rate is 0.1 %
+    mc_err = np.sqrt(12.0 / len(nees))  # chi2(6) has variance 12
+    assert abs(nees.mean() - 6.0) < 3 * mc_err, nees.mean()
+    # the calibration part matters here: without it the NEES is far too large
+    assert np.mean(nees < 16.81) > 0.97  # chi2(6) 99 % quantile
+
+
+def test_positions_with_estimated_poses_within_3_sigma():
+    rng = np.random.default_rng(5)
+    inside, total = 0, 0
+    for room in range(12):
+        sensors, em = room_layout(TRUE, n_sensors=2, n_anchors=5, moving="circle", seed=500 + room)
+        anchors = np.array([e.p0_mm for e in em if e.kind == "static"])
+        tag = em[-1]
+        cals = [_calibrated(rng) for _ in sensors]
+        posed = []
+        for s, cal in zip(sensors, cals):
+            res = _observe(cal, s, anchors, 2e-4, rng)
+            r = estimate_pose(res.n, res.cov_n_noise, anchors, dn_dp=res.dn_dp, cov_params=cal.covariance)
+            posed.append(SensorPose(s.name, cal, r.rvec, r.tvec_mm, cov_pose=r.cov_omega_t()))
+        t = np.linspace(0, 5, 100)
+        P = tag.position(t)
+        results = [_observe(cal, s, P, 5e-4, rng) for s, cal in zip(sensors, cals)]
+        tri = triangulate_aoa(results, posed)
+        z = (tri.p_w_mm - P) / tri.sigma_p_mm
+        inside += int(np.sum(np.all(np.abs(z) < 3, axis=-1)))
+        total += len(t)
+    assert inside / total >= 0.99, inside / total
+
+
+def test_pose_covariance_enters_the_position():
+    rng = np.random.default_rng(2)
+    sensors, em = room_layout(TRUE, n_sensors=2, n_anchors=0, moving="circle", seed=9)
+    P = em[-1].position(np.linspace(0, 1, 5))
+    res = [_observe(TRUE, s, P, 1e-4, rng) for s in sensors]
+    exact = triangulate_aoa(res, [SensorPose(s.name, TRUE, s.rvec, s.tvec_mm) for s in sensors])
+    C = np.diag([1e-6] * 3 + [4.0] * 3)
+    loose = triangulate_aoa(res, [SensorPose(s.name, TRUE, s.rvec, s.tvec_mm, cov_pose=C) for s in sensors])
+    assert np.all(loose.sigma_p_mm > exact.sigma_p_mm)
+    # a translation uncertainty of 2 mm per axis and sensor: the point's sigma is of that order
+    assert np.all(loose.sigma_p_mm > 1.0) and np.all(loose.sigma_p_mm < 12.0)
+
+
+def test_known_orientation_and_height():
+    rng = np.random.default_rng(3)
+    sensors, em = room_layout(TRUE, n_sensors=1, n_anchors=2, moving=None, seed=21)
+    s = sensors[0]
+    P = np.array([e.p0_mm for e in em])
+    res = _observe(TRUE, s, P, 1e-4, rng)
+    r2 = estimate_pose(res.n, res.cov_n_noise, P, known_rvec=s.rvec)
+    assert r2.nees(s.rvec, _centre(s)) < 20
+    assert not r2.free[:3].any()
+    r1 = estimate_pose(res.n[:1], res.cov_n_noise[:1], P[:1], known_rvec=s.rvec, known_height_mm=_centre(s)[2])
+    np.testing.assert_allclose(r1.center_w_mm, _centre(s), atol=5 * r1.sigma_center_mm.max() + 1e-9)
+    with pytest.raises(DegenerateViewsError, match="at least"):
+        estimate_pose(res.n[:1], res.cov_n_noise[:1], P[:1], known_rvec=s.rvec)
+
+
+def test_degenerate_layouts():
+    rng = np.random.default_rng(4)
+    sensors, em = room_layout(TRUE, n_sensors=1, n_anchors=5, moving=None, seed=31)
+    s = sensors[0]
+    P = np.array([e.p0_mm for e in em])
+    res = _observe(TRUE, s, P, 1e-4, rng)
+    with pytest.raises(DegenerateViewsError, match="at least 3"):
+        estimate_pose(res.n[:2], res.cov_n_noise[:2], P[:2])
+    line = P[0] + np.linspace(0, 1, 4)[:, None] * (P[1] - P[0])
+    rl = _observe(TRUE, s, line, 1e-4, rng)
+    with pytest.raises(DegenerateViewsError, match="collinear"):
+        estimate_pose(rl.n, rl.cov_n_noise, line)
+    # a tight cluster of emitters: a warning with the uncertainty
+    c = P[0] + rng.normal(0, 30.0, (4, 3))
+    rc = _observe(TRUE, s, c, 1e-3, rng)
+    r = estimate_pose(rc.n, rc.cov_n_noise, c)
+    assert any("poor emitter layout" in w for w in r.warnings)
+
+
+def test_cli_pose_from_recording_then_locate(tmp_path):
+    """simulate-recording room -> pose (per sensor) -> locate --sensors with the estimated poses."""
+    import csv
+
+    from psdcal.cli import main
+
+    room = tmp_path / "room"
+    assert main(["simulate-recording", "room", "--sensors", "2", "--anchors", "5", "--duration-s", "1.0",
+                 "--survey-s", "0.5",
+                 "--snr-db", "50", "--seed", "3", "-o", str(room)]) == 0
+    names, P, carriers = read_emitters(room / "emitters.csv")
+    assert len(names) == 5 and carriers is not None
+    est = tmp_path / "sensors_est.json"
+    for s in ("s1", "s2"):
+        assert main(["pose", str(room / f"{s}.npy"), "--rate-hz", "20000", "--calib", str(room / "calib_truth.json"),
+                     "--emitters", str(room / "emitters.csv"), "--also-carrier-hz", "1750", "--name", s,
+                     "--into", str(est)]) == 0
+    data = json.loads(est.read_text())
+    truth = json.loads((room / "sensors.json").read_text())["sensors"]
+    for e, t in zip(data["sensors"], truth):
+        c_est = np.array(e["pose"]["center_w_mm"])
+        c_true = -R_from_r(np.array(t["rvec"])).T @ np.array(t["tvec_mm"])
+        assert np.all(np.abs(c_est - c_true) < 4 * np.array(e["pose"]["sigma_center_mm"]) + 1e-6)
+        assert e["recording"] == f"room/{t['name']}.npy"
+        assert max(e["pose"]["sigma_center_mm"]) < 5.0 and not e["pose"]["warnings"]
+    out = tmp_path / "xyz.csv"
+    truth_e = json.loads((room / "truth.json").read_text())["emitters"]
+    tag_f = [e["carrier_hz"] for e in truth_e if e["name"] == "tag"][0]
+    assert main(["locate", "--sensors", str(est), "--rate-hz", "20000", "--carrier-hz", str(tag_f),
+                 "--emitter", "tag", "-o", str(out)]) == 0
+    with open(out) as fh:
+        rows = list(csv.DictReader(fh))
+    assert 50 <= len(rows) <= 51  # the tag is lit in the second half
