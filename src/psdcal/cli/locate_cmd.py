@@ -53,9 +53,15 @@ def _demod_options(f):
 @click.option("--sensors", type=click.Path(dir_okay=False),
               help="SENSORS.json: several calibrated sensors with poses (3D triangulation).")
 @click.option("--distance-mm", type=float, help="Plane distance S: also write X_mm, Y_mm on that plane.")
+@click.option("--track", "track_path", type=click.Path(dir_okay=False),
+              help="Also write TRACK.csv: each emitter filtered by a constant-velocity Kalman filter "
+                   "(positions, velocities, sigmas, NIS, gated); see `psdcal track --help`.")
+@click.option("--track-q", type=float, default=None,
+              help="Tracking process noise, mm^2/s^3 (deg^2/s^3 for angles) [default: 1e6, 10].")
 @_demod_options
 def locate_command(recordings, calib, sensors, rate_hz, carriers, emitters, distance_mm, window_s, tdm, schedule,
-                   n_emitters, min_snr, channels, dataset, group, chunk_samples, progress, output):
+                   n_emitters, min_snr, channels, dataset, group, chunk_samples, progress, output, track_path=None,
+                   track_q=None):
     """Demodulate RECORDING(s) and write angles of arrival and positions.
 
     \b
@@ -126,6 +132,12 @@ def locate_command(recordings, calib, sensors, rate_hz, carriers, emitters, dist
         f"wrote {summary.n_rows} rows to {output} ({summary.duration_s:.6g} s of signal, "
         f"{summary.n_windows} windows of {config.window_s:g} s, {summary.n_skipped} below --min-snr)"
     )
+    if track_path:
+        from psdcal.measure.tracking import track_csv
+
+        info = track_csv(output, track_path, q=track_q)
+        click.echo(f"wrote {info['n_rows']} tracked rows to {track_path} ({info['n_gated']} gated, "
+                   f"mean NIS {info['mean_nis']:.3g} for {info['dims']} dimensions)")
 
 
 class _Bar:

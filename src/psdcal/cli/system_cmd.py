@@ -415,3 +415,33 @@ def pose_command(source, calib, emitters_csv, rate_hz, carriers, emitter_names, 
                f"for {res.dof} dof; wrote {', '.join(str(p) for p in (output, into) if p is not None)}")
     for w in entry["pose"]["warnings"]:
         click.echo(f"warning: {w}", err=True)
+
+
+# --------------------------------------------------------------------------- track
+@cli.command("track")
+@click.argument("located", type=click.Path(dir_okay=False, path_type=Path))
+@click.option("--q", "q", type=float, default=None,
+              help="Process noise: spectral density of the white acceleration, mm^2/s^3 (deg^2/s^3 for angles) "
+                   "[default: 1e6 mm^2/s^3, 10 deg^2/s^3].")
+@click.option("--gate-p", type=click.FloatRange(0.5, 1.0, max_open=True), default=0.999, show_default=True,
+              help="Chi2 gate probability: a measurement whose NIS exceeds this quantile is not used.")
+@click.option("--max-gated", type=click.IntRange(1, 1000), default=5, show_default=True,
+              help="Consecutive gated measurements after which a track restarts.")
+@click.option("-o", "--output", required=True, type=click.Path(dir_okay=False, path_type=Path), help="Output CSV.")
+def track_command(located, q, gate_p, max_gated, output):
+    """Filter a `locate` output (LOCATED.csv) per emitter with a constant-velocity Kalman filter.
+
+    \b
+    Tracks X_mm,Y_mm,Z_mm (several sensors), else X_mm,Y_mm (--distance-mm), else the angles,
+    with the measurement covariance from their sigma_ columns; each emitter has its own
+    track, updated at its own times (time multiplexing needs nothing special).
+    Columns: t_s,emitter,<pos>,v<pos>_s,sigma_<pos>,sigma_v<pos>_s,nis,gated
+    (e.g. X_mm, vX_mm_s, sigma_X_mm, sigma_vX_mm_s).  NIS should average the number of
+    tracked coordinates; much more means q (or the sigmas) too small.
+    Example: psdcal track xyz.csv -o track.csv     (same as: psdcal locate ... --track track.csv)
+    """
+    from psdcal.measure.tracking import track_csv
+
+    info = track_csv(located, output, q=q, gate_p=gate_p, max_gated=max_gated)
+    click.echo(f"wrote {info['n_rows']} tracked rows to {output} ({info['n_gated']} gated, mean NIS "
+               f"{info['mean_nis']:.3g} for {info['dims']} dimensions)")
