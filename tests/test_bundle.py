@@ -95,3 +95,43 @@ def test_frame_needs_three_known_points():
     two = dict(list(known.items())[:2])
     with pytest.raises(DegenerateViewsError, match="three known points"):
         bundle_adjust(["a", "b", "c"], names, js, ii, n, cov, two, init_rvecs=rv0, init_centers_mm=c0)
+
+
+def test_cli_bundle_with_wand(tmp_path):
+    """simulate-recording room (3 sensors) -> locate per sensor -> bundle with 3 known emitters + wand."""
+    import json
+
+    from psdcal.cli import main
+
+    room = tmp_path / "room"
+    assert main(["simulate-recording", "room", "--sensors", "3", "--anchors", "5", "--moving", "circle",
+                 "--duration-s", "0.6", "--snr-db", "50", "--seed", "8", "-o", str(room)]) == 0
+    lines = (room / "emitters.csv").read_text().splitlines()
+    (tmp_path / "known.csv").write_text("\n".join(lines[:5]) + "\n")  # a1..a4 known; a5 unknown
+    truth = json.loads((room / "truth.json").read_text())
+    carriers = [(e["name"], e["carrier_hz"]) for e in truth["emitters"]]
+    args = []
+    for s in ("s1", "s2", "s3"):
+        out = tmp_path / f"{s}.csv"
+        cmd = ["locate", str(room / f"{s}.npy"), "--calib", str(room / "calib_truth.json"), "--rate-hz", "20000",
+               "-o", str(out)]
+        for nm, f in carriers:
+            cmd += ["--carrier-hz", str(f), "--emitter", nm]
+        assert main(cmd) == 0
+        args.append(f"{s}={out}")
+    assert main(["bundle", *args, "--calib", str(room / "calib_truth.json"), "--known", str(tmp_path / "known.csv"),
+                 "--wand", "tag", "-o", str(tmp_path / "sensors.json"), "--points-out", str(tmp_path / "pts.csv")]) == 0
+    est = json.loads((tmp_path / "sensors.json").read_text())["sensors"]
+    tru = {s["name"]: s for s in truth["sensors"]}
+    for e in est:
+        t = tru[e["name"]]
+        c_true = -R_from_r(np.array(t["rvec"])).T @ np.array(t["tvec_mm"])
+        err = np.abs(np.array(e["pose"]["center_w_mm"]) - c_true)
+        assert np.all(err < 5 * np.array(e["pose"]["sigma_center_mm"]) + 0.05), (err, e["pose"]["sigma_center_mm"])
+    pts = {r.split(",")[0]: np.array(r.split(",")[1:4], float) * 1000 for r in (tmp_path / "pts.csv").read_text().splitlines()[1:]}
+    a5 = [e["p0_mm"] for e in truth["emitters"] if e["name"] == "a5"][0]
+    assert np.linalg.norm(pts["a5"] - a5) < 2.0
+    # the estimated sensors file works for locate --sensors
+    assert main(["locate", "--sensors", str(tmp_path / "sensors.json"), str(room / "s1.npy"), str(room / "s2.npy"),
+                 str(room / "s3.npy"), "--rate-hz", "20000", "--carrier-hz", "1000", "--emitter", "a1",
+                 "-o", str(tmp_path / "xyz.csv")]) == 0

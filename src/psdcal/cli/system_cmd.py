@@ -445,3 +445,171 @@ def track_command(located, q, gate_p, max_gated, output):
     info = track_csv(located, output, q=q, gate_p=gate_p, max_gated=max_gated)
     click.echo(f"wrote {info['n_rows']} tracked rows to {output} ({info['n_gated']} gated, mean NIS "
                f"{info['mean_nis']:.3g} for {info['dims']} dimensions)")
+
+
+# --------------------------------------------------------------------------- bundle
+def _name_value(items, what):
+    from psdcal.errors import InputError
+
+    out = {}
+    for it in items:
+        if "=" not in it:
+            raise InputError(f"{what} must be NAME=PATH, got {it!r}", field=what)
+        k, v = it.split("=", 1)
+        if not k or not v:
+            raise InputError(f"{what} must be NAME=PATH, got {it!r}", field=what)
+        if k in out:
+            raise InputError(f"sensor {k!r} given twice", field=what)
+        out[k] = v
+    return out
+
+
+@cli.command("bundle")
+@click.argument("located", nargs=-1, required=True)
+@click.option("--calib", "calibs", multiple=True, required=True,
+              help="Calibration JSON: one for every sensor, or NAME=CALIB.json per sensor (repeat).")
+@click.option("--known", "known_csv", required=True, type=click.Path(dir_okay=False, path_type=Path),
+              help="CSV emitter,X_m,Y_m,Z_m of the emitters at known positions (>= 3, not collinear): they fix "
+                   "the world frame.")
+@click.option("--wand", "wands", multiple=True,
+              help="An emitter moved through the room: every window is a new point (repeat for several).")
+@click.option("--points-out", type=click.Path(dir_okay=False, path_type=Path),
+              help="Also write the estimated emitter positions: emitter,X_m,Y_m,Z_m,sigma_X_mm,sigma_Y_mm,sigma_Z_mm.")
+@click.option("-o", "--output", required=True, type=click.Path(dir_okay=False, path_type=Path),
+              help="Sensors file (JSON) with every pose and its pose_covariance.")
+def bundle_command(located, calibs, known_csv, wands, points_out, output):
+    """Calibrate several sensors together: all poses and emitter positions in one bundle adjustment.
+
+    LOCATED are NAME=FILE.csv, one per sensor: `psdcal locate REC --calib ...` outputs (columns
+    t_s,emitter,x_mm,y_mm,sigma_x_mm,sigma_y_mm) of recordings made together (the same
+    windows).  Fixed emitters (known or not) are averaged over their windows; a --wand
+    emitter gives a point per window, matched between sensors by t_s.  Each sensor
+    must see >= 3 known emitters (its starting pose); every unknown point >= 2 sensors.
+
+    \b
+    Example:
+      psdcal bundle s1=s1.csv s2=s2.csv s3=s3.csv --calib calib.json --known known.csv \\
+          --wand tag -o sensors.json --points-out emitters_est.csv
+    The observation covariance is the angles' total (noise + calibration, taken as
+    independent); the pose covariance written is the inverse Schur complement.
+    """
+    import os
+
+    import numpy as np
+
+    from psdcal._atomic import write_text_atomic
+    from psdcal.errors import InputError
+    from psdcal.io import write_json
+    from psdcal.measure.aoa import angles_from_points
+    from psdcal.measure.bundle import bundle_adjust
+    from psdcal.measure.pose import estimate_pose, mean_points, read_emitters
+    from psdcal.measure.sensor_model import SensorModel
+
+    files = _name_value(located, "LOCATED")
+    if len(files) < 2:
+        raise InputError("give at least two sensors NAME=LOCATED.csv", field="LOCATED")
+    if len(calibs) == 1 and "=" not in calibs[0]:
+        calib_paths = {k: calibs[0] for k in files}
+    else:
+        calib_paths = _name_value(calibs, "calib")
+        missing = [k for k in files if k not in calib_paths]
+        if missing:
+            raise InputError(f"no --calib for sensor(s) {missing}", field="calib")
+    known_names, known_P, _ = read_emitters(known_csv)
+    known = dict(zip(known_names, known_P))
+    sensors = sorted(files)  # the answer does not depend on the order; keep the file's stable
+    points: list = []
+    pidx: dict = {}
+    js, ii, ns, covs = [], [], [], []
+    starts_r, starts_c = [], []
+    for j, name in enumerate(sensors):
+        path = Path(files[name])
+        model = SensorModel.load(calib_paths[name])
+        table = _read_table(path)
+        if table is None:
+            raise InputError("expected a locate output with an 'emitter' column", path=path, line=1)
+        header, rows = table
+        for c in ("t_s", "x_mm", "y_mm", "sigma_x_mm", "sigma_y_mm"):
+            if c not in header:
+                raise InputError(f"missing column '{c}' (a `locate --calib` output)", path=path, line=1, field=c)
+        col = {c: header.index(c) for c in ("t_s", "emitter", "x_mm", "y_mm", "sigma_x_mm", "sigma_y_mm")}
+        try:
+            data = np.array([[float(r[col[c]]) for c in ("t_s", "x_mm", "y_mm", "sigma_x_mm", "sigma_y_mm")]
+                             for r in rows])
+        except (ValueError, IndexError):
+            raise InputError("a row is not numbers", path=path) from None
+        em = np.array([r[col["emitter"]] for r in rows], dtype=object)
+        wand = np.isin(em, list(wands))
+        fixed = mean_points(em[~wand], data[~wand, 1:3], data[~wand, 3:5]) if (~wand).any() else None
+        obs_names, d, cov_d = [], [], []
+        if fixed is not None:
+            obs_names += list(fixed.names)
+            d.append(fixed.d_mm)
+            cov_d.append(fixed.cov_d_mm2)
+        if wand.any():
+            obs_names += [f"{e}@{t:.6f}" for e, t in zip(em[wand], data[wand, 0])]
+            d.append(data[wand, 1:3])
+            cov_d.append(np.einsum("ni,ij->nij", data[wand, 3:5] ** 2, np.eye(2)))
+        res = angles_from_points(np.concatenate(d), model, np.concatenate(cov_d))
+        kn = [k for k, nm in enumerate(obs_names) if nm in known]
+        if len(kn) < 3:
+            raise InputError(f"sensor {name!r} sees {len(kn)} known emitter(s); its start needs 3", path=path)
+        st = estimate_pose(res.n[kn], res.cov_n_noise[kn] + res.cov_n_calib[kn],
+                           np.array([known[obs_names[k]] for k in kn]))
+        starts_r.append(st.rvec)
+        starts_c.append(st.center_w_mm)
+        for k, nm in enumerate(obs_names):
+            if nm not in pidx:
+                pidx[nm] = len(points)
+                points.append(nm)
+            js.append(j)
+            ii.append(pidx[nm])
+            ns.append(res.n[k])
+            covs.append(res.cov_n[k])
+    # points seen by one sensor only (a wand window another sensor missed) carry no information: drop them
+    ii_a, js_a = np.array(ii), np.array(js)
+    counts = np.bincount(ii_a, minlength=len(points))
+    keep_pt = np.array([counts[k] >= 2 or points[k] in known for k in range(len(points))])
+    keep_obs = keep_pt[ii_a]
+    remap = -np.ones(len(points), int)
+    remap[keep_pt] = np.arange(keep_pt.sum())
+    points = [p for p, k in zip(points, keep_pt) if k]
+    br = bundle_adjust(sensors, points, js_a[keep_obs], remap[ii_a[keep_obs]], np.array(ns)[keep_obs],
+                       np.array(covs)[keep_obs], known, init_rvecs=np.array(starts_r),
+                       init_centers_mm=np.array(starts_c))
+    base = output.resolve().parent
+    entries = []
+    for j, name in enumerate(sensors):
+        c = br.centers_mm[j]
+        sig_c = np.sqrt(np.clip(np.diag(br.cov_poses[j])[3:], 0, None))
+        sig_r = np.degrees(np.sqrt(np.clip(np.diag(br.cov_poses[j])[:3], 0, None)))
+        entries.append({
+            "name": name, "calib": os.path.relpath(Path(calib_paths[name]).resolve(), base),
+            "rvec": br.rvecs[j].tolist(), "tvec_mm": br.tvecs_mm[j].tolist(),
+            "pose_covariance": {"names": ["omega_x_rad", "omega_y_rad", "omega_z_rad", "tx_mm", "ty_mm", "tz_mm"],
+                                "matrix": br.cov_omega_t(j).tolist()},
+            "pose": {"center_w_mm": c.tolist(), "sigma_center_mm": sig_c.tolist(),
+                     "sigma_rotation_deg": sig_r.tolist(), "method": "bundle", "chi2": br.chi2, "dof": br.dof},
+        })
+    write_json(output, {"sensors": entries})
+    if points_out is not None:
+        lines = ["emitter,X_m,Y_m,Z_m,sigma_X_mm,sigma_Y_mm,sigma_Z_mm"]
+        for k, p in enumerate(br.points):
+            s = np.sqrt(np.clip(np.diag(br.cov_points[k]), 0, None))
+            X = br.points_mm[k] / 1000.0
+            lines.append(f"{p},{X[0]:.9g},{X[1]:.9g},{X[2]:.9g},{s[0]:.6g},{s[1]:.6g},{s[2]:.6g}")
+        write_text_atomic(points_out, "\n".join(lines) + "\n")
+    n_unknown = int((~br.known).sum())
+    click.echo(f"bundle: {len(sensors)} sensors, {len(br.points)} points ({n_unknown} unknown), chi2 {br.chi2:.4g} "
+               f"for {br.dof} dof, {br.iterations} iterations; wrote {output}"
+               + (f" and {points_out}" if points_out else ""))
+    for e in entries:
+        p = e["pose"]
+        click.echo(f"  {e['name']}: centre +- {max(p['sigma_center_mm']):.3g} mm, rotation +- "
+                   f"{max(p['sigma_rotation_deg']):.3g} deg")
+    from scipy.stats import chi2 as chi2_dist
+
+    if br.dof > 0 and chi2_dist.sf(br.chi2, br.dof) < 1e-3:
+        click.echo(f"warning: the observations do not fit (chi2 {br.chi2:.4g} for {br.dof} dof): a wrong known "
+                   "position, a wand window seen differently by the sensors, or a wrong start (3 known emitters "
+                   "can give a mirrored pose: use 4 or more)", err=True)
