@@ -613,3 +613,43 @@ def bundle_command(located, calibs, known_csv, wands, points_out, output):
         click.echo(f"warning: the observations do not fit (chi2 {br.chi2:.4g} for {br.dof} dof): a wrong known "
                    "position, a wand window seen differently by the sensors, or a wrong start (3 known emitters "
                    "can give a mirrored pose: use 4 or more)", err=True)
+
+
+# --------------------------------------------------------------------------- plan
+@cli.command("plan")
+@click.option("--sensors", "sensors_json", required=True, type=click.Path(dir_okay=False, path_type=Path),
+              help="Sensors file with the candidate poses (the format of `locate --sensors`; recordings not needed).")
+@click.option("--room-m", type=(float, float, float), required=True, help="Room size X Y Z in metres.")
+@click.option("--height-m", type=float, default=1.0, show_default=True, help="Height of the mapped plane, m.")
+@click.option("--grid-mm", type=float, default=100.0, show_default=True, help="Grid spacing, mm.")
+@click.option("--sigma-d-mm", type=click.FloatRange(0.0), default=1e-3, show_default=True,
+              help="Impact-point noise, mm (added to each sensor's calibration covariance).")
+@click.option("--csv", "csv_path", type=click.Path(dir_okay=False, path_type=Path),
+              help="Also write the maps: X_m,Y_m,Z_m,n_sensors,sigma_mm,sigma_X_mm,sigma_Y_mm,sigma_Z_mm.")
+@click.option("-o", "--output", default="plan.png", show_default=True, type=click.Path(dir_okay=False, path_type=Path),
+              help="Output PNG.")
+def plan_command(sensors_json, room_m, height_m, grid_mm, sigma_d_mm, csv_path, output):
+    """Plan an installation: coverage and position uncertainty over a plane of the room.
+
+    \b
+    For the candidate sensor poses in SENSORS.json, at every grid point of the plane
+    Z = --height-m: how many sensors see it, and the 1-sigma of the triangulated position
+    (dilution of precision from each sensor's calibrated angle covariance, the impact-point
+    noise and, when present, its pose_covariance).
+    Example: psdcal plan --sensors sensors.json --room-m 6 4 3 --height-m 1 -o plan.png --csv plan.csv
+    """
+    import numpy as np
+
+    from psdcal.measure.planning import plan_map, plot_plan, write_plan_csv
+    from psdcal.measure.positioning import load_sensors
+
+    sensors = load_sensors(sensors_json)
+    pm = plan_map(sensors, np.array(room_m) * 1000.0, z_mm=height_m * 1000.0, grid_mm=grid_mm, sigma_d_mm=sigma_d_mm)
+    plot_plan(pm, output, title=f"{sensors_json.name}: {len(sensors)} sensors, plane Z = {height_m:g} m")
+    if csv_path:
+        write_plan_csv(pm, csv_path)
+    cov2 = np.mean(pm.count >= 2) * 100
+    s = pm.sigma_mm[np.isfinite(pm.sigma_mm)]
+    rng = f"{s.min():.3g}..{s.max():.3g} mm (median {np.median(s):.3g})" if s.size else "none (no point seen twice)"
+    click.echo(f"wrote {output}" + (f" and {csv_path}" if csv_path else "")
+               + f": {cov2:.1f} % of the plane seen by >= 2 sensors; position 1-sigma {rng}")

@@ -32,6 +32,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from psdcal.measure._geometry import skews
 from psdcal.errors import ConvergenceError, DegenerateViewsError, InputError
 from psdcal.model.projection import R_from_r, r_from_R, skew3
 
@@ -90,13 +91,6 @@ class BundleResult:
         """Error (6,) of sensor ``j``'s pose against the truth in the covariance's coordinates."""
         om = r_from_R(R_from_r(np.asarray(rvec_true, float)) @ R_from_r(self.rvecs[j]).T)
         return -np.concatenate([om, np.asarray(center_true_mm, float) - self.centers_mm[j]])
-
-
-def _skews(v):
-    """[v]_x for each row of v (N, 3) -> (N, 3, 3)."""
-    z = np.zeros(len(v))
-    return np.stack([np.stack([z, -v[:, 2], v[:, 1]], -1), np.stack([v[:, 2], z, -v[:, 0]], -1),
-                     np.stack([-v[:, 1], v[:, 0], z], -1)], -2)
 
 
 def bundle_adjust(sensors, points, obs_sensor, obs_point, n, cov_n, known_mm: dict, *, init_rvecs, init_centers_mm,
@@ -178,7 +172,7 @@ def bundle_adjust(sensors, points, obs_sensor, obs_point, n, cov_n, known_mm: di
         dpi[:, 0, 0] = dpi[:, 1, 1] = 1 / z
         dpi[:, 0, 2] = -pred[:, 0] / z
         dpi[:, 1, 2] = -pred[:, 1] / z
-        Jp = np.concatenate([-dpi @ _skews(pc), -dpi @ Rs[js]], -1)  # (N, 2, 6)
+        Jp = np.concatenate([-dpi @ skews(pc), -dpi @ Rs[js]], -1)  # (N, 2, 6)
         Jx = dpi @ Rs[js]  # (N, 2, 3)
         return chi2, r, Jp, Jx
 

@@ -30,8 +30,8 @@ from pathlib import Path
 import numpy as np
 
 from psdcal.errors import InputError
+from psdcal.measure._geometry import project_world, spot_for_normalised  # noqa: F401 (re-exported)
 from psdcal.measure.sensor_model import SensorModel
-from psdcal.model.distortion import distort
 from psdcal.model.readout import photocurrents
 
 #: The paper's Lens 2 with the optical centre offset (MODEL.md 8), a little PSD distortion.
@@ -104,18 +104,6 @@ def spot_for_angles(m: SensorModel, alpha_rad, *, strict: bool = True):
     those points are NaN.
     """
     return spot_for_normalised(m, np.tan(np.asarray(alpha_rad, dtype=float)), strict=strict)
-
-
-def spot_for_normalised(m: SensorModel, n, *, strict: bool = False):
-    """Measured impact point (..., 2), mm, of normalised coordinates ``n = (X/Z, Y/Z)`` (..., 2)."""
-    n = np.asarray(n, dtype=float)
-    A = m.intrinsics.matrix()
-    nh = np.concatenate([n, np.ones(n.shape[:-1] + (1,))], axis=-1)
-    x = (nh @ A.T)[..., :2]
-    res = distort(x, m.distortion, m.intrinsics.c)
-    if strict:
-        assert np.all(res.converged)
-    return np.where(np.asarray(res.converged)[..., None], res.d_mm, np.nan)
 
 
 def amplitudes(m: SensorModel, d_mm, total=1.0):
@@ -326,18 +314,6 @@ def look_at(center_w_mm, target_w_mm, up=(0.0, 0.0, 1.0)):
     y = np.cross(z, x)
     R = np.stack([x, y, z])  # rows: camera axes in the world
     return r_from_R(R), -R @ c
-
-
-def project_world(points_w_mm, rvec, tvec_mm):
-    """Normalised coordinates (..., 2) and depth (...) of world points seen from a pose."""
-    from psdcal.model.projection import R_from_r
-
-    P = np.asarray(points_w_mm, dtype=float)
-    pc = P @ R_from_r(np.asarray(rvec, dtype=float)).T + np.asarray(tvec_mm, dtype=float)
-    z = pc[..., 2]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        n = pc[..., :2] / z[..., None]
-    return n, z
 
 
 @dataclass(frozen=True)
