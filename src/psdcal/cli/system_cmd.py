@@ -653,3 +653,37 @@ def plan_command(sensors_json, room_m, height_m, grid_mm, sigma_d_mm, csv_path, 
     rng = f"{s.min():.3g}..{s.max():.3g} mm (median {np.median(s):.3g})" if s.size else "none (no point seen twice)"
     click.echo(f"wrote {output}" + (f" and {csv_path}" if csv_path else "")
                + f": {cov2:.1f} % of the plane seen by >= 2 sensors; position 1-sigma {rng}")
+
+
+# --------------------------------------------------------------------------- live locate (called by `locate`)
+def live_locate(recordings, calib, rate_hz, carriers, emitters, distance_mm, window_s, tdm, schedule, n_emitters,
+                min_snr, output, raw_dtype, raw_scale, track_path=None, track_q=None):
+    """`psdcal locate` on a live source ('-', tcp://127.0.0.1:PORT, nidaqmx://...): one sensor, rows as they come."""
+    from psdcal.errors import InputError
+    from psdcal.measure.live import locate_stream
+    from psdcal.measure.locate import LocateConfig
+    from psdcal.measure.sensor_model import SensorModel
+    from psdcal.signal.live import open_stream
+    from psdcal.signal.stream import load_schedule
+
+    if calib is None or len(recordings) != 1:
+        raise InputError("live input works with one sensor: one source and --calib", field="calib")
+    if distance_mm is not None and not distance_mm > 0:
+        raise InputError(f"--distance-mm must be positive, got {distance_mm}", field="distance_mm")
+    sched = load_schedule(schedule) if schedule else None
+    config = LocateConfig(carriers_hz=tuple(carriers), window_s=window_s, distance_mm=distance_mm,
+                          emitters=tuple(emitters) or None, min_snr=min_snr, tdm=bool(tdm or sched is not None),
+                          schedule=sched, n_emitters=n_emitters)
+    model = SensorModel.load(calib)
+    stream = open_stream(str(recordings[0]), rate_hz, dtype=raw_dtype, scale=raw_scale)
+    summary = locate_stream(stream, model, output, config)
+    msg = (f"wrote {summary.n_rows} rows to {output} ({summary.n_samples / stream.rate_hz:.6g} s of live signal, "
+           f"{summary.n_windows} windows, {summary.n_skipped} below --min-snr); {summary.latency_text()}")
+    click.echo(msg, err=str(output) == "-")
+    if track_path:
+        from psdcal.measure.tracking import track_csv
+
+        if str(output) == "-":
+            raise InputError("--track needs -o FILE (not stdout) with live input", field="track")
+        info = track_csv(output, track_path, q=track_q)
+        click.echo(f"wrote {info['n_rows']} tracked rows to {track_path} ({info['n_gated']} gated)")
