@@ -185,37 +185,110 @@ def _kabsch(Q, P):
     return R, c
 
 
-def _start_general(n, P, *, n_starts: int = 40, seed: int = 0):
-    """Candidate poses (R, c), one at a time: distances along the rays (triangle constraints), then Kabsch.
+def _start_general(n, P, *, n_starts: int = 12, seed: int = 0):
+    """Candidate poses (R, c), one at a time, for the caller to refine until one fits.
 
-    The first start puts every emitter at the same distance; the next ones at
-    random distances (0.2 to 5 times that), so that a wrong local solution of
-    the distance equations is followed by others.
+    1. linear estimates (:func:`_linear_starts`);
+    2. the distances ``lambda_k`` along the rays from the triangle constraints
+       ``|lambda_i u_i - lambda_j u_j| = |P_i - P_j|`` over all emitters (the
+       first start at one common distance, the next ones at random distances
+       0.2 to 5 times that), then Kabsch;
+    3. the same on triplets of emitters (the widest triangles first): each
+       triplet's up to four exact solutions (P3P) are found from random
+       starts, so a wrong basin of the all-emitter equations (the mirror
+       ambiguity of nearly planar layouts) is left.
     """
     from scipy.optimize import least_squares
 
     u = np.concatenate([n, np.ones((len(n), 1))], axis=1)
     u /= np.linalg.norm(u, axis=1, keepdims=True)
     k = len(P)
-    ii, jj = np.triu_indices(k, 1)
-    dist = np.linalg.norm(P[ii] - P[jj], axis=1)
-    cosang = np.clip(np.sum(u[ii] * u[jj], axis=1), -1.0, 1.0)
-    ang = np.arccos(cosang)
-    scale = float(np.median(dist / np.maximum(ang, 1e-6)))
-
-    def res(lam):
-        return (np.linalg.norm(lam[ii, None] * u[ii] - lam[jj, None] * u[jj], axis=1) - dist) / scale
-
     rng = np.random.default_rng(seed)
     seen: list[np.ndarray] = []
-    for s in range(n_starts):
-        lam0 = scale * (np.ones(k) if s == 0 else np.exp(rng.uniform(np.log(0.2), np.log(5.0), k)))
-        sol = least_squares(res, lam0, bounds=(1e-9 * scale, np.inf), method="trf", xtol=1e-10, ftol=1e-10)
-        R, c = _kabsch(sol.x[:, None] * u, P)
+
+    def new(R, c, scale):
         if np.any((P - c) @ R.T[:, 2] <= 0) or any(np.linalg.norm(c - c2) < 1e-6 * scale for c2 in seen):
-            continue
+            return False
         seen.append(c)
-        yield R, c
+        return True
+
+    for R, c in _linear_starts(n, P):
+        if new(R, c, 1.0):
+            yield R, c
+
+    def solve(idx, starts):
+        ii, jj = np.triu_indices(len(idx), 1)
+        ii, jj = idx[ii], idx[jj]
+        dist = np.linalg.norm(P[ii] - P[jj], axis=1)
+        ang = np.arccos(np.clip(np.sum(u[ii] * u[jj], axis=1), -1.0, 1.0))
+        scale = float(np.median(dist / np.maximum(ang, 1e-6)))
+        pos = {v: q for q, v in enumerate(idx)}
+        a = np.array([pos[v] for v in ii])
+        b = np.array([pos[v] for v in jj])
+
+        def res(lam):
+            return (np.linalg.norm(lam[a, None] * u[ii] - lam[b, None] * u[jj], axis=1) - dist) / scale
+
+        for s in range(starts):
+            lam0 = scale * (np.ones(len(idx)) if s == 0 else np.exp(rng.uniform(np.log(0.2), np.log(5.0), len(idx))))
+            sol = least_squares(res, lam0, bounds=(1e-9 * scale, np.inf), method="trf", xtol=1e-10, ftol=1e-10)
+            R, c = _kabsch(sol.x[:, None] * u[idx], P[idx])
+            if new(R, c, scale):
+                yield R, c
+
+    yield from solve(np.arange(k), n_starts)
+    if k > 3:
+        tri = [(i, j, l) for i in range(k) for j in range(i + 1, k) for l in range(j + 1, k)]
+        area = [np.linalg.norm(np.cross(P[j] - P[i], P[l] - P[i])) for i, j, l in tri]
+        for q in np.argsort(area)[::-1][:4]:
+            yield from solve(np.array(tri[q]), 12)
+
+
+def _orthonormal(M):
+    U, _, Vt = np.linalg.svd(M)
+    R = U @ Vt
+    if np.linalg.det(R) < 0:
+        R = U @ np.diag([1.0, 1.0, -1.0]) @ Vt
+    return R
+
+
+def _linear_starts(n, P):
+    """Linear pose estimates: the plane-to-image homography (Zhang's decomposition) for >= 4 emitters, and
+    the direct linear transform of the 3 x 4 projection for >= 6 emitters spread in depth."""
+    k = len(P)
+    out = []
+    m = P.mean(0)
+    _, sv, Vt = np.linalg.svd(P - m)
+    E = Vt.T  # columns: the layout's principal axes; the third is the plane's normal
+    if k >= 4:
+        uv = (P - m) @ E[:, :2]
+        A = []
+        for (u, v), (x, y) in zip(uv, n):
+            A.append([u, v, 1, 0, 0, 0, -x * u, -x * v, -x])
+            A.append([0, 0, 0, u, v, 1, -y * u, -y * v, -y])
+        H = np.linalg.svd(np.array(A))[2][-1].reshape(3, 3)
+        h1, h2, h3 = H[:, 0], H[:, 1], H[:, 2]
+        scale = 2.0 / (np.linalg.norm(h1) + np.linalg.norm(h2))
+        if h3[2] * scale < 0:
+            scale = -scale
+        Rp = _orthonormal(np.stack([scale * h1, scale * h2, np.cross(scale * h1, scale * h2)], 1))
+        t = scale * h3
+        R = Rp @ E.T
+        out.append((R, m - R.T @ t))
+    if k >= 6 and sv[2] > 0.05 * sv[0]:
+        X = np.concatenate([P - m, np.ones((k, 1))], 1)
+        A = []
+        for Xk, (x, y) in zip(X, n):
+            A.append(np.concatenate([Xk, np.zeros(4), -x * Xk]))
+            A.append(np.concatenate([np.zeros(4), Xk, -y * Xk]))
+        Pm = np.linalg.svd(np.array(A))[2][-1].reshape(3, 4)
+        scale = 1.0 / np.cbrt(abs(np.linalg.det(Pm[:, :3])) or 1.0)
+        if (Pm[2] @ X[0]) * scale < 0:
+            scale = -scale
+        R = _orthonormal(scale * Pm[:, :3])
+        t = scale * Pm[:, 3]
+        out.append((R, m - R.T @ t))
+    return out
 
 
 def _start_known_rotation(n, P, R, height_mm=None):
