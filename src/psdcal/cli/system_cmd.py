@@ -392,7 +392,7 @@ def pose_command(source, calib, emitters_csv, rate_hz, carriers, emitter_names, 
             header, rows = _read_table(amp)
             means = _table_means(amp, header, rows, model)
         recording = rec_key or source
-    moved = [nm for nm, p in zip(means.names, means.scatter_p) if np.isfinite(p) and p < 1e-6]
+    moved = [nm for nm, p in zip(means.names, means.scatter_p) if nm in names_w and np.isfinite(p) and p < 1e-6]
     res = pose_from_means(means, model, names_w, P, known_rvec=known_rvec,
                           known_height_mm=None if known_height_m is None else known_height_m * 1000.0)
     base = (into or output).resolve().parent
