@@ -182,3 +182,32 @@ def test_cli_pose_from_recording_then_locate(tmp_path):
     with open(out) as fh:
         rows = list(csv.DictReader(fh))
     assert 50 <= len(rows) <= 51  # the tag is lit in the second half
+
+
+def test_cli_pose_from_angles_table_with_known_orientation(tmp_path):
+    """An angles table (no impact points) and a known orientation: two emitters fix the centre."""
+    from psdcal.cli import main
+
+    rng = np.random.default_rng(8)
+    sensors, em = room_layout(TRUE, n_sensors=1, n_anchors=2, moving=None, seed=41)
+    s = sensors[0]
+    P = np.array([e.p0_mm for e in em])
+    n, _ = project_world(P, s.rvec, s.tvec_mm)
+    sig = 0.002  # deg
+    lines = ["t_s,emitter,alpha_x_deg,alpha_y_deg,sigma_alpha_x_deg,sigma_alpha_y_deg"]
+    for w in range(10):
+        for e, nn in zip(em, n):
+            a = np.degrees(np.arctan(nn)) + sig * rng.standard_normal(2)
+            lines.append(f"{w * 0.01:.3f},{e.name},{a[0]:.9f},{a[1]:.9f},{sig},{sig}")
+    (tmp_path / "ang.csv").write_text("\n".join(lines) + "\n")
+    (tmp_path / "em.csv").write_text("emitter,X_m,Y_m,Z_m\n" + "".join(
+        f"{e.name},{e.p0_mm[0] / 1000},{e.p0_mm[1] / 1000},{e.p0_mm[2] / 1000}\n" for e in em))
+    (tmp_path / "calib.json").write_text(json.dumps(calib_dict(seed=4)))
+    assert main(["pose", str(tmp_path / "ang.csv"), "--calib", str(tmp_path / "calib.json"), "--emitters",
+                 str(tmp_path / "em.csv"), "--known-rvec", *map(str, s.rvec), "-o", str(tmp_path / "e.json")]) == 0
+    e = json.loads((tmp_path / "e.json").read_text())
+    assert e["pose"]["free"] == ["cx", "cy", "cz"]
+    err = np.abs(np.array(e["pose"]["center_w_mm"]) - _centre(s))
+    assert np.all(err < 4 * np.array(e["pose"]["sigma_center_mm"]))
+    assert main(["pose", str(tmp_path / "ang.csv"), "--calib", str(tmp_path / "calib.json"), "--emitters",
+                 str(tmp_path / "em.csv"), "-o", str(tmp_path / "e2.json")]) == 2  # 2 emitters, no orientation

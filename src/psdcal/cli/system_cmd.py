@@ -297,6 +297,28 @@ def _table_means(path, header, rows, model):
                      path=path, line=1)
 
 
+def _table_angles(path, header, rows):
+    """(names, alpha_deg (N, 2), sigma_alpha_deg (N, 2)) of an angles table."""
+    import numpy as np
+
+    from psdcal.errors import InputError
+
+    cols = ["alpha_x_deg", "alpha_y_deg", "sigma_alpha_x_deg", "sigma_alpha_y_deg"]
+    missing = [c for c in cols[2:] if c not in header]
+    if missing:
+        raise InputError(f"an angles table needs the sigma columns too (missing {missing})", path=path, line=1,
+                         field=missing[0])
+    vals = np.empty((len(rows), 4))
+    for lineno, r in enumerate(rows, start=2):
+        for k, c in enumerate(cols):
+            try:
+                vals[lineno - 2, k] = float(r[header.index(c)])
+            except (ValueError, IndexError):
+                raise InputError("not a number", path=path, line=lineno, field=c) from None
+    names = [r[header.index("emitter")].strip() for r in rows]
+    return names, vals[:, :2], vals[:, 2:]
+
+
 @cli.command("pose")
 @click.argument("source", type=click.Path(dir_okay=False, path_type=Path))
 @click.option("--calib", required=True, type=click.Path(dir_okay=False, path_type=Path),
@@ -330,8 +352,10 @@ def pose_command(source, calib, emitters_csv, rate_hz, carriers, emitter_names, 
 
     SOURCE is the sensor's recording of >= 3 emitters at known positions
     (2 with --known-rvec, 1 with --known-rvec and --known-height-m), or a table
-    with an 'emitter' column: a `locate` output (x_mm,y_mm,sigma_x_mm,sigma_y_mm)
-    or an `amplitudes` output.  The windows of each emitter are averaged.
+    with an 'emitter' column: a `locate` output (x_mm,y_mm,sigma_x_mm,sigma_y_mm),
+    an `amplitudes` output, or angles (alpha_x_deg,alpha_y_deg and their sigma_
+    columns: taken as independent, so the calibration's correlated part is not
+    separated).  The windows of each emitter are averaged.
 
     \b
     Writes the sensors-file entry `locate --sensors` reads: name, calib, rvec, tvec_mm,
@@ -359,8 +383,15 @@ def pose_command(source, calib, emitters_csv, rate_hz, carriers, emitter_names, 
     model = SensorModel.load(calib)
     names_w, P, carriers_w = read_emitters(emitters_csv)
     table = _read_table(source) if source.suffix.lower() == ".csv" and source.exists() else None
+    angles = None
     if table is not None:
-        means = _table_means(source, *table, model)
+        header, rows = table
+        has = set(header)
+        if not ({"x_mm", "y_mm"} <= has or {"vx1", "vx2", "vy1", "vy2"} <= has) and \
+                {"alpha_x_deg", "alpha_y_deg"} <= has:
+            angles = _table_angles(source, header, rows)
+        else:
+            means = _table_means(source, *table, model)
         recording = rec_key
     else:
         from psdcal.measure.locate import LocateConfig, amplitudes_to_csv
@@ -392,9 +423,15 @@ def pose_command(source, calib, emitters_csv, rate_hz, carriers, emitter_names, 
             header, rows = _read_table(amp)
             means = _table_means(amp, header, rows, model)
         recording = rec_key or source
-    moved = [nm for nm, p in zip(means.names, means.scatter_p) if nm in names_w and np.isfinite(p) and p < 1e-6]
-    res = pose_from_means(means, model, names_w, P, known_rvec=known_rvec,
-                          known_height_mm=None if known_height_m is None else known_height_m * 1000.0)
+    kw = dict(known_rvec=known_rvec, known_height_mm=None if known_height_m is None else known_height_m * 1000.0)
+    if angles is not None:
+        from psdcal.measure.pose import pose_from_angles
+
+        moved = []
+        res = pose_from_angles(*angles, names_w, P, **kw)
+    else:
+        moved = [nm for nm, p in zip(means.names, means.scatter_p) if nm in names_w and np.isfinite(p) and p < 1e-6]
+        res = pose_from_means(means, model, names_w, P, **kw)
     base = (into or output).resolve().parent
 
     def rel(p):

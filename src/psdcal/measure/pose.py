@@ -654,3 +654,39 @@ def pose_from_means(means: EmitterMeans, model, names_w, points_w_mm, **kw) -> P
     res = angles_from_points(d, model, means.cov_d_mm2[use], dd)
     P = np.asarray(points_w_mm, dtype=float)[[idx[means.names[j]] for j in use]]
     return estimate_pose(res.n, res.cov_n_noise, P, dn_dp=res.dn_dp, cov_params=model.covariance, **kw)
+
+
+def pose_from_angles(names, alpha_deg, sigma_alpha_deg, names_w, points_w_mm, **kw) -> PoseResult:
+    """:func:`estimate_pose` from rows of angles of arrival (an angles table without impact points).
+
+    The rows of each emitter are averaged (inverse-variance weights) and
+    ``n = tan(alpha)``; the sigmas are taken as the whole, independent
+    uncertainty (a calibration's correlated part cannot be separated here:
+    use impact points or amplitudes with the calibration for that).
+
+    Parameters
+    ----------
+    names : (N,) sequence of str
+    alpha_deg, sigma_alpha_deg : (N, 2) array_like
+    names_w : sequence of str
+        Emitters with known positions.
+    points_w_mm : (k, 3) array_like
+    """
+    names = np.asarray(names, dtype=object)
+    a = np.radians(np.asarray(alpha_deg, dtype=float))
+    s = np.radians(np.asarray(sigma_alpha_deg, dtype=float))
+    idx = {nm: i for i, nm in enumerate(names_w)}
+    use = [nm for nm in dict.fromkeys(names.tolist()) if nm in idx]
+    if not use:
+        raise InputError(f"none of the emitters seen is in the emitters file ({list(names_w)})", field="emitter")
+    n, cov = [], []
+    for nm in use:
+        m = names == nm
+        w = 1.0 / np.maximum(s[m] ** 2, 1e-300)
+        mu = (w * a[m]).sum(0) / w.sum(0)
+        var = 1.0 / w.sum(0)
+        nn = np.tan(mu)
+        n.append(nn)
+        cov.append(np.diag(var * (1 + nn * nn) ** 2))  # dn/dalpha = 1 + tan^2
+    P = np.asarray(points_w_mm, dtype=float)[[idx[nm] for nm in use]]
+    return estimate_pose(np.array(n), np.array(cov), P, **kw)
