@@ -132,6 +132,11 @@ def simulate_template_command(lens, psd_l1, views, mux, fmt, rate_hz, carrier_hz
               help="Sensors near the ceiling around the room, looking at its centre.")
 @click.option("--anchors", type=click.IntRange(0, 40), default=5, show_default=True,
               help="Fixed emitters at known positions (written to emitters.csv, for psdcal pose).")
+@click.option("--sensors-in", type=click.Path(dir_okay=False, path_type=Path),
+              help="Use these sensor poses (a sensors file; names, rvec, tvec_mm) instead of the default ring "
+                   "(their calibrations are ignored: the truth is --lens).")
+@click.option("--emitters-in", type=click.Path(dir_okay=False, path_type=Path),
+              help="Fixed emitters at these positions (CSV emitter,X_m,Y_m,Z_m) instead of random --anchors.")
 @click.option("--moving", type=click.Choice(["circle", "line", "none"]), default="circle", show_default=True,
               help="A moving emitter 'tag' and its trajectory.")
 @click.option("--speed-mm-s", type=float, default=500.0, show_default=True, help="Speed of the moving emitter.")
@@ -156,7 +161,7 @@ def simulate_template_command(lens, psd_l1, views, mux, fmt, rate_hz, carrier_hz
 @click.option("--seed", type=int, default=0, show_default=True, help="Random seed.")
 @click.option("-o", "--out-dir", type=click.Path(file_okay=False, path_type=Path), required=True,
               help="Output folder.")
-def simulate_room_command(lens, psd_l1, calib, room_m, n_sensors, anchors, moving, speed_mm_s, radius_mm, duration_s,
+def simulate_room_command(lens, psd_l1, calib, room_m, n_sensors, anchors, sensors_in, emitters_in, moving, speed_mm_s, radius_mm, duration_s,
                           survey_s, mux, slot_s, fmt, rate_hz, carrier_hz, carrier_step_hz, snr_db, gain_imbalance, seed,
                           out_dir):
     """Recordings of emitters (fixed and moving) seen by sensors placed in a room.
@@ -181,7 +186,37 @@ def simulate_room_command(lens, psd_l1, calib, room_m, n_sensors, anchors, movin
     from psdcal.study.recordings import FORMATS, room_layout, simulate_room, write_recording
 
     truth_model = _lens_model(lens, psd_l1)
+    given_sensors = anchors_mm = anchor_names = None
+    if sensors_in is not None:
+        import json
+
+        from psdcal.study.recordings import RoomSensor
+
+        try:
+            data = json.loads(Path(sensors_in).read_text(encoding="utf-8"))
+        except FileNotFoundError:
+            raise InputError("sensors file not found", path=sensors_in) from None
+        except json.JSONDecodeError as exc:
+            raise InputError(f"not valid JSON: {exc.msg}", path=sensors_in, line=exc.lineno) from None
+        items = data.get("sensors") if isinstance(data, dict) else data
+        if not isinstance(items, list) or not items:
+            raise InputError("expected a list of sensors", path=sensors_in, field="sensors")
+        given_sensors = []
+        for i, it in enumerate(items):
+            try:
+                rv = np.asarray(it["rvec"], dtype=float)
+                tv = np.asarray(it["tvec_mm"], dtype=float)
+                assert rv.shape == (3,) and tv.shape == (3,) and np.all(np.isfinite(rv)) and np.all(np.isfinite(tv))
+            except (KeyError, TypeError, ValueError, AssertionError):
+                raise InputError("each sensor needs 'rvec' and 'tvec_mm' (3 numbers each)", path=sensors_in,
+                                 field=f"sensors[{i}]") from None
+            given_sensors.append(RoomSensor(str(it.get("name", f"s{i + 1}")), truth_model, rv, tv))
+    if emitters_in is not None:
+        from psdcal.measure.pose import read_emitters
+
+        anchor_names, anchors_mm, _ = read_emitters(emitters_in)
     sensors, emitters = room_layout(truth_model, room_mm=np.array(room_m) * 1000.0, n_sensors=n_sensors,
+                                    sensors=given_sensors, anchors_mm=anchors_mm, anchor_names=anchor_names,
                                     n_anchors=anchors, moving=None if moving == "none" else moving,
                                     speed_mm_s=speed_mm_s, radius_mm=radius_mm, carrier_hz=carrier_hz,
                                     carrier_step_hz=carrier_step_hz, seed=seed, survey_s=survey_s)

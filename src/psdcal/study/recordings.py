@@ -504,8 +504,13 @@ def _in_view(m: SensorModel, P_mm, rvec, tvec_mm, margin: float = 0.9) -> np.nda
 def room_layout(model_truth: SensorModel, *, room_mm=(6000.0, 4000.0, 3000.0), n_sensors: int = 2,
                 n_anchors: int = 5, moving: str | None = "circle", speed_mm_s: float = 500.0,
                 radius_mm: float = 600.0, carrier_hz: float = 1000.0, carrier_step_hz: float = 150.0,
-                seed: int = 0, max_tries: int = 20000, survey_s: float = 0.0):
+                seed: int = 0, max_tries: int = 20000, survey_s: float = 0.0, sensors=None,
+                anchors_mm=None, anchor_names=None):
     """Sensors around a room and emitters every sensor sees.
+
+    ``sensors`` (a list of :class:`RoomSensor`) replaces the default ring of
+    ``n_sensors``; ``anchors_mm`` (k, 3) with ``anchor_names`` replaces the
+    random fixed emitters.
 
     ``n_anchors`` fixed emitters ``a1, a2, ...`` at random positions (at
     least 0.3 m apart, between 0.2 m and 60 % of the room's height) on 80 %
@@ -524,9 +529,12 @@ def room_layout(model_truth: SensorModel, *, room_mm=(6000.0, 4000.0, 3000.0), n
     """
     rng = np.random.default_rng(seed)
     room = np.asarray(room_mm, dtype=float)
-    sensors = room_sensors(n_sensors, room, model_truth)
+    if sensors is None:
+        sensors = room_sensors(n_sensors, room, model_truth)
     centre = np.array([room[0] / 2, room[1] / 2, 1000.0])
-    anchors: list[np.ndarray] = []
+    anchors: list[np.ndarray] = [] if anchors_mm is None else [np.asarray(a, float) for a in anchors_mm]
+    if anchors_mm is not None:
+        n_anchors = len(anchors)
     tries = 0
     while len(anchors) < n_anchors:
         tries += 1
@@ -541,7 +549,8 @@ def room_layout(model_truth: SensorModel, *, room_mm=(6000.0, 4000.0, 3000.0), n
             anchors.append(p)
     lit_a = (0.0, survey_s) if survey_s > 0 else (0.0, math.inf)
     lit_t = (survey_s, math.inf)
-    emitters = [Emitter(f"a{i + 1}", "static", tuple(p), carrier_hz=carrier_hz + i * carrier_step_hz, lit_s=lit_a)
+    names = list(anchor_names) if anchor_names is not None else [f"a{i + 1}" for i in range(len(anchors))]
+    emitters = [Emitter(names[i], "static", tuple(p), carrier_hz=carrier_hz + i * carrier_step_hz, lit_s=lit_a)
                 for i, p in enumerate(anchors)]
     f_tag = carrier_hz + (len(anchors) + 4) * carrier_step_hz  # apart: its changing amplitude leaks less
     if moving == "circle":
