@@ -472,7 +472,7 @@ def pose_command(source, calib, emitters_csv, rate_hz, carriers, emitter_names, 
     def rel(p):
         return None if p is None else os.path.relpath(Path(p).resolve(), base)
 
-    entry = res.sensors_entry(name, rel(calib), rel(recording))
+    entry = res.sensors_entry(name, rel(calib), rel(recording), calib_names=model.names if angles is None else None)
     if moved:
         entry["pose"]["warnings"].append(f"emitter(s) {moved} scatter more than their noise between windows "
                                          "(moving, or a changing signal)")

@@ -32,7 +32,7 @@ import numpy as np
 from psdcal._atomic import atomic_path
 from psdcal.measure.aoa import angles_from_amplitudes, angles_from_points, impact_from_amplitudes
 from psdcal.errors import InputError, ZeroSignalError
-from psdcal.measure.positioning import plane_position, pose_covariances, triangulate
+from psdcal.measure.positioning import plane_position, ray_inputs, triangulate
 from psdcal.signal.recording import DEFAULT_CHUNK, Recording
 from psdcal.measure.sensor_model import SensorModel
 from psdcal.signal.stream import MultiCarrierLockin, TdmSegmenter
@@ -350,7 +350,6 @@ def locate_multi_to_csv(recordings, sensors, out_path, config: LocateConfig,
     R = np.stack([s.R for s in sensors])
     t = np.stack([np.asarray(s.tvec_mm, dtype=float) for s in sensors])
     names_arr = np.array(names, dtype=object)
-    cov_pose = pose_covariances(sensors)  # poses from `psdcal pose` carry their covariance
     n_samples = n_windows = n_rows = n_skipped = 0
     with atomic_path(out_path, suffix=".csv") as tmp:
         with open(tmp, "w", encoding="utf-8", newline="") as fh:
@@ -366,16 +365,17 @@ def locate_multi_to_csv(recordings, sensors, out_path, config: LocateConfig,
                 nw = len(blocks[0])
                 n_windows += nw
                 if nw:
-                    ns, covs = [], []
+                    results, seens = [], []
                     for blk, sp in zip(blocks, sensors):
                         a = blk.amplitude.reshape(-1, 4)
                         v = blk.var_amplitude.reshape(-1, 4)
                         seen = (a.sum(-1) > config.min_snr * np.sqrt(v.sum(-1))) & np.all(np.isfinite(a), -1)
                         a_safe = np.where(seen[:, None], a, 1.0)
-                        res = angles_from_amplitudes(a_safe, sp.model, v, on_zero="nan")
-                        ns.append(np.where(seen[:, None], res.n, np.nan))
-                        covs.append(np.where(seen[:, None, None], res.cov_n, np.nan))
-                    tri = triangulate(np.stack(ns), np.stack(covs), R, t, cov_pose=cov_pose)
+                        results.append(angles_from_amplitudes(a_safe, sp.model, v, on_zero="nan"))
+                        seens.append(seen)
+                    # the rays with their covariance; poses from `psdcal pose` add theirs (ray_inputs)
+                    ns, covs, kw = ray_inputs(results, sensors, seens)
+                    tri = triangulate(ns, covs, R, t, **kw)
                     ok = tri.n_sensors >= 2
                     n_skipped += int((~ok).sum())
                     sig = tri.sigma_p_mm

@@ -90,6 +90,8 @@ class PoseResult:
     free: np.ndarray
     residual_n: np.ndarray = field(repr=False)
     warnings: tuple = ()
+    #: Derivative (6, m) of ``(omega, c)`` by the calibration parameters (None without them).
+    dpose_dcalib: np.ndarray | None = field(default=None, repr=False)
 
     @property
     def R(self) -> np.ndarray:
@@ -114,17 +116,22 @@ class PoseResult:
 
         return float(chi2.sf(self.chi2, self.dof))
 
-    def cov_omega_t(self) -> np.ndarray:
-        """Covariance (6, 6) of ``(omega_rad, t_mm)`` (the sensors file's ``pose_covariance``).
-
-        ``t = -exp([omega]) R c``: ``dt/domega = [R c]_x``, ``dt/dc = -R``.
-        """
-        v = self.R @ self.center_w_mm
+    def _to_omega_t(self) -> np.ndarray:
+        """``d(omega, t) / d(omega, c)`` (6, 6): ``t = -exp([omega]) R c``, ``dt/domega = [R c]_x``, ``dt/dc = -R``."""
         T = np.zeros((6, 6))
         T[:3, :3] = np.eye(3)
-        T[3:, :3] = skew3(v)
+        T[3:, :3] = skew3(self.R @ self.center_w_mm)
         T[3:, 3:] = -self.R
-        return T @ self.cov @ T.T
+        return T
+
+    def cov_omega_t(self, part: str = "total") -> np.ndarray:
+        """Covariance (6, 6) of ``(omega_rad, t_mm)`` (the sensors file's ``pose_covariance``).
+
+        ``part``: ``"total"``, ``"noise"`` or ``"calib"``.
+        """
+        C = {"total": self.cov, "noise": self.cov_noise, "calib": self.cov_calib}[part]
+        T = self._to_omega_t()
+        return T @ C @ T.T
 
     def error(self, rvec_true, center_true_mm) -> np.ndarray:
         """The error ``(omega, c)`` (6,) of this estimate against a true pose, in the covariance's coordinates."""
@@ -138,12 +145,23 @@ class PoseResult:
         C = self.cov[np.ix_(self.free, self.free)]
         return float(e @ np.linalg.solve(C, e))
 
-    def sensors_entry(self, name: str, calib: str, recording: str | None = None) -> dict:
-        """The entry of a sensors file (``locate --sensors``) with the pose's covariance and checks."""
+    def sensors_entry(self, name: str, calib: str, recording: str | None = None, calib_names=None) -> dict:
+        """The entry of a sensors file (``locate --sensors``) with the pose's covariance and checks.
+
+        With ``calib_names`` (the calibration's covariance names) and a known
+        ``dpose_dcalib``, also ``pose_calibration``: the pose's derivative by
+        the calibration parameters over ``(omega, t)`` and its noise-only
+        covariance, so that triangulation can propagate the calibration error
+        of the rays and of the pose together (they partly compensate).
+        """
         d = {"name": name, "calib": calib, "rvec": self.rvec.tolist(), "tvec_mm": self.tvec_mm.tolist()}
         if recording is not None:
             d["recording"] = recording
         d["pose_covariance"] = {"names": list(POSE_COV_NAMES), "matrix": self.cov_omega_t().tolist()}
+        if calib_names is not None and self.dpose_dcalib is not None:
+            d["pose_calibration"] = {"names": list(calib_names),
+                                     "jacobian": (self._to_omega_t() @ self.dpose_dcalib).tolist(),
+                                     "noise_covariance": self.cov_omega_t("noise").tolist()}
         d["pose"] = {
             "center_w_mm": self.center_w_mm.tolist(),
             "sigma_center_mm": self.sigma_center_mm.tolist(),
@@ -435,6 +453,10 @@ def estimate_pose(n, cov_n_noise, points_w_mm, *, dn_dp=None, cov_params=None, k
     cov[ix] = 0.5 * (Hinv + Hinv.T)
     cov_n[ix] = G @ C @ G.T
     cov_c[ix] = G @ C_cal @ G.T
+    dpose_dcalib = None
+    if dn_dp is not None and cov_params is not None and np.size(cov_params):
+        dpose_dcalib = np.zeros((6, D.shape[1]))
+        dpose_dcalib[free] = G @ D
     warnings = []
     if dof > 0:
         pval = float(chi2_dist.sf(chi2, dof))
@@ -455,7 +477,7 @@ def estimate_pose(n, cov_n_noise, points_w_mm, *, dn_dp=None, cov_params=None, k
     rvec = r_from_R(R)
     return PoseResult(rvec=rvec, tvec_mm=-R @ c, center_w_mm=c, cov=cov, cov_noise=cov_n, cov_calib=cov_c,
                       chi2=float(chi2), dof=int(dof), n_emitters=k, free=free, residual_n=n - pred,
-                      warnings=tuple(warnings))
+                      warnings=tuple(warnings), dpose_dcalib=dpose_dcalib)
 
 
 def _refine(R, c, n, P, W, free, iterations):
