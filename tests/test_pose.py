@@ -227,3 +227,44 @@ def test_cli_pose_from_angles_table_with_known_orientation(tmp_path):
     assert np.all(err < 4 * np.array(e["pose"]["sigma_center_mm"]))
     assert main(["pose", str(tmp_path / "ang.csv"), "--calib", str(tmp_path / "calib.json"), "--emitters",
                  str(tmp_path / "em.csv"), "-o", str(tmp_path / "e2.json")]) == 2  # 2 emitters, no orientation
+
+
+from hypothesis import given, settings, strategies as st  # noqa: E402
+
+
+@settings(max_examples=15, deadline=None)
+@given(seed=st.integers(0, 10_000), angle=st.floats(-3.0, 3.0), shift=st.tuples(*[st.floats(-5e3, 5e3)] * 3))
+def test_pose_moves_with_the_world_frame(seed, angle, shift):
+    """Re-express the room in another world frame: the estimated pose is the same pose in that frame."""
+    rng = np.random.default_rng(seed)
+    sensors, em = room_layout(TRUE, n_sensors=1, n_anchors=5, moving=None, seed=seed % 50)
+    s = sensors[0]
+    P = np.array([e.p0_mm for e in em])
+    res = _observe(TRUE, s, P, 1e-4, rng)
+    a = estimate_pose(res.n, res.cov_n_noise, P)
+    Q = R_from_r(np.array([0.3, -0.2, 1.0]) / np.linalg.norm([0.3, -0.2, 1.0]) * angle)
+    P2 = P @ Q.T + np.array(shift)
+    b = estimate_pose(res.n, res.cov_n_noise, P2)
+    np.testing.assert_allclose(b.center_w_mm, Q @ a.center_w_mm + np.array(shift), atol=1e-5 * (1 + a.sigma_center_mm.max()))
+    np.testing.assert_allclose(b.R, a.R @ Q.T, atol=1e-8)
+    assert b.chi2 == pytest.approx(a.chi2, rel=1e-6, abs=1e-9)
+
+
+def test_cli_pose_errors_are_one_line(tmp_path, capsys):
+    from psdcal.cli import main
+
+    (tmp_path / "calib.json").write_text(json.dumps(calib_dict(seed=4)))
+    (tmp_path / "em.csv").write_text("emitter,X_m,Y_m,Z_m\na,1,1,1\nb,2,2,2\nc,3,3,3\n")
+    lines = ["emitter,alpha_x_deg,alpha_y_deg,sigma_alpha_x_deg,sigma_alpha_y_deg"]
+    lines += [f"{e},{k},{k},0.01,0.01" for k, e in enumerate("abc")]
+    (tmp_path / "ang.csv").write_text("\n".join(lines) + "\n")
+    args = ["pose", str(tmp_path / "ang.csv"), "--calib", str(tmp_path / "calib.json"), "--emitters",
+            str(tmp_path / "em.csv"), "-o", str(tmp_path / "e.json")]
+    assert main(args) == 2
+    err = capsys.readouterr().err.strip()
+    assert "collinear" in err and len(err.splitlines()) == 1
+    (tmp_path / "em.csv").write_text("emitter,X_m,Y_m\na,1,1\n")
+    assert main(args) == 2
+    err = capsys.readouterr().err.strip()
+    assert "em.csv" in err and "Z_m" in err and len(err.splitlines()) == 1
+    assert not (tmp_path / "e.json").exists()
