@@ -87,8 +87,6 @@ def simulate_template_command(lens, psd_l1, views, mux, fmt, rate_hz, carrier_hz
     from psdcal.study.simulate import LENSES
 
     intr, dist = LENSES[lens]
-    from dataclasses import replace
-
     tv = simulate_template_views((intr, dist), n_views=views, mux=mux, rate_hz=rate_hz, carrier_hz=carrier_hz,
                                  carrier_step_hz=carrier_step_hz, on_s=on_s, gap_s=gap_s,
                                  snr_db=None if no_noise else snr_db, gain_imbalance=gain_imbalance,
@@ -115,7 +113,6 @@ def simulate_template_command(lens, psd_l1, views, mux, fmt, rate_hz, carrier_hz
     truth = dict(tv.truth, lens=lens, recordings=files, format=fmt,
                  amplitudes_options=f"{rate_opt.strip()} {demod}".strip())
     write_json(out_dir / "truth.json", truth)
-    _ = replace
     click.echo(f"wrote {len(files)} {fmt} recordings ({mux}, {len(tv.point_ids)} LEDs, "
                f"{tv.x[0].shape[1] / tv.rate_hz:.4g} s each), template.csv, truth.json, amplitudes.sh to {out_dir}")
 

@@ -168,8 +168,7 @@ def _open_nidaqmx(source: str, rate_hz: float, scale: float) -> RawStream:
     except Exception as exc:  # the driver raises its own types (DaqNotFoundError, DaqError, OSError...)
         msg = " ".join(str(exc).split())[:200]
         raise InputError(f"the NI-DAQmx driver or device is not available: {msg}", path=source) from None
-    per_read = max(1, int(rate_hz * 0.005))
-    frame = np.dtype("<f8").itemsize * 4
+    per_read = max(1, int(rate_hz * 0.005))  # 5 ms of samples per read
 
     def reader(_n):
         data = np.asarray(task.read(number_of_samples_per_channel=per_read), dtype="<f8")
@@ -181,5 +180,4 @@ def _open_nidaqmx(source: str, rate_hz: float, scale: float) -> RawStream:
         task.stop()
         task.close()
 
-    _ = frame
     return RawStream(source, rate_hz, "float64", scale, _reader=reader, _close=close)
