@@ -443,23 +443,25 @@ def simulate_room(sensors, emitters, *, duration_s: float = 1.0, rate_hz: float 
     sched = None
     on = np.ones((len(emitters), n), dtype=bool)
     if mux == "tdm":
-        period = slot_s + gap_s
+        # whole samples per slot and per gap, so that a slot's first sample is never the previous one's
+        n_slot = int(round(slot_s * rate_hz))
+        n_period = n_slot + int(round(gap_s * rate_hz))
+        if n_slot < 1:
+            raise InputError(f"a {slot_s:g} s slot is shorter than one sample", field="slot_s")
         sched = []
         k = 0
-        while k * period < duration_s - 1e-12:
-            j = k % len(emitters)
-            t0, t1 = k * period, min(k * period + slot_s, duration_s)
-            if t1 - t0 >= slot_s * 0.999:
-                sched.append((emitters[j].name, t0, t1))
+        while (k * n_period + n_slot) <= n:
+            sched.append((emitters[k % len(emitters)].name, k * n_period / rate_hz, (k * n_period + n_slot) / rate_hz))
             k += 1
-        on[:] = False
-        idx = np.minimum((t // period).astype(int), 10**9)
-        in_slot = (t - idx * period) < slot_s
+        idx = np.arange(n) // n_period
+        in_slot = (np.arange(n) - idx * n_period) < n_slot
         for j in range(len(emitters)):
             on[j] = in_slot & (idx % len(emitters) == j)
-        sched = [e for e in sched]
     for j, e in enumerate(emitters):
-        on[j] &= (t >= e.lit_s[0]) & (t < e.lit_s[1])
+        k0 = int(round(e.lit_s[0] * rate_hz))
+        k1 = n if math.isinf(e.lit_s[1]) else int(round(e.lit_s[1] * rate_hz))
+        on[j, :k0] = False
+        on[j, k1:] = False
     xs, vis, used_gains = [], np.zeros((len(sensors), len(emitters)), dtype=bool), []
     for si, s in enumerate(sensors):
         m = s.model
