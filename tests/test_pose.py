@@ -144,6 +144,17 @@ def test_known_orientation_and_height():
     np.testing.assert_allclose(r1.center_w_mm, _centre(s), atol=5 * r1.sigma_center_mm.max() + 1e-9)
     with pytest.raises(DegenerateViewsError, match="at least"):
         estimate_pose(res.n[:1], res.cov_n_noise[:1], P[:1], known_rvec=s.rvec)
+    # a known height alone: five parameters from three or more emitters
+    sensors, em = room_layout(TRUE, n_sensors=1, n_anchors=4, moving=None, seed=22)
+    s = sensors[0]
+    P = np.array([e.p0_mm for e in em])
+    res = _observe(TRUE, s, P, 1e-4, rng)
+    rh = estimate_pose(res.n, res.cov_n_noise, P, known_height_mm=_centre(s)[2])
+    assert rh.center_w_mm[2] == _centre(s)[2] and rh.sigma_center_mm[2] == 0.0
+    assert list(rh.free) == [True] * 5 + [False]
+    assert rh.nees(s.rvec, _centre(s)) < 25  # chi2(5) 99.99 %
+    free = estimate_pose(res.n, res.cov_n_noise, P)
+    assert np.all(rh.sigma_center_mm[:2] <= free.sigma_center_mm[:2] * (1 + 1e-9))
 
 
 def test_degenerate_layouts():
