@@ -135,3 +135,51 @@ def test_cli_bundle_with_wand(tmp_path):
     assert main(["locate", "--sensors", str(tmp_path / "sensors.json"), str(room / "s1.npy"), str(room / "s2.npy"),
                  str(room / "s3.npy"), "--rate-hz", "20000", "--carrier-hz", "1000", "--emitter", "a1",
                  "-o", str(tmp_path / "xyz.csv")]) == 0
+
+
+def test_calibration_error_propagated_not_averaged():
+    """Each sensor observes through its own erroneous calibration: with the calibration propagated through
+    the solution the pose NEES is ~6; treated as independent noise per observation it is far larger."""
+    from psdcal.measure.aoa import angles_from_points
+    from psdcal.measure.pose import estimate_pose
+    from psdcal.study.recordings import calib_dict, spot_for_normalised
+
+    true = SensorModel.from_dict(calib_dict(seed=4))
+    rng = np.random.default_rng(3)
+    nees = {"propagated": [], "independent": []}
+    for trial in range(12):
+        sensors, names, P, known, js, ii, n_true, cov = _scene(rng, n_unknown=4, n_wand=40, sigma_n=0.0)
+        cals = []
+        for _ in sensors:
+            draw = rng.multivariate_normal(np.zeros(len(true.names)), true.covariance)
+            cals.append(true.with_values({nm: true.value(nm) + dv for nm, dv in zip(true.names, draw)}))
+        n = np.zeros_like(n_true)
+        cov_noise = np.zeros((len(n), 2, 2))
+        cov_tot = np.zeros((len(n), 2, 2))
+        D = np.zeros((len(n), 2, len(true.names)))
+        for j, s in enumerate(sensors):
+            m = js == j
+            # the true directions through the TRUE sensor (with its own PSD/lens), read with calibration j
+            from psdcal.study.recordings import project_world
+
+            nn, _ = project_world(P[ii[m]], s.rvec, s.tvec_mm)
+            d = spot_for_normalised(true, nn) + 2e-4 * rng.standard_normal((m.sum(), 2))
+            res = angles_from_points(d, cals[j], np.broadcast_to(4e-8 * np.eye(2), (m.sum(), 2, 2)))
+            n[m], cov_noise[m], cov_tot[m], D[m] = res.n, res.cov_n_noise, res.cov_n, res.dn_dp
+        starts = []
+        for j, s in enumerate(sensors):
+            k = np.flatnonzero((js == j) & np.isin(ii, [0, 1, 2, 3]))
+            st = estimate_pose(n[k], cov_tot[k], P[ii[k]])
+            starts.append((st.rvec, st.center_w_mm))
+        rv0, c0 = np.array([a for a, _ in starts]), np.array([b for _, b in starts])
+        sn = [s.name for s in sensors]
+        prop = bundle_adjust(sn, names, js, ii, n, cov_noise, known, init_rvecs=rv0, init_centers_mm=c0,
+                             calib=(D, np.stack([c.covariance for c in cals])))
+        ind = bundle_adjust(sn, names, js, ii, n, cov_tot, known, init_rvecs=rv0, init_centers_mm=c0)
+        for key, res in (("propagated", prop), ("independent", ind)):
+            for j, s in enumerate(sensors):
+                e = res.pose_error(j, s.rvec, -R_from_r(s.rvec).T @ s.tvec_mm)
+                nees[key].append(e @ np.linalg.solve(res.cov_poses[j], e))
+    prop_mean = np.mean(nees["propagated"])
+    assert 3.0 < prop_mean < 10.0, prop_mean  # 36 poses from 12 scenes (correlated within a scene)
+    assert np.mean(nees["independent"]) > 2 * prop_mean

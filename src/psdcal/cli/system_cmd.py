@@ -533,6 +533,22 @@ def _name_value(items, what):
     return out
 
 
+def _calib_blocks(dns, cal_covs, keep):
+    """``(dn_dcalib (N, 2, m), cov_calib (S, m, m))`` zero-padded to the largest calibration, or None."""
+    import numpy as np
+
+    m = max((c.shape[0] for c in cal_covs), default=0)
+    if m == 0:
+        return None
+    D = np.zeros((len(dns), 2, m))
+    for o, d in enumerate(dns):
+        D[o, :, : d.shape[-1]] = d
+    Sc = np.zeros((len(cal_covs), m, m))
+    for j, c in enumerate(cal_covs):
+        Sc[j, : c.shape[0], : c.shape[0]] = c
+    return D[keep], Sc
+
+
 @cli.command("bundle")
 @click.argument("located", nargs=-1, required=True)
 @click.option("--calib", "calibs", multiple=True, required=True,
@@ -559,8 +575,9 @@ def bundle_command(located, calibs, known_csv, wands, points_out, output):
     Example:
       psdcal bundle s1=s1.csv s2=s2.csv s3=s3.csv --calib calib.json --known known.csv \\
           --wand tag -o sensors.json --points-out emitters_est.csv
-    The observation covariance is the angles' total (noise + calibration, taken as
-    independent); the pose covariance written is the inverse Schur complement.
+    The observations are weighted by their angle noise; each sensor's calibration
+    covariance, common to all its observations, is propagated through the solution
+    and added to the pose and point covariances (inverse Schur complement + that).
     """
     import os
 
@@ -589,11 +606,12 @@ def bundle_command(located, calibs, known_csv, wands, points_out, output):
     sensors = sorted(files)  # the answer does not depend on the order; keep the file's stable
     points: list = []
     pidx: dict = {}
-    js, ii, ns, covs = [], [], [], []
+    js, ii, ns, covs, dns, cal_covs = [], [], [], [], [], []
     starts_r, starts_c = [], []
     for j, name in enumerate(sensors):
         path = Path(files[name])
         model = SensorModel.load(calib_paths[name])
+        cal_covs.append(model.covariance)
         table = _read_table(path)
         if table is None:
             raise InputError("expected a locate output with an 'emitter' column", path=path, line=1)
@@ -634,7 +652,8 @@ def bundle_command(located, calibs, known_csv, wands, points_out, output):
             js.append(j)
             ii.append(pidx[nm])
             ns.append(res.n[k])
-            covs.append(res.cov_n[k])
+            covs.append(res.cov_n_noise[k])
+            dns.append(res.dn_dp[k])
     # points seen by one sensor only (a wand window another sensor missed) carry no information: drop them
     ii_a, js_a = np.array(ii), np.array(js)
     counts = np.bincount(ii_a, minlength=len(points))
@@ -645,7 +664,7 @@ def bundle_command(located, calibs, known_csv, wands, points_out, output):
     points = [p for p, k in zip(points, keep_pt) if k]
     br = bundle_adjust(sensors, points, js_a[keep_obs], remap[ii_a[keep_obs]], np.array(ns)[keep_obs],
                        np.array(covs)[keep_obs], known, init_rvecs=np.array(starts_r),
-                       init_centers_mm=np.array(starts_c))
+                       init_centers_mm=np.array(starts_c), calib=_calib_blocks(dns, cal_covs, keep_obs))
     base = output.resolve().parent
     entries = []
     for j, name in enumerate(sensors):

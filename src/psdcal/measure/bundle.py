@@ -21,9 +21,10 @@ inverse of the Schur complement (exactly the pose block of the full inverse);
 a point's is ``V^-1 + V^-1 W^T S^-1 W V^-1`` (its block).  The solution does
 not depend on the order of the sensors or points.
 
-The observation covariances ``C_ij`` are used as given: the angle noise, and
-if wanted the calibration part (:attr:`AoAResult.cov_n`), treated as
-independent between observations.
+The observation covariances ``C_ij`` are the angle noise; a sensor's
+calibration error, common to all its observations, is propagated through the
+solution separately (``calib``) rather than treated as independent noise
+(which would let it average away over many observations).
 """
 from __future__ import annotations
 
@@ -94,7 +95,7 @@ class BundleResult:
 
 
 def bundle_adjust(sensors, points, obs_sensor, obs_point, n, cov_n, known_mm: dict, *, init_rvecs, init_centers_mm,
-                  init_points_mm=None, iterations: int = 100, tol: float = 1e-10) -> BundleResult:
+                  init_points_mm=None, iterations: int = 100, tol: float = 1e-10, calib=None) -> BundleResult:
     """Bundle adjustment of sensor poses and point positions.
 
     Parameters
@@ -115,6 +116,13 @@ def bundle_adjust(sensors, points, obs_sensor, obs_point, n, cov_n, known_mm: di
         Starting poses (e.g. from :func:`psdcal.measure.pose.estimate_pose`).
     init_points_mm : (M, 3) array_like, optional
         Starting points (default: triangulated from the starting poses).
+    calib : tuple, optional
+        ``(dn_dcalib (N, 2, m), cov_calib (S, m, m))``: each observation's
+        derivative by its sensor's calibration parameters (zero-padded to
+        ``m``) and each sensor's calibration covariance.  The calibration
+        error is common to all of a sensor's observations: it is propagated
+        through the solution (``H^-1 J^T W D_j``) and added to the pose and
+        point covariances; ``cov_n`` is then the angle noise alone.
 
     Returns
     -------
@@ -214,7 +222,10 @@ def bundle_adjust(sensors, points, obs_sensor, obs_point, n, cov_n, known_mm: di
         return A, Vinv, WV, obs_u
 
     def solve(U, gp, V, gx, Wb, lam):
-        A, Vinv, WV, obs_u = schur(U, V, Wb, lam)
+        return back_substitute(schur(U, V, Wb, lam), gp, gx, Wb)
+
+    def back_substitute(pre, gp, gx, Wb):
+        A, Vinv, WV, obs_u = pre
         rhs = gp.reshape(-1).copy()
         for q, o in enumerate(obs_u):
             rhs[6 * js[o] : 6 * js[o] + 6] -= WV[q] @ gx[uidx[ii[o]]]
@@ -275,6 +286,29 @@ def bundle_adjust(sensors, points, obs_sensor, obs_point, n, cov_n, known_mm: di
     for m in range(Mu):
         B = Wcol[m] @ Vinv[m]
         cov_points[unk[m]] = Vinv[m] + B.T @ Sinv @ B
+    if calib is not None:
+        # the calibration error of sensor j moves all its rays together: d(params) = H^-1 J^T W D_j d theta_j
+        D = np.asarray(calib[0], dtype=float)
+        Sc = np.asarray(calib[1], dtype=float)
+        pre = (A, Vinv, WV, obs_u)
+        JpW = np.swapaxes(Jp, 1, 2) @ W
+        JxW = np.swapaxes(Jx, 1, 2) @ W
+        for j in range(S):
+            mine = js == j
+            cols_p, cols_x = [], []
+            for c in range(D.shape[-1]):
+                dn = np.where(mine[:, None], D[:, :, c], 0.0)
+                gp_c = np.zeros((S, 6))
+                np.add.at(gp_c, js, np.einsum("nij,nj->ni", JpW, dn))
+                gx_c = np.zeros((M, 3))
+                np.add.at(gx_c, ii, np.einsum("nij,nj->ni", JxW, dn))
+                dp_c, dx_c = back_substitute(pre, gp_c, gx_c[unk], Wb)
+                cols_p.append(dp_c)
+                cols_x.append(dx_c)
+            Pp = np.stack(cols_p, -1)  # (S, 6, m)
+            Px = np.stack(cols_x, -1)  # (Mu, 3, m)
+            cov_poses = cov_poses + Pp @ Sc[j] @ np.swapaxes(Pp, 1, 2)
+            cov_points[unk] += Px @ Sc[j] @ np.swapaxes(Px, 1, 2)
     dof = 2 * N - 6 * S - 3 * Mu
     return BundleResult(list(sensors), np.stack([r_from_R(R) for R in Rs]), cs, cov_poses, list(points), X,
                         cov_points, known, float(f), int(dof), it)
