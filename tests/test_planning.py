@@ -80,3 +80,25 @@ def test_cli_plan(tmp_path):
     counts = [int(r.split(",")[3]) for r in rows[1:]]
     assert max(counts) == 3 and min(counts) < 3
     _ = json
+
+
+def test_cli_plan_candidates_equal_the_sensors_file(tmp_path):
+    """Centre + aim point candidates give the same maps as the equivalent sensors file."""
+    from psdcal.cli import main
+
+    (tmp_path / "calib.json").write_text(json.dumps(calib_dict(seed=2)))
+    cand = [("n", 0.5, 0.5, 2.7, 3.0, 2.0, 0.8), ("e", 5.5, 3.5, 2.7, 3.0, 2.0, 0.8), ("w", 5.5, 0.5, 2.5, 2.5, 2.5, 1.0)]
+    (tmp_path / "c.csv").write_text("name,X_m,Y_m,Z_m,aim_X_m,aim_Y_m,aim_Z_m\n"
+                                    + "".join(",".join(map(str, c)) + "\n" for c in cand))
+    entries = []
+    for nm, *v in cand:
+        r, t = look_at(np.array(v[:3]) * 1000, np.array(v[3:]) * 1000)
+        entries.append({"name": nm, "calib": "calib.json", "rvec": r.tolist(), "tvec_mm": t.tolist()})
+    (tmp_path / "s.json").write_text(json.dumps(entries))
+    common = ["--room-m", "6", "4", "3", "--grid-mm", "300"]
+    assert main(["plan", "--candidates", str(tmp_path / "c.csv"), "--calib", str(tmp_path / "calib.json"), *common,
+                 "-o", str(tmp_path / "a.png"), "--csv", str(tmp_path / "a.csv")]) == 0
+    assert main(["plan", "--sensors", str(tmp_path / "s.json"), *common, "-o", str(tmp_path / "b.png"),
+                 "--csv", str(tmp_path / "b.csv")]) == 0
+    assert (tmp_path / "a.csv").read_text() == (tmp_path / "b.csv").read_text()
+    assert main(["plan", "--candidates", str(tmp_path / "c.csv"), *common, "-o", str(tmp_path / "x.png")]) == 2

@@ -704,9 +704,57 @@ def bundle_command(located, calibs, known_csv, wands, points_out, output):
 
 
 # --------------------------------------------------------------------------- plan
+def _read_candidates(path, calib):
+    """Sensors from a CSV ``name,X_m,Y_m,Z_m,aim_X_m,aim_Y_m,aim_Z_m`` (centre and aim point) and one calibration."""
+    import csv
+    import math
+
+    import numpy as np
+
+    from psdcal.errors import InputError
+    from psdcal.measure.positioning import SensorPose
+    from psdcal.measure.sensor_model import SensorModel
+    from psdcal.study.recordings import look_at
+
+    if calib is None:
+        raise InputError("--candidates needs --calib (the sensors' calibration)", field="calib")
+    model = SensorModel.load(calib)
+    cols = ["X_m", "Y_m", "Z_m", "aim_X_m", "aim_Y_m", "aim_Z_m"]
+    try:
+        fh = open(path, newline="", encoding="utf-8")
+    except FileNotFoundError:
+        raise InputError("candidates file not found", path=path) from None
+    with fh:
+        rows = list(csv.reader(fh))
+    header = [h.strip() for h in rows[0]] if rows else []
+    for c in ["name"] + cols:
+        if c not in header:
+            raise InputError(f"missing column '{c}' (header name,{','.join(cols)})", path=path, line=1, field=c)
+    out = []
+    for lineno, r in enumerate(rows[1:], start=2):
+        if not r or not any(x.strip() for x in r):
+            continue
+        try:
+            v = np.array([float(r[header.index(c)]) for c in cols]) * 1000.0
+        except (ValueError, IndexError):
+            raise InputError("not a number", path=path, line=lineno) from None
+        if not all(math.isfinite(x) for x in v) or np.linalg.norm(v[3:] - v[:3]) == 0:
+            raise InputError("the aim point must differ from the centre (finite numbers)", path=path, line=lineno)
+        rvec, tvec = look_at(v[:3], v[3:])
+        out.append(SensorPose(r[header.index("name")].strip(), model, rvec, tvec))
+    if len(out) < 2:
+        raise InputError("give at least two candidate sensors", path=path)
+    return out
+
+
 @cli.command("plan")
-@click.option("--sensors", "sensors_json", required=True, type=click.Path(dir_okay=False, path_type=Path),
+@click.option("--sensors", "sensors_json", type=click.Path(dir_okay=False, path_type=Path),
               help="Sensors file with the candidate poses (the format of `locate --sensors`; recordings not needed).")
+@click.option("--candidates", type=click.Path(dir_okay=False, path_type=Path),
+              help="Or a CSV name,X_m,Y_m,Z_m,aim_X_m,aim_Y_m,aim_Z_m: each sensor's centre and the point it "
+                   "looks at (with --calib).")
+@click.option("--calib", type=click.Path(dir_okay=False, path_type=Path),
+              help="With --candidates: the calibration JSON of the sensors.")
 @click.option("--room-m", type=(float, float, float), required=True, help="Room size X Y Z in metres.")
 @click.option("--height-m", type=float, default=1.0, show_default=True, help="Height of the mapped plane, m.")
 @click.option("--grid-mm", type=float, default=100.0, show_default=True, help="Grid spacing, mm.")
@@ -716,7 +764,7 @@ def bundle_command(located, calibs, known_csv, wands, points_out, output):
               help="Also write the maps: X_m,Y_m,Z_m,n_sensors,sigma_mm,sigma_X_mm,sigma_Y_mm,sigma_Z_mm.")
 @click.option("-o", "--output", default="plan.png", show_default=True, type=click.Path(dir_okay=False, path_type=Path),
               help="Output PNG.")
-def plan_command(sensors_json, room_m, height_m, grid_mm, sigma_d_mm, csv_path, output):
+def plan_command(sensors_json, candidates, calib, room_m, height_m, grid_mm, sigma_d_mm, csv_path, output):
     """Plan an installation: coverage and position uncertainty over a plane of the room.
 
     \b
@@ -725,15 +773,24 @@ def plan_command(sensors_json, room_m, height_m, grid_mm, sigma_d_mm, csv_path, 
     (dilution of precision from each sensor's calibrated angle covariance, the impact-point
     noise and, when present, its pose_covariance).
     Example: psdcal plan --sensors sensors.json --room-m 6 4 3 --height-m 1 -o plan.png --csv plan.csv
+    \b
+    Candidate positions without poses yet: a CSV name,X_m,Y_m,Z_m,aim_X_m,aim_Y_m,aim_Z_m
+    (centre and aim point) and the calibration:
+      psdcal plan --candidates layout.csv --calib calib.json --room-m 6 4 3 -o plan.png
     """
     import numpy as np
 
     from psdcal.measure.planning import plan_map, plot_plan, write_plan_csv
     from psdcal.measure.positioning import load_sensors
 
-    sensors = load_sensors(sensors_json)
+    from psdcal.errors import InputError
+
+    if (sensors_json is None) == (candidates is None):
+        raise InputError("give exactly one of --sensors or --candidates", field="sensors")
+    sensors = load_sensors(sensors_json) if sensors_json is not None else _read_candidates(candidates, calib)
+    name = (sensors_json or candidates).name
     pm = plan_map(sensors, np.array(room_m) * 1000.0, z_mm=height_m * 1000.0, grid_mm=grid_mm, sigma_d_mm=sigma_d_mm)
-    plot_plan(pm, output, title=f"{sensors_json.name}: {len(sensors)} sensors, plane Z = {height_m:g} m")
+    plot_plan(pm, output, title=f"{name}: {len(sensors)} sensors, plane Z = {height_m:g} m")
     if csv_path:
         write_plan_csv(pm, csv_path)
     cov2 = np.mean(pm.count >= 2) * 100
