@@ -82,6 +82,7 @@ def locate_command(recordings, calib, sensors, rate_hz, carriers, emitters, dist
 
     Recordings: .npy (n, 4), .csv (header vx1,vx2,vy1,vy2[,t_s]), .h5/.hdf5, .tdms.
     Sigmas are 1-sigma, from the signal noise and the calibration covariance.
+
     \b
     Live input (one sensor): RECORDING '-' (stdin) or tcp://127.0.0.1:PORT (a local server
     sending interleaved frames, --raw-dtype, --raw-scale) or nidaqmx://Dev1/ai0:3 (psdcal[daq]);

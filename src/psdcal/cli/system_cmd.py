@@ -392,7 +392,10 @@ def pose_command(source, calib, emitters_csv, rate_hz, carriers, emitter_names, 
     \b
     Writes the sensors-file entry `locate --sensors` reads: name, calib, rvec, tvec_mm,
     recording, plus pose_covariance (6x6 over omega_x,y,z rad and tx,ty,tz mm, the angle
-    noise and the calibration covariance) and pose (centre, 1-sigma, chi2, warnings).
+    noise and the calibration covariance), pose_calibration (the pose's derivative by the
+    calibration parameters and its noise-only covariance: `locate --sensors` then propagates
+    the rays' and the pose's calibration error together) and pose (centre, 1-sigma, chi2,
+    warnings).
     \b
     Example:
       psdcal pose room/s1.npy --rate-hz 20000 --calib calib.json --emitters room/emitters.csv \\
