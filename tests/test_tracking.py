@@ -152,3 +152,22 @@ def test_track_time_multiplexed_angles(tmp_path):
     ax = np.array([float(r["alpha_x_deg"]) for r in a1])
     sx = np.array([float(r["sigma_alpha_x_deg"]) for r in a1])
     assert 0.6 < ax.std() / np.sqrt(np.mean(sx**2)) < 1.5
+
+
+from hypothesis import given, settings, strategies as st  # noqa: E402
+
+
+@settings(max_examples=20, deadline=None)
+@given(seed=st.integers(0, 10_000), n_emitters=st.integers(1, 4))
+def test_tracks_do_not_mix(seed, n_emitters):
+    """Each emitter's track is the same whether its rows are filtered alone or interleaved with others'."""
+    rng = np.random.default_rng(seed)
+    t, em, z, R, _ = _simulate(rng, n_emitters=n_emitters, n=40, d=2, q=1e5)
+    cfg = TrackConfig(q=1e5, init_sigma_v=600.0)
+    all_ = track(t, em, z, R, cfg)
+    for e in set(em):
+        m = em == e
+        alone = track(t[m], em[m], z[m], R[m], cfg)
+        np.testing.assert_array_equal(alone.p, all_.p[m])
+        np.testing.assert_array_equal(alone.cov, all_.cov[m])
+        np.testing.assert_array_equal(alone.gated, all_.gated[m])
