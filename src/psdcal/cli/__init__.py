@@ -26,6 +26,7 @@ def cli():
 
 # Command modules: each one adds its commands to `cli` when imported.
 _COMMANDS = (
+    "system_cmd",
     "calibrate_cmd",
     "simulate_cmd",
     "signal_cmd",
