@@ -43,9 +43,12 @@ def model_options(f):
               help="Estimate the three relative channel gains jointly (POINTS must carry raw amplitudes vx1,vx2,vy1,vy2).")
 @click.option("--reject", "reject_k", type=click.FloatRange(min=0.0, min_open=True), default=None, metavar="K",
               help="Remove points whose residual exceeds K robust noise sigmas, refit, and list them (e.g. 5).")
+@click.option("--f-guess", "f_guess_mm", type=click.FloatRange(min=0.0, min_open=True), default=None, metavar="F_MM",
+              help="Nominal focal length, mm (lens data sheet): one more start of the refinement, and the start "
+                   "used when the views alone give none.")
 @click.option("--quiet", "-q", is_flag=True, help="Print nothing but errors.")
 def calibrate_command(points, template, output, cost, radial, tangential, psd_radial, skew, aspect, preliminary,
-                      normalize, sensor_mm, max_iterations, fit_gains, quiet, reject_k=None):
+                      normalize, sensor_mm, max_iterations, fit_gains, quiet, reject_k=None, f_guess_mm=None):
     """Calibrate a PSD + lens sensor from views of a planar LED template.
 
     POINTS is a CSV of impact points, `image_id,point_id,x_mm,y_mm` (a missing
@@ -71,7 +74,7 @@ def calibrate_command(points, template, output, cost, radial, tangential, psd_ra
             txy, pf.points_mm, cost=cost, radial=radial, tangential=tangential, psd_radial=psd_radial, skew=skew,
             preliminary=preliminary, normalize=normalize, aspect=aspect, fit_gains=fit_gains,
             image_ids=pf.image_ids, point_ids=tids, sensor_mm=tuple(sensor_mm),
-            solver=SolverOptions(max_iterations=max_iterations),
+            solver=SolverOptions(max_iterations=max_iterations), f_guess_mm=f_guess_mm,
         )
     except DegenerateViewsError as exc:
         raise DegenerateViewsError(f"{points}: {exc}") from None
