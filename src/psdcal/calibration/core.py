@@ -177,6 +177,7 @@ class CalibrationResult:
     problem: dict = field(default_factory=dict)
     sensor_mm: tuple = (LX_MM, LY_MM)
     created: str = ""
+    verdict: dict | None = None  # psdcal.calibration.verdict.Verdict.to_dict(): {"verdict", "checks"}
 
     # -- use --------------------------------------------------------------------------
     def undistort(self, d_mm):
@@ -271,6 +272,7 @@ class CalibrationResult:
             "software": {"name": "psdcal", "version": __version__},
             "created": self.created,
             "warnings": self.warnings(),
+            **({"verdict": self.verdict["verdict"], "checks": self.verdict["checks"]} if self.verdict else {}),
         }
 
     @classmethod
@@ -329,6 +331,7 @@ class CalibrationResult:
                 problem=d.get("problem", {}),
                 sensor_mm=(float(sensor.get("lx_mm", LX_MM)), float(sensor.get("ly_mm", LY_MM))),
                 created=str(d.get("created", "")),
+                verdict={"verdict": d["verdict"], "checks": list(d.get("checks", []))} if "verdict" in d else None,
             )
         except (KeyError, TypeError, ValueError) as exc:
             raise InputError(f"not a psdcal calibration ({type(exc).__name__}: {exc})", path=source) from None
@@ -378,6 +381,8 @@ def calibrate(
     sensor_mm: tuple[float, float] = (LX_MM, LY_MM),
     solver: SolverOptions = SolverOptions(),
     f_guess_mm: float | None = None,
+    verdict: bool = True,
+    noise_mm: float | None = None,
 ) -> CalibrationResult:
     """Calibrate a PSD + lens sensor from views of a planar LED template.
 
@@ -425,6 +430,12 @@ def calibrate(
         A nominal focal length, mm (the lens' data sheet): one more start of
         the refinement (optical centre at the electrical centre), and the
         start used when the views alone give none (:func:`linear_starts`).
+    verdict : bool
+        Attach the statistical verdict (:func:`psdcal.calibration.verdict.assess`,
+        with diagnosis) as ``result.verdict`` (JSON ``verdict`` and ``checks``).
+    noise_mm : float, optional
+        Known noise standard deviation per coordinate of the points, mm, for
+        the verdict's ``noise`` check.
 
     Returns
     -------
@@ -446,12 +457,22 @@ def calibrate(
     from psdcal.calibration._refine import _single_threaded_blas
 
     with _single_threaded_blas():  # small dense linear algebra: one BLAS thread is fastest
-        return _calibrate(
+        res = _calibrate(
             template_mm, points_mm, cost=cost, radial=radial, tangential=tangential, psd_radial=psd_radial,
             skew=skew, preliminary=preliminary, normalize=normalize, aspect=aspect, fit_gains=fit_gains,
             gains=gains, image_ids=image_ids, point_ids=point_ids, sensor_mm=sensor_mm, solver=solver,
             f_guess_mm=f_guess_mm,
         )
+        if verdict:
+            res = with_verdict(res, noise_mm=noise_mm)
+        return res
+
+
+def with_verdict(res: CalibrationResult, *, noise_mm: float | None = None, points_kind: str | None = None) -> CalibrationResult:
+    """``res`` with its statistical verdict attached (:func:`psdcal.calibration.verdict.assess`)."""
+    from psdcal.calibration.verdict import assess
+
+    return replace(res, verdict=assess(res, noise_mm=noise_mm, points_kind=points_kind).to_dict())
 
 
 def _calibrate(template_mm, points_mm, *, cost, radial, tangential, psd_radial, skew, preliminary, normalize,
@@ -879,14 +900,19 @@ def _make_result(prob, ref, start, ids, pids, spec, cost, g0, preliminary, norma
     )
 
 
-def recalibrate(calib: dict | CalibrationResult) -> CalibrationResult:
+def recalibrate(calib: dict | CalibrationResult, *, verdict: bool = True) -> CalibrationResult:
     """Re-run a calibration exactly from the problem record saved inside it."""
+    return _calibrate_record(calib, verdict=verdict)
+
+
+def _calibrate_record(calib, *, verdict: bool = False, template_mm=None, **changes) -> CalibrationResult:
+    """Re-run the calibration recorded in ``calib`` with ``changes`` to its options (and another template)."""
     d = calib.to_dict() if isinstance(calib, CalibrationResult) else calib
     p = d["problem"]
-    o = p["options"]
+    o = {**p["options"], **changes}
     X = np.array([[[np.nan if v is None else v for v in pt] for pt in img] for img in p["points"]["xy_mm"]], dtype=float)
     return calibrate(
-        np.array(p["template"]["xy_mm"], dtype=float),
+        np.array(p["template"]["xy_mm"], dtype=float) if template_mm is None else np.asarray(template_mm, dtype=float),
         X,
         cost=o["cost"],
         radial=o["radial"],
@@ -903,4 +929,5 @@ def recalibrate(calib: dict | CalibrationResult) -> CalibrationResult:
         sensor_mm=tuple(o.get("sensor_mm", (LX_MM, LY_MM))),
         solver=SolverOptions(**o.get("solver", {})),
         f_guess_mm=o.get("f_guess_mm"),
+        verdict=verdict,
     )

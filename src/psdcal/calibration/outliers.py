@@ -273,7 +273,7 @@ def _refit(result, points_mm):
 
     d = result.to_dict()
     d["problem"] = {**d["problem"], "points": {**d["problem"]["points"], "xy_mm": _jsonable(points_mm)}}
-    return recalibrate(d)
+    return recalibrate(d, verdict=False)
 
 
 def reject_outliers(

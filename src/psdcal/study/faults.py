@@ -135,3 +135,44 @@ def true_start_cost(case: Case, result) -> float:
 def lens_truth(lens: str):
     """(Intrinsics, Distortion) of a lens preset."""
     return LENSES[lens]
+
+
+def single_start_fit(case: Case):
+    """The fit the pre-multistart ``calibrate`` made: one refinement from the closed form (a forced start).
+
+    On irregular templates with Lens 1 it stops in a wrong minimum about one
+    time in three; :func:`wrong_minimum` keeps those.
+    """
+    from psdcal.calibration._refine import Problem, SolverOptions, refine
+    from psdcal.calibration.core import _make_result, initial_estimate, linear_starts  # noqa: F401
+    from psdcal.model.params import ModelSpec
+
+    m = case.model
+    spec = ModelSpec(radial=m.get("radial", 2), tangential=m.get("tangential", True))
+    T, X = np.asarray(case.template_mm, float), np.asarray(case.points_mm, float)
+    st = initial_estimate(T, X, radial_terms=spec.radial)
+    prob = Problem(T, X, spec, cost="image")
+    ref = refine(prob, st.intrinsics, st.distortion(spec.radial), np.ones(4), st.rvecs, st.tvecs_mm, SolverOptions())
+    ids = tuple(range(X.shape[0]))
+    return _make_result(prob, ref, st, ids, tuple(range(T.shape[0])), spec, "image", np.ones(4), True, True, SolverOptions())
+
+
+def wrong_minimum(seed: int, *, min_ratio: float = 1.001, max_tries: int = 200):
+    """(case, result): a Lens 1 case whose single-start fit stopped in a wrong minimum (cost above the global one).
+
+    Cases are drawn from seeds ``seed * max_tries + k``; the first whose
+    single-start cost exceeds ``min_ratio`` times the cost refined from the
+    truth is returned.
+    """
+    for k in range(max_tries):
+        case = random_case(seed * max_tries + k, lens="lens1", model={"radial": 1 + k % 2, "tangential": False})
+        try:
+            res = single_start_fit(case)
+        except Exception:  # noqa: BLE001 -- a start that fails is not the fault studied here
+            continue
+        if not res.converged:
+            continue
+        best = true_start_cost(case, res)
+        if res.cost_rms > min_ratio * best:
+            return case, res
+    raise RuntimeError("no wrong minimum found")
