@@ -503,7 +503,7 @@ def _calibrate(template_mm, points_mm, *, cost, radial, tangential, psd_radial, 
         known_gains, X, g0 = g0, correct_points(X, g0, *sensor_mm), np.ones(4)
     primary, cands = linear_starts(
         T, X, preliminary=preliminary, normalize=normalize, radial=radial, skew=skew, aspect=aspect,
-        general=fit_gains, f_guess_mm=f_guess_mm, image_ids=ids,
+        general=fit_gains, f_guess_mm=f_guess_mm, image_ids=ids, point_ids=pids,
     )
     start = primary
     g0_start = g0
@@ -518,7 +518,9 @@ def _calibrate(template_mm, points_mm, *, cost, radial, tangential, psd_radial, 
     if not good:
         good = [t for t in tried if np.isfinite(t[1].cost_rms)]
     if not good:
-        raise DegenerateViewsError("no start of the refinement converged: the views do not determine the intrinsics; "
+        hint = template_hint(T, X, start.homographies, pids)
+        raise DegenerateViewsError(f"no start of the refinement converged: {hint}" if hint else
+                                   "no start of the refinement converged: the views do not determine the intrinsics; "
                                    "tilt the template differently between views, or give --f-guess")
     label, best0, _ = min(good, key=lambda t: t[1].cost_rms)
     start_record = {"starts": [{"start": lb, "cost_rms": float(r.cost_rms), "converged": bool(r.converged), "f_mm": float(r.intrinsics.f_mm),
@@ -666,8 +668,63 @@ def _restrict(dist: Distortion, spec: ModelSpec) -> Distortion:
     return Distortion(**{n: v for n, v in dist.to_dict().items() if n in free})
 
 
+def template_hint(T, X, Hs, point_ids=None) -> str:
+    """A message naming template LEDs that no view's homography fits ("" when none stands out).
+
+    Each view's residuals from its homography (lens distortion makes them
+    smooth in the image, different from view to view) are divided by that
+    view's median; an LED whose median over the views is far above the other
+    LEDs' is off in every view: a wrong template coordinate, or a permutation
+    of the LED order (two LEDs swapped, a row listed in reverse). When
+    swapping the two worst LEDs makes the homographies fit, say so.
+    """
+    from psdcal.calibration._homography import apply_homography
+
+    T = np.asarray(T, dtype=float)
+    ids = list(range(len(T))) if point_ids is None else list(point_ids)
+
+    def per_led(Tm):
+        Hm = homographies(Tm, X, normalize=True)
+        res = np.stack([np.hypot(*(apply_homography(H, Tm) - x).T) for H, x in zip(Hm, X)])  # (n_images, M)
+        res = res / np.maximum(np.nanmedian(res, axis=1, keepdims=True), 1e-300)
+        return np.nanmedian(res, axis=0), float(np.nansum(res ** 2))
+
+    try:
+        led, total = per_led(T)
+    except (DegenerateViewsError, np.linalg.LinAlgError):
+        return ""
+    order = [int(k) for k in np.argsort(-led)[:5]]
+
+    def misfit(Tm):
+        Hm = homographies(Tm, X, normalize=True)
+        return sum(float(np.nansum(np.sum((apply_homography(H, Tm) - x) ** 2, axis=-1))) for H, x in zip(Hm, X))
+
+    try:
+        base = misfit(T)
+        best = (base, None)
+        for i in range(len(order)):
+            for j in range(i + 1, len(order)):
+                T2 = T.copy()
+                T2[[order[i], order[j]]] = T2[[order[j], order[i]]]
+                m2 = misfit(T2)
+                if m2 < best[0]:
+                    best = (m2, (order[i], order[j]))
+    except (DegenerateViewsError, np.linalg.LinAlgError):
+        best = (np.inf, None)
+        base = np.inf
+    if best[1] is not None and best[0] < base / 10:
+        a, b = best[1]
+        return (f"a template permutation fits: LEDs {ids[a]} and {ids[b]} look swapped (check the LED order in the "
+                "template: two LEDs swapped or a row listed in reverse), not the views")
+    if led[order[0]] > 4.0 * np.median(led):
+        a, b = order[0], order[1]
+        return (f"template LEDs {ids[a]} and {ids[b]} are off the projective fit in every view: check the template "
+                "(LED order: swapped LEDs or a row listed in reverse; coordinates), not the views")
+    return ""
+
+
 def linear_starts(T, X, *, preliminary=True, normalize=True, radial=2, skew=False, aspect=False, general=False,
-                  f_guess_mm=None, image_ids=None):
+                  f_guess_mm=None, image_ids=None, point_ids=None):
     """Starts of the refinement from the linear stages, the first that fail being replaced by ones that cannot.
 
     Returns ``(primary, starts)``: ``primary`` is the :class:`InitialEstimate`
@@ -742,6 +799,9 @@ def linear_starts(T, X, *, preliminary=True, normalize=True, radial=2, skew=Fals
         fallback.append(("f-guess", float(f_guess_mm)))
     if not starts and not fallback:
         if closed_error is not None and fs.size == 0:
+            hint = template_hint(T, X, Hs_raw, point_ids)
+            if hint:
+                raise DegenerateViewsError(f"no camera fits these views: {hint}")
             raise DegenerateViewsError(
                 f"the views do not determine the intrinsics ({closed_error}; no single view fixes a focal length): "
                 "tilt the template differently between views, or give a nominal focal length with --f-guess"
