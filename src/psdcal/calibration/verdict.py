@@ -139,7 +139,7 @@ class _Linear:
     n: int  # rank of the Jacobian
 
 
-def _linearise(result) -> _Linear:
+def _linearise(result, exclude=None) -> _Linear:
     from psdcal.calibration._refine import Evaluator, Problem
     from psdcal.calibration.checks import align_to_problem
     from psdcal.calibration.outliers import _points_array
@@ -153,7 +153,13 @@ def _linearise(result) -> _Linear:
     ev = Evaluator(prob, res.intrinsics, res.distortion, gains)
     z = prob.pack(res.intrinsics, res.distortion, gains, res.rvecs, res.tvecs_mm)
     r, J = ev.evaluate(z)
-    e = -np.asarray(r, dtype=float)
+    r = np.asarray(r, dtype=float)
+    img, led, d_meas = ev.img_idx, ev.pt_idx, ev.d_meas
+    if exclude is not None:  # (n_images, M) bool: observations left out of the test (flagged outliers)
+        keep_pt = ~np.asarray(exclude, dtype=bool)[img, led]
+        rows = np.repeat(keep_pt, 2)
+        r, J, img, led, d_meas = r[rows], J[rows], img[keep_pt], led[keep_pt], d_meas[keep_pt]
+    e = -r
     U, s, _ = np.linalg.svd(J / np.maximum(np.linalg.norm(J, axis=0), 1e-300), full_matrices=False)
     keep = s > 1e-10 * s[0] if s.size else np.zeros(0, bool)
     Q = U[:, keep]
@@ -161,7 +167,7 @@ def _linearise(result) -> _Linear:
     h = np.sum(Q * Q, axis=1)
     # the modelled points (noise-free up to the fitted parameters): fields evaluated at the measured ones would carry
     # the noise's own gradient into the test and correlate with it
-    return _Linear(e, Q, h, ev.d_meas + np.asarray(r, dtype=float).reshape(-1, 2), ev.img_idx, ev.pt_idx, int(keep.sum()))
+    return _Linear(e, Q, h, d_meas + r.reshape(-1, 2), img, led, int(keep.sum()))
 
 
 def _field_basis(pts, c_mm, half_mm) -> np.ndarray:
@@ -279,7 +285,7 @@ def assess(result, *, noise_mm: float | None = None, points_kind: str | None = N
         checks.append(Check(
             "structure", F, float(fdist.isf(ALPHA, p_dim, dof - p_dim)), p, ALPHA, ok,
             f"a smooth field over the sensor explains {100 * frac:.3g} % of the residuals (F = {F:.3g} on {p_dim} and "
-            f"{dof - p_dim} dof, p = {p:.2g})" + ("" if ok else f"; residual RMS {rms_um:.3g} um is systematic, not noise"),
+            f"{dof - p_dim} dof, p = {p:.2g})" + ("" if ok else f"; the residual RMS {result.rms_mm * 1e3:.3g} um is systematic, not noise"),
             "", severe=p < WRONG_P,
         ))
 
@@ -499,3 +505,17 @@ def _permutation_advice(result, lin, base) -> str | None:
     ids = result.point_ids
     return (f"a template permutation fits: LEDs {ids[a]} and {ids[b]} look swapped (residuals fall "
             f"{base / max(best[0], 1e-300):.3g}x): check the LED order in the template (a row listed in reverse?)")
+
+
+def structure_test(result, exclude=None) -> tuple[float, float]:
+    """(F, p-value) of the structure check on ``result``'s residuals, ``exclude`` (n_images, M) observations left out."""
+    from scipy.stats import f as fdist
+
+    lin = _linearise(result, exclude)
+    dof = lin.e.size - lin.n
+    expl, p_dim = _explained(lin, _field_basis(lin.pts, result.intrinsics.c, np.asarray(result.sensor_mm, float) / 2))
+    if p_dim == 0 or dof - p_dim <= 0:
+        return float("nan"), 1.0
+    ssr = float(lin.e @ lin.e)
+    F = (expl / p_dim) / max((ssr - expl) / (dof - p_dim), 1e-300)
+    return float(F), float(fdist.sf(F, p_dim, dof - p_dim))

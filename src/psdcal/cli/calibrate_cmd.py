@@ -46,20 +46,28 @@ def model_options(f):
 @click.option("--f-guess", "f_guess_mm", type=click.FloatRange(min=0.0, min_open=True), default=None, metavar="F_MM",
               help="Nominal focal length, mm (lens data sheet): one more start of the refinement, and the start "
                    "used when the views alone give none.")
+@click.option("--noise-um", "noise_um", type=click.FloatRange(min=0.0, min_open=True), default=None, metavar="SIGMA_UM",
+              help="Known noise standard deviation per coordinate of the points, um (e.g. from the lock-in's "
+                   "amplitude noise): the verdict then also tests the residual RMS against it.")
+@click.option("--strict", is_flag=True, default=False,
+              help="Exit 3 (and write no --output) unless the verdict is good.")
 @click.option("--quiet", "-q", is_flag=True, help="Print nothing but errors.")
 def calibrate_command(points, template, output, cost, radial, tangential, psd_radial, skew, aspect, preliminary,
-                      normalize, sensor_mm, max_iterations, fit_gains, quiet, reject_k=None, f_guess_mm=None):
+                      normalize, sensor_mm, max_iterations, fit_gains, quiet, reject_k=None, f_guess_mm=None,
+                      noise_um=None, strict=False):
     """Calibrate a PSD + lens sensor from views of a planar LED template.
 
     POINTS is a CSV of impact points, `image_id,point_id,x_mm,y_mm` (a missing
     point is a missing row), or of raw amplitudes `image_id,point_id,vx1,vx2,vy1,vy2`.
-    Prints the parameters with standard errors and the residual RMS, and
-    writes the calibration JSON to --output.
+    Prints the parameters with standard errors and the residual RMS, the
+    verdict (good / suspect / wrong) with the self-checks that failed and the
+    advice that fixes their cause, and writes the calibration JSON (with
+    `verdict` and `checks`) to --output.
 
     Example: psdcal calibrate points.csv -t template.csv -o calib.json --psd-radial 1
     """
-    from psdcal.calibration.core import calibrate
-    from psdcal.errors import DegenerateViewsError, InputError
+    from psdcal.calibration.core import calibrate, with_verdict
+    from psdcal.errors import ConvergenceError, DegenerateViewsError, InputError
     from psdcal.io import read_points, read_template, save_calibration
     from psdcal.report.text import print_calibration
 
@@ -69,18 +77,22 @@ def calibrate_command(points, template, output, cost, radial, tangential, psd_ra
         raise InputError("--fit-gains needs raw amplitudes (header image_id,point_id,vx1,vx2,vy1,vy2)", path=points, line=1)
     from psdcal.calibration._refine import SolverOptions
 
+    noise_mm = None if noise_um is None else noise_um * 1e-3
     try:
         res = calibrate(
             txy, pf.points_mm, cost=cost, radial=radial, tangential=tangential, psd_radial=psd_radial, skew=skew,
             preliminary=preliminary, normalize=normalize, aspect=aspect, fit_gains=fit_gains,
             image_ids=pf.image_ids, point_ids=tids, sensor_mm=tuple(sensor_mm),
-            solver=SolverOptions(max_iterations=max_iterations), f_guess_mm=f_guess_mm,
+            solver=SolverOptions(max_iterations=max_iterations), f_guess_mm=f_guess_mm, verdict=False,
         )
     except DegenerateViewsError as exc:
         raise DegenerateViewsError(f"{points}: {exc}") from None
+    except ConvergenceError as exc:
+        raise ConvergenceError(f"{points}: {exc}{_diagnosis(exc.result, noise_mm, pf.kind)}") from None
     if reject_k is not None:
-        from psdcal.calibration.outliers import reject_outliers
+        from psdcal.calibration.outliers import refuse_if_systematic, reject_outliers
 
+        refuse_if_systematic(res, reject_k, points_kind=pf.kind)
         rej = reject_outliers(res, reject_k, line_numbers=pf.line_numbers)
         res = rej.result
         if not quiet:
@@ -91,13 +103,32 @@ def calibrate_command(points, template, output, cost, radial, tangential, psd_ra
                            f"residual {p.residual_mm * 1e3:.2f} um = {p.ratio:.1f} sigma")
             for iid, pid in rej.kept_flagged:
                 click.echo(f"  kept (too few points left to remove it): image {iid}, point {pid}")
+    res = with_verdict(res, noise_mm=noise_mm, points_kind=pf.kind)
     res = _with_inputs(res, template, points)
+    if strict and res.verdict["verdict"] != "good":
+        if not quiet:
+            print_calibration(res)
+        raise click.exceptions.Exit(3)
     if output is not None:
         save_calibration(output, res)
     if not quiet:
         print_calibration(res)
         if output is not None:
             click.echo(f"wrote {output}")
+
+
+def _diagnosis(result, noise_mm, points_kind) -> str:
+    """'; verdict: ...' with the first advice of the verdict on an unconverged result ('' when none)."""
+    if result is None:
+        return ""
+    try:
+        from psdcal.calibration.verdict import assess
+
+        v = assess(result, noise_mm=noise_mm, points_kind=points_kind)
+    except Exception:  # noqa: BLE001 -- the diagnosis of a failed fit is best effort; the error stands without it
+        return ""
+    tips = [c.advice for c in v.failed if c.advice]
+    return f"; diagnosis: {tips[0]}" if tips else ""
 
 
 def _with_inputs(res, template, points):

@@ -59,6 +59,24 @@ class Case:
     model: dict
     bad_image: int | None = None
     noise_mm: float = 0.0
+    amplitudes: np.ndarray | None = None  # (n_images, M, 4) raw amplitudes, V (fault "gains")
+
+    def write(self, directory) -> tuple:
+        """Write ``template.csv`` and ``points.csv`` (amplitudes when the case has them) into ``directory``; their paths."""
+        from pathlib import Path
+
+        from psdcal.io import write_amplitudes, write_points, write_template
+
+        d = Path(directory)
+        d.mkdir(parents=True, exist_ok=True)
+        ids = list(range(len(self.template_mm)))
+        write_template(d / "template.csv", ids, self.template_mm)
+        imgs = list(range(self.points_mm.shape[0]))
+        if self.amplitudes is not None:
+            write_amplitudes(d / "points.csv", imgs, ids, self.amplitudes)
+        else:
+            write_points(d / "points.csv", imgs, ids, self.points_mm)
+        return d / "template.csv", d / "points.csv"
 
 
 def random_case(seed: int, *, fault: str = "none", lens: str | None = None, n_images: int | None = None,
@@ -86,6 +104,7 @@ def random_case(seed: int, *, fault: str = "none", lens: str | None = None, n_im
     X = s.points_mm.copy()
     Tu = T.copy()
     bad = None
+    amps = None
     if fault == "gains":
         from psdcal.calibration.gains import simulate_amplitudes
         from psdcal.model.readout import impact_point
@@ -108,7 +127,7 @@ def random_case(seed: int, *, fault: str = "none", lens: str | None = None, n_im
         Tu = Tu / 1000.0  # a consistently metric user: both files in metres
     elif fault == "no_k2":
         model["radial"] = 1
-    return Case(s, X, Tu, fault, model, bad, float(noise_mm))
+    return Case(s, X, Tu, fault, model, bad, float(noise_mm), amps)
 
 
 def true_start_cost(case: Case, result) -> float:
