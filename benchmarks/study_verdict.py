@@ -74,7 +74,12 @@ def faulty(args) -> dict:
             if r is None:
                 return {"kind": kind, "seed": seed, "verdict": "refused", "failed": [str(exc)[:60]]}
     v = assess(r, diagnose=False, points_kind="amplitudes" if kind == "gains" else "points")
-    return {"kind": kind, "seed": seed, "verdict": v.verdict, "failed": [x.name for x in v.failed]}
+    out = {"kind": kind, "seed": seed, "verdict": v.verdict, "failed": [x.name for x in v.failed]}
+    if kind == "no_k2":  # how many standard errors k2 is from 0 in the fit of the true model (its detectability)
+        t = calibrate(c.template_mm, c.points_mm, radial=2, tangential=False, verdict=False)
+        out["k2_z"] = float(t.distortion.k2 / t.std["k2"])
+        out["noise_um"] = c.noise_mm * 1e3
+    return out
 
 
 def main(argv=None):
@@ -109,6 +114,12 @@ def main(argv=None):
         top = Counter(name for r in rs for name in r["failed"] if r["verdict"] != "refused").most_common(3)
         print(f"| {k} | {len(rs)} | {det} | {100 * det / max(len(rs), 1):.1f} % | {cnt['wrong']} | {cnt['suspect']} | {cnt['refused']} | "
               + ", ".join(f"{a_} {b_}" for a_, b_ in top) + " |")
+        if k == "no_k2":
+            for zmin in (3.0, 5.0):
+                sub = [r for r in rs if abs(r["k2_z"]) >= zmin]
+                d = sum(r["verdict"] != "good" for r in sub)
+                print(f"| no_k2, k2 >= {zmin:g} std errors from 0 in the true model's fit | {len(sub)} | {d} | "
+                      f"{100 * d / max(len(sub), 1):.1f} % | | | | |")
         for r in rs:
             if r["verdict"] == "good":
                 print(f"    missed: {r}")

@@ -965,12 +965,16 @@ def recalibrate(calib: dict | CalibrationResult, *, verdict: bool = True) -> Cal
     return _calibrate_record(calib, verdict=verdict)
 
 
-def _calibrate_record(calib, *, verdict: bool = False, template_mm=None, **changes) -> CalibrationResult:
-    """Re-run the calibration recorded in ``calib`` with ``changes`` to its options (and another template)."""
+def _calibrate_record(calib, *, verdict: bool = False, template_mm=None, drop_image=None, **changes) -> CalibrationResult:
+    """Re-run the calibration recorded in ``calib`` with ``changes`` to its options (another template, an image left out)."""
     d = calib.to_dict() if isinstance(calib, CalibrationResult) else calib
     p = d["problem"]
     o = {**p["options"], **changes}
     X = np.array([[[np.nan if v is None else v for v in pt] for pt in img] for img in p["points"]["xy_mm"]], dtype=float)
+    image_ids = list(p["points"]["image_ids"])
+    if drop_image is not None:
+        X = np.delete(X, drop_image, axis=0)
+        del image_ids[drop_image]
     return calibrate(
         np.array(p["template"]["xy_mm"], dtype=float) if template_mm is None else np.asarray(template_mm, dtype=float),
         X,
@@ -984,7 +988,7 @@ def _calibrate_record(calib, *, verdict: bool = False, template_mm=None, **chang
         aspect=o.get("aspect", False),
         fit_gains=o.get("fit_gains", False),
         gains=o.get("gains"),
-        image_ids=p["points"]["image_ids"],
+        image_ids=image_ids,
         point_ids=p["template"]["point_ids"],
         sensor_mm=tuple(o.get("sensor_mm", (LX_MM, LY_MM))),
         solver=SolverOptions(**o.get("solver", {})),

@@ -137,6 +137,8 @@ class _Linear:
     img: np.ndarray  # (N,) image index
     led: np.ndarray  # (N,) template point index
     n: int  # rank of the Jacobian
+    extra_names: tuple = ()  # terms the model leaves out
+    extra: np.ndarray | None = None  # (m, len(extra_names)) their Jacobian columns at the solution
 
 
 def _linearise(result, exclude=None) -> _Linear:
@@ -155,10 +157,21 @@ def _linearise(result, exclude=None) -> _Linear:
     r, J = ev.evaluate(z)
     r = np.asarray(r, dtype=float)
     img, led, d_meas = ev.img_idx, ev.pt_idx, ev.d_meas
+    # columns of the terms the model leaves out (the next radial term, tangential, PSD l1, skew), at the solution
+    spec = res.model
+    rich = replace(spec, radial=min(3, spec.radial + 1), tangential=True, psd_radial=max(spec.psd_radial, 1),
+                   skew=spec.skew or not spec.aspect)
+    extra_names = [n for n in rich.global_names if n not in spec.global_names]
+    extra = np.zeros((r.size, 0))
+    if extra_names:
+        pr = Problem(T, X, rich, cost="image", sensor_mm=tuple(res.sensor_mm))
+        evr = Evaluator(pr, res.intrinsics, res.distortion, gains)
+        Jr = evr.evaluate(pr.pack(res.intrinsics, res.distortion, gains, res.rvecs, res.tvecs_mm))[1]
+        extra = np.asarray(Jr, dtype=float)[:, [pr.names.index(n) for n in extra_names]]
     if exclude is not None:  # (n_images, M) bool: observations left out of the test (flagged outliers)
         keep_pt = ~np.asarray(exclude, dtype=bool)[img, led]
         rows = np.repeat(keep_pt, 2)
-        r, J, img, led, d_meas = r[rows], J[rows], img[keep_pt], led[keep_pt], d_meas[keep_pt]
+        r, J, img, led, d_meas, extra = r[rows], J[rows], img[keep_pt], led[keep_pt], d_meas[keep_pt], extra[rows]
     e = -r
     U, s, _ = np.linalg.svd(J / np.maximum(np.linalg.norm(J, axis=0), 1e-300), full_matrices=False)
     keep = s > 1e-10 * s[0] if s.size else np.zeros(0, bool)
@@ -167,7 +180,7 @@ def _linearise(result, exclude=None) -> _Linear:
     h = np.sum(Q * Q, axis=1)
     # the modelled points (noise-free up to the fitted parameters): fields evaluated at the measured ones would carry
     # the noise's own gradient into the test and correlate with it
-    return _Linear(e, Q, h, d_meas + r.reshape(-1, 2), img, led, int(keep.sum()))
+    return _Linear(e, Q, h, d_meas + r.reshape(-1, 2), img, led, int(keep.sum()), tuple(extra_names), extra)
 
 
 def _field_basis(pts, c_mm, half_mm) -> np.ndarray:
@@ -289,6 +302,20 @@ def assess(result, *, noise_mm: float | None = None, points_kind: str | None = N
             "", severe=p < WRONG_P,
         ))
 
+    # terms the model leaves out: a nested-model F-test (the linearised richer model)
+    t = terms_test(lin)
+    if t is not None:
+        F, p, p_dim, best = t
+        ok = p >= ALPHA
+        checks.append(Check(
+            "model_terms", F, None, p, ALPHA, ok,
+            f"the terms the model leaves out ({', '.join(lin.extra_names)}) " + (
+                f"explain the residuals beyond noise (F = {F:.3g}, p = {p:.2g}; most: {best})" if not ok else
+                f"explain no more than noise (F = {F:.3g}, p = {p:.2g})"),
+            "" if ok else f"the data need {best}: add {_flag(best, result.model)} (or try --model auto)",
+            severe=p < WRONG_P,
+        ))
+
     # views
     n_img = len(result.image_ids)
     if n_img >= 3:
@@ -375,6 +402,45 @@ def assess(result, *, noise_mm: float | None = None, points_kind: str | None = N
     return Verdict(verdict, tuple(checks))
 
 
+def terms_test(lin: _Linear):
+    """(F, p, dim, most significant term) of the nested-model test of the left-out terms, None without any."""
+    from scipy.stats import f as fdist
+
+    if lin.extra is None or lin.extra.shape[1] == 0:
+        return None
+    dof = lin.e.size - lin.n
+    ssr = float(lin.e @ lin.e)
+    expl, p_dim = _explained(lin, lin.extra)
+    if p_dim == 0 or dof - p_dim <= 0:
+        return None
+    F = (expl / p_dim) / max((ssr - expl) / (dof - p_dim), 1e-300)
+    p = float(fdist.sf(F, p_dim, dof - p_dim))
+    # each term alone too (one degree of freedom: more power for a single missing term); Bonferroni over all tests
+    single = []
+    for k, name in enumerate(lin.extra_names):
+        ek, dk = _explained(lin, lin.extra[:, [k]])
+        if dk:
+            Fk = ek / max((ssr - ek) / (dof - 1), 1e-300)
+            single.append((float(fdist.sf(Fk, 1, dof - 1)), Fk, name))
+    n_tests = 1 + len(single)
+    if single and min(single)[0] < p:
+        pk, Fk, _ = min(single)
+        return float(Fk), float(min(1.0, n_tests * pk)), 1, min(single)[2]
+    best = min(single)[2] if single else lin.extra_names[0]
+    return float(F), float(min(1.0, n_tests * p)), p_dim, best
+
+
+def _flag(term: str, model) -> str:
+    """The calibrate option that frees ``term``."""
+    if term.startswith("k"):
+        return f"--radial {term[1]}"
+    if term in ("p1", "p2"):
+        return "--tangential"
+    if term.startswith("l"):
+        return f"--psd-radial {term[1]}"
+    return "--skew" if term == "skew" else term
+
+
 def _length(mm: float) -> str:
     return f"{mm * 1e3:.3g} um" if mm < 0.1 else f"{mm:.3g} mm"
 
@@ -438,6 +504,8 @@ def _diagnose(result, checks, lin, points_kind, bad_view):
             if better(g, 4.0):
                 cause = ("residuals show a projective pattern: raw amplitudes through unequal channel gains; "
                          "run with --fit-gains (or calibrate the gains electrically)")
+        if cause is None and len(result.image_ids) >= 4:
+            cause = _view_advice(result)
         if cause is None:
             extra = []
             for flag, ch in ((f"--radial {m.radial + 1}", {"radial": m.radial + 1}) if m.radial < 3 else (None, None),
@@ -473,6 +541,24 @@ def _diagnose(result, checks, lin, points_kind, bad_view):
             elif name in ("structure", "optical_centre"):
                 by[name] = replace(c, advice=cause)
     return [by[c.name] for c in checks]
+
+
+def _view_advice(result) -> str | None:
+    """When leaving one view out makes the fit far better (implied noise down 3x, and no other view does), name it."""
+    sig = []
+    for i in range(len(result.image_ids)):
+        r = _refit(result, drop_image=i)
+        sig.append(np.inf if r is None else r.sigma_mm)
+    sig = np.asarray(sig)
+    order = np.argsort(sig)
+    if not np.isfinite(sig[order[0]]) or len(sig) < 2:
+        return None
+    if sig[order[0]] * 3 < result.sigma_mm and sig[order[0]] * 3 < sig[order[1]]:
+        i = int(order[0])
+        return (f"view {result.image_ids[i]} disagrees with the others (without it the implied noise falls "
+                f"{result.sigma_mm / sig[i]:.3g}x): check its labels (two LEDs merged or shifted by the demodulator?) "
+                "or leave it out")
+    return None
 
 
 def _structure_ok(result) -> bool:
