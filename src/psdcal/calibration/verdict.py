@@ -40,6 +40,8 @@ from dataclasses import asdict, dataclass, replace
 
 import numpy as np
 
+from psdcal.errors import PsdcalError
+
 #: Design false-alarm rate of each statistical check (p-value threshold).
 ALPHA = 1e-3
 #: A statistical check failed with a p-value below this makes the verdict "wrong".
@@ -54,6 +56,10 @@ C_FRACTION = 0.5
 SPAN_SUSPECT, SPAN_WRONG = 0.1, 0.01
 
 VERDICTS = ("good", "suspect", "wrong")
+
+
+class VerdictError(PsdcalError, ValueError):
+    """A calibration refused for its verdict (``psdcal calibrate --strict``)."""
 
 
 @dataclass(frozen=True)

@@ -50,7 +50,7 @@ def model_options(f):
               help="Known noise standard deviation per coordinate of the points, um (e.g. from the lock-in's "
                    "amplitude noise): the verdict then also tests the residual RMS against it.")
 @click.option("--strict", is_flag=True, default=False,
-              help="Exit 3 (and write no --output) unless the verdict is good.")
+              help="Exit 2 (and write no --output) unless the verdict is good.")
 @click.option("--quiet", "-q", is_flag=True, help="Print nothing but errors.")
 def calibrate_command(points, template, output, cost, radial, tangential, psd_radial, skew, aspect, preliminary,
                       normalize, sensor_mm, max_iterations, fit_gains, quiet, reject_k=None, f_guess_mm=None,
@@ -106,9 +106,12 @@ def calibrate_command(points, template, output, cost, radial, tangential, psd_ra
     res = with_verdict(res, noise_mm=noise_mm, points_kind=pf.kind)
     res = _with_inputs(res, template, points)
     if strict and res.verdict["verdict"] != "good":
+        from psdcal.calibration.verdict import Verdict, VerdictError
+
         if not quiet:
             print_calibration(res)
-        raise click.exceptions.Exit(3)
+        v = Verdict.from_dict(res.verdict)
+        raise VerdictError(f"--strict: the verdict is {v.verdict} ({'; '.join(v.reasons)}); nothing written")
     if output is not None:
         save_calibration(output, res)
     if not quiet:
