@@ -208,3 +208,43 @@ def test_verdict_json_fields_round_trip(tmp_path):
     for ch in d["checks"]:
         assert set(ch) >= {"name", "statistic", "threshold", "p_value", "false_alarm", "passed", "message", "advice"}
     assert CalibrationResult.from_dict(d).verdict["verdict"] == "good"
+
+
+# -- model choice and cross-validation --------------------------------------------------------
+def test_model_auto_picks_the_true_model():
+    from psdcal.calibration.model_select import select_model
+
+    for seed, lens, want in ((0, "lens1", (1, False)), (1, "lens2", (2, False)), (2, "lens2", (2, False))):
+        c = random_case(300 + seed, lens=lens, noise_mm=1e-3)
+        res, steps = select_model(c.template_mm, c.points_mm)
+        assert (res.model.radial, res.model.tangential) == want, steps
+        assert res.problem["model_selection"]["steps"][-1]["added"] is None
+    # decentring (tangential) distortion in the data: the pair is added
+    s = simulate_set("lens1", n_images=10, noise_mm=1e-3, seed=5, tangential=(2e-4, -1.5e-4))
+    res, _ = select_model(s.template_mm, s.points_mm)
+    assert res.model.tangential
+
+
+def test_cross_validation_matches_the_claimed_uncertainty_on_correct_fits():
+    from psdcal.calibration.model_select import cross_validate
+
+    ratios = []
+    for seed in range(4):
+        c = random_case(400 + seed, noise_mm=2e-3, n_images=10)
+        res = calibrate(c.template_mm, c.points_mm, **c.model, verdict=False)
+        cv = cross_validate(res, 5)
+        assert cv.passed, cv
+        ratios.append(cv.ratio)
+        assert cv.dof > 0 and len(cv.per_view) == 10
+    assert 0.8 < np.median(ratios) < 1.25
+    # a mislabelled view is predicted far worse than claimed
+    from psdcal.errors import ConvergenceError
+
+    for seed in range(7, 30):  # the first mislabelled set whose fit converges (others are refused outright)
+        c = random_case(seed, fault="mislabel", noise_mm=1e-3, n_images=10, lens="lens2")
+        try:
+            res = calibrate(c.template_mm, c.points_mm, **c.model, verdict=False)
+            break
+        except ConvergenceError:
+            continue
+    assert not cross_validate(res, 5).passed

@@ -611,3 +611,12 @@ def structure_test(result, exclude=None) -> tuple[float, float]:
     ssr = float(lin.e @ lin.e)
     F = (expl / p_dim) / max((ssr - expl) / (dof - p_dim), 1e-300)
     return float(F), float(fdist.sf(F, p_dim, dof - p_dim))
+
+
+def with_check(verdict: dict, check: Check) -> dict:
+    """A verdict dict (``Verdict.to_dict()``) with one more check, the verdict recomputed."""
+    v = Verdict.from_dict(verdict)
+    checks = tuple(c for c in v.checks if c.name != check.name) + (check,)
+    failed = [c for c in checks if c.passed is False]
+    word = "good" if not failed else ("wrong" if any(c.severe for c in failed) else "suspect")
+    return Verdict(word, checks).to_dict()

@@ -49,12 +49,18 @@ def model_options(f):
 @click.option("--noise-um", "noise_um", type=click.FloatRange(min=0.0, min_open=True), default=None, metavar="SIGMA_UM",
               help="Known noise standard deviation per coordinate of the points, um (e.g. from the lock-in's "
                    "amplitude noise): the verdict then also tests the residual RMS against it.")
+@click.option("--model", "model_choice", type=click.Choice(["manual", "auto"]), default="manual", show_default=True,
+              help="auto: choose radial, tangential, PSD radial terms and skew by nested F-tests (forward selection "
+                   "from f, C, k1; the switches are then ignored) and print the selection path.")
+@click.option("--cross-validate", "cv_k", type=click.IntRange(min=2), default=None, metavar="K",
+              help="Refit K times leaving a fold of views out, predict the left-out views' points and test the "
+                   "errors against the predicted uncertainty (adds the check 'cross_validation').")
 @click.option("--strict", is_flag=True, default=False,
               help="Exit 2 (and write no --output) unless the verdict is good.")
 @click.option("--quiet", "-q", is_flag=True, help="Print nothing but errors.")
 def calibrate_command(points, template, output, cost, radial, tangential, psd_radial, skew, aspect, preliminary,
                       normalize, sensor_mm, max_iterations, fit_gains, quiet, reject_k=None, f_guess_mm=None,
-                      noise_um=None, strict=False):
+                      noise_um=None, strict=False, model_choice="manual", cv_k=None):
     """Calibrate a PSD + lens sensor from views of a planar LED template.
 
     POINTS is a CSV of impact points, `image_id,point_id,x_mm,y_mm` (a missing
@@ -78,13 +84,23 @@ def calibrate_command(points, template, output, cost, radial, tangential, psd_ra
     from psdcal.calibration._refine import SolverOptions
 
     noise_mm = None if noise_um is None else noise_um * 1e-3
+    common = dict(cost=cost, preliminary=preliminary, normalize=normalize, aspect=aspect, fit_gains=fit_gains,
+                  image_ids=pf.image_ids, point_ids=tids, sensor_mm=tuple(sensor_mm),
+                  solver=SolverOptions(max_iterations=max_iterations), f_guess_mm=f_guess_mm)
     try:
-        res = calibrate(
-            txy, pf.points_mm, cost=cost, radial=radial, tangential=tangential, psd_radial=psd_radial, skew=skew,
-            preliminary=preliminary, normalize=normalize, aspect=aspect, fit_gains=fit_gains,
-            image_ids=pf.image_ids, point_ids=tids, sensor_mm=tuple(sensor_mm),
-            solver=SolverOptions(max_iterations=max_iterations), f_guess_mm=f_guess_mm, verdict=False,
-        )
+        if model_choice == "auto":
+            from psdcal.calibration.model_select import describe_selection, select_model
+
+            res, steps = select_model(txy, pf.points_mm, **common)
+            if not quiet:
+                m = res.model
+                click.echo(f"--model auto: radial {m.radial}, tangential {'on' if m.tangential else 'off'}, "
+                           f"psd-radial {m.psd_radial}, skew {'on' if m.skew else 'off'} (nested F-tests, alpha 1e-3):")
+                for line in describe_selection(steps):
+                    click.echo(line)
+        else:
+            res = calibrate(txy, pf.points_mm, radial=radial, tangential=tangential, psd_radial=psd_radial, skew=skew,
+                            verdict=False, **common)
     except DegenerateViewsError as exc:
         raise DegenerateViewsError(f"{points}: {exc}") from None
     except ConvergenceError as exc:
@@ -104,6 +120,17 @@ def calibrate_command(points, template, output, cost, radial, tangential, psd_ra
             for iid, pid in rej.kept_flagged:
                 click.echo(f"  kept (too few points left to remove it): image {iid}, point {pid}")
     res = with_verdict(res, noise_mm=noise_mm, points_kind=pf.kind)
+    if cv_k is not None:
+        import dataclasses
+
+        from psdcal.calibration.model_select import cross_validate
+        from psdcal.calibration.verdict import with_check
+
+        cv = cross_validate(res, cv_k)
+        res = dataclasses.replace(res, verdict=with_check(res.verdict, cv.check()),
+                                  problem={**res.problem, "cross_validation": cv.to_dict()})
+        if not quiet:
+            click.echo(cv.line())
     res = _with_inputs(res, template, points)
     if strict and res.verdict["verdict"] != "good":
         from psdcal.calibration.verdict import Verdict, VerdictError
