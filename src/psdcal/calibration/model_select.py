@@ -142,7 +142,8 @@ class CrossValidation:
     chi2 : sum of squared errors over the predicted variances; dof its degrees of freedom
     p_value : chi-square upper tail (small: worse than claimed)
     per_view : list of (image_id, rms_mm)
-    passed : p_value >= alpha
+    passed : p_value >= alpha (and every fold refitted)
+    failed_folds : folds whose refit failed (the views left in did not calibrate)
     """
 
     k: int
@@ -154,10 +155,12 @@ class CrossValidation:
     p_value: float
     per_view: tuple
     passed: bool
+    failed_folds: int = 0
 
     def to_dict(self) -> dict:
         return {"k": self.k, "rms_mm": self.rms_mm, "predicted_rms_mm": self.predicted_rms_mm, "ratio": self.ratio,
                 "chi2": self.chi2, "dof": self.dof, "p_value": self.p_value, "passed": self.passed,
+                "failed_folds": self.failed_folds,
                 "per_view": [[_plain(i), float(r)] for i, r in self.per_view]}
 
     def check(self):
@@ -173,6 +176,8 @@ class CrossValidation:
 
     def line(self) -> str:
         state = "consistent with" if self.passed else "WORSE than"
+        if self.failed_folds:
+            state += f" (and {self.failed_folds} fold(s) could not be refitted without their views)"
         return (f"cross-validation ({self.k} folds): left-out views predicted to {self.rms_mm * 1e3:.3g} um RMS per coordinate "
                 f"against {self.predicted_rms_mm * 1e3:.3g} um predicted (ratio {self.ratio:.3g}, chi2/dof "
                 f"{self.chi2 / max(self.dof, 1):.3g}, p = {self.p_value:.2g}): {state} the claimed uncertainty")
@@ -215,7 +220,7 @@ def cross_validate(result, k: int = 5, *, alpha: float = ALPHA) -> CrossValidati
     from psdcal.calibration.checks import align_to_problem
     from psdcal.calibration.core import _calibrate_record
     from psdcal.calibration.outliers import _points_array
-    from psdcal.errors import InputError
+    from psdcal.errors import InputError, PsdcalError
 
     res = align_to_problem(result)
     p = res.problem
@@ -230,6 +235,7 @@ def cross_validate(result, k: int = 5, *, alpha: float = ALPHA) -> CrossValidati
     dof = 0
     chi2 = 0.0
     per_view = []
+    failed_folds = 0
     for fold in folds:
         keep = [i for i in range(n) if i not in fold]
         if len(keep) < 3:
@@ -237,7 +243,11 @@ def cross_validate(result, k: int = 5, *, alpha: float = ALPHA) -> CrossValidati
         d = res.to_dict()
         xy = [[[None if not np.isfinite(v) else v for v in pt] for pt in img] for img in X[keep].tolist()]
         d["problem"] = {**p, "points": {**p["points"], "xy_mm": xy, "image_ids": [p["points"]["image_ids"][i] for i in keep]}}
-        fit = _calibrate_record(d)
+        try:
+            fit = _calibrate_record(d)
+        except PsdcalError:
+            failed_folds += 1  # the views left in do not calibrate on their own: the set is not self-consistent
+            continue
         s2 = fit.sigma_mm ** 2
         for i in fold:
             xm = X[i]
@@ -263,8 +273,9 @@ def cross_validate(result, k: int = 5, *, alpha: float = ALPHA) -> CrossValidati
     nn = max(dof, 1)
     rms = float(np.sqrt(sq / nn))
     prms = float(np.sqrt(pred / nn))
-    pval = float(chi2dist.sf(chi2, nn))
-    return CrossValidation(k, rms, prms, rms / prms if prms > 0 else float("inf"), chi2, dof, pval, tuple(per_view), pval >= alpha)
+    pval = float(chi2dist.sf(chi2, nn)) if not failed_folds else 0.0
+    return CrossValidation(k, rms, prms, rms / prms if prms > 0 else float("inf"), chi2, dof, pval, tuple(per_view),
+                           pval >= alpha, failed_folds)
 
 
 def _global_variance(T, xm, fit, r, Jp, rv, tv):
