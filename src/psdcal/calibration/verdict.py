@@ -500,7 +500,8 @@ def _diagnose(result, checks, lin, points_kind, bad_view):
     leds = by.get("leds")
     m = result.model
     cause = None  # (advice, explains the other failed checks too)
-    if (st is not None and st.passed is False) or by["optical_centre"].passed is False:
+    mt = by.get("model_terms")
+    if (st is not None and st.passed is False) or by["optical_centre"].passed is False or (mt is not None and mt.passed is False):
         again = _refit(result)
         if better(again, 1.01):
             cause = ("the fit stopped in a local minimum: re-run psdcal calibrate (it starts from several optical "
@@ -532,9 +533,13 @@ def _diagnose(result, checks, lin, points_kind, bad_view):
             by["leds"] = replace(leds, advice=perm)
     if cause is None and bad_view is not None:
         cause = f"view {result.image_ids[bad_view]} disagrees with the others: check its labels or leave it out"
-    for name in ("structure", "optical_centre", "views", "leds"):
+    for name in ("structure", "optical_centre", "model_terms", "views", "leds"):
         c = by.get(name)
         if c is None or c.passed is not False:
+            continue
+        if name == "model_terms":
+            if cause is not None and not cause.startswith("the model lacks"):
+                by[name] = replace(c, advice=f"probably a consequence of the cause found: {cause}")
             continue
         if cause is None:
             if name == "structure":
