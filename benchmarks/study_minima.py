@@ -46,7 +46,7 @@ def one(seed: int):
     # the lens' own model is nested in every switch except radial 1 on Lens 2 (k2 missing): fine, still a global-minimum question
     t0 = time.perf_counter()
     try:
-        res = calibrate(case.template_mm, case.points_mm, **case.model)
+        res = calibrate(case.template_mm, case.points_mm, **case.model, verdict=False)
     except Exception as exc:  # a refusal of valid views
         return dict(seed=seed, lens=lens, model=model, status="refused", why=f"{type(exc).__name__}: {exc}", t=time.perf_counter() - t0)
     t = time.perf_counter() - t0

@@ -628,6 +628,23 @@ def _refine_starts(pfirst, first, cands, g0, solver):
         tried.append((label, r, ok))
         if ok:
             seen.append((x0, _fc(r.intrinsics)))
+    # A probe or an unconverged refinement below the best converged cost is in a lower valley (a converged
+    # solution is a local minimum: points of its own valley cost more): refine it on, from where it stopped.
+    for _ in range(2):
+        best = min((t[1].cost_rms for t in tried if t[2]), default=np.inf)
+        lower = [t for t in tried if not t[2] and np.isfinite(t[1].cost_rms) and t[1].cost_rms < best * (1 - 1e-6)]
+        if not lower:
+            break
+        label, r0, _ = min(lower, key=lambda t: t[1].cost_rms)
+        try:
+            r = refine(pfirst, r0.intrinsics, Distortion.from_array(r0.coeffs), r0.gains, r0.rvecs, r0.tvecs,
+                       replace(solver, max_iterations=2 * solver.max_iterations))
+        except (np.linalg.LinAlgError, FloatingPointError, ValueError):
+            break
+        ok = bool(r.converged and np.isfinite(r.cost_rms) and r.intrinsics.f_mm > 0 and np.all(r.tvecs[:, 2] > 0))
+        tried = [t for t in tried if t[1] is not r0] + [(label + "+", r, ok)]
+        if not ok and not r.cost_rms < r0.cost_rms:
+            break
     return tried
 
 
