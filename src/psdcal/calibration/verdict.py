@@ -137,7 +137,7 @@ class Verdict:
 @dataclass(frozen=True)
 class _Linear:
     e: np.ndarray  # (m,) residuals meas - model, (x, y) per valid point
-    Q: np.ndarray  # (m, n) orthonormal basis of the Jacobian's columns
+    perp: object  # B (m, k) -> (I - P) B, P the projector on the Jacobian's columns
     h: np.ndarray  # (m,) leverages
     pts: np.ndarray  # (N, 2) modelled points of the valid observations, mm
     img: np.ndarray  # (N,) image index
@@ -157,41 +157,82 @@ def _linearise(result, exclude=None) -> _Linear:
     T = np.asarray(p["template"]["xy_mm"], dtype=float)
     X = _points_array(p)
     gains = np.asarray(res.gains, float) if res.model.fit_gains else np.ones(4)
-    prob = Problem(T, X, res.model, cost="image", sensor_mm=tuple(res.sensor_mm))
-    ev = Evaluator(prob, res.intrinsics, res.distortion, gains)
-    z = prob.pack(res.intrinsics, res.distortion, gains, res.rvecs, res.tvecs_mm)
-    r, J = ev.evaluate(z)
-    r = np.asarray(r, dtype=float)
-    img, led, d_meas = ev.img_idx, ev.pt_idx, ev.d_meas
-    # columns of the terms the model leaves out (the next radial term, tangential, PSD l1, skew), at the solution
     spec = res.model
+    # the richer model: the terms this one leaves out (the next radial term, tangential, PSD l1, skew) at 0; its
+    # Jacobian holds this model's columns and theirs (one evaluation for both)
     rich = replace(spec, radial=min(3, spec.radial + 1), tangential=True, psd_radial=max(spec.psd_radial, 1),
                    skew=spec.skew or not spec.aspect)
     extra_names = [n for n in rich.global_names if n not in spec.global_names]
-    extra = np.zeros((r.size, 0))
-    if extra_names:
-        pr = Problem(T, X, rich, cost="image", sensor_mm=tuple(res.sensor_mm))
-        evr = Evaluator(pr, res.intrinsics, res.distortion, gains)
-        Jr = evr.evaluate(pr.pack(res.intrinsics, res.distortion, gains, res.rvecs, res.tvecs_mm))[1]
-        extra = np.asarray(Jr, dtype=float)[:, [pr.names.index(n) for n in extra_names]]
+    prob = Problem(T, X, rich, cost="image", sensor_mm=tuple(res.sensor_mm))
+    ev = Evaluator(prob, res.intrinsics, res.distortion, gains)
+    r, Jr = ev.evaluate(prob.pack(res.intrinsics, res.distortion, gains, res.rvecs, res.tvecs_mm))
+    r = np.asarray(r, dtype=float)
+    Jr = np.asarray(Jr, dtype=float)
+    ng_r = prob.n_global
+    G = Jr[:, [prob.names.index(n) for n in spec.global_names]]
+    extra = Jr[:, [prob.names.index(n) for n in extra_names]]
+    Jpose = Jr[:, ng_r:]
+    img, led, d_meas = ev.img_idx, ev.pt_idx, ev.d_meas
     if exclude is not None:  # (n_images, M) bool: observations left out of the test (flagged outliers)
         keep_pt = ~np.asarray(exclude, dtype=bool)[img, led]
         rows = np.repeat(keep_pt, 2)
-        r, J, img, led, d_meas, extra = r[rows], J[rows], img[keep_pt], led[keep_pt], d_meas[keep_pt], extra[rows]
+        r, G, extra, Jpose = r[rows], G[rows], extra[rows], Jpose[rows]
+        img, led, d_meas = img[keep_pt], led[keep_pt], d_meas[keep_pt]
     e = -r
-    Jn = J / np.maximum(np.linalg.norm(J, axis=0), 1e-300)
-    Q, R = np.linalg.qr(Jn)  # Householder QR: several times cheaper than an SVD here
-    d = np.abs(np.diag(R))
-    keep = d > 1e-10 * d.max() if d.size else np.zeros(0, bool)
-    if not keep.all():  # a rank-deficient Jacobian (a parameter the views do not fix): the SVD's range
-        U, sv, _ = np.linalg.svd(Jn, full_matrices=False)
-        keep = sv > 1e-10 * sv[0]
-        Q = U[:, keep]
-    e = e - Q @ (Q.T @ e)  # the solver stops within its tolerance of the stationary point
-    h = np.sum(Q * Q, axis=1)
+    perp, h, rank = _projector(G, Jpose, np.repeat(img, 2), X.shape[0])
+    e = perp(e[:, None])[:, 0]  # the solver stops within its tolerance of the stationary point
     # the modelled points (noise-free up to the fitted parameters): fields evaluated at the measured ones would carry
     # the noise's own gradient into the test and correlate with it
-    return _Linear(e, Q, h, d_meas + r.reshape(-1, 2), img, led, int(keep.sum()), tuple(extra_names), extra)
+    return _Linear(e, perp, h, d_meas + r.reshape(-1, 2), img, led, rank, tuple(extra_names), extra)
+
+
+def _projector(G, Jpose, row_img, n_img):
+    """The projector off the Jacobian's columns, from its block structure.
+
+    The pose columns of a view touch only that view's rows: a batched QR of the
+    (rows x 6) blocks projects them out view by view; then a QR of the global
+    columns so projected. Returns ``(perp, leverages, rank)`` where
+    ``perp(B)`` is ``(I - P) B`` for B (m, k).
+    """
+    m = row_img.size
+    counts = np.bincount(row_img, minlength=n_img)
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    pos = np.arange(m) - starts[row_img]
+    nr = int(counts.max()) if m else 0
+    cols = 6 * row_img[:, None] + np.arange(6)
+    blocks = np.zeros((n_img, nr, 6))
+    blocks[row_img, pos] = np.take_along_axis(Jpose, cols, axis=1)
+    blocks /= np.maximum(np.linalg.norm(blocks, axis=1, keepdims=True), 1e-300)
+    Qb, Rb = np.linalg.qr(blocks)
+    dq = np.abs(np.diagonal(Rb, axis1=1, axis2=2))
+    rank = int(np.sum(dq > 1e-10 * max(float(dq.max()), 1e-300)))
+    Qrows = Qb[row_img, pos]  # (m, 6): each row's part of its view's basis
+
+    def perp_pose(B):
+        Bb = np.zeros((n_img, nr, B.shape[1]))
+        Bb[row_img, pos] = B
+        C = np.einsum("vri,vrk->vik", Qb, Bb)
+        return B - np.einsum("mi,mik->mk", Qrows, C[row_img])
+
+    Gn = G / np.maximum(np.linalg.norm(G, axis=0), 1e-300)
+    Gp = perp_pose(Gn)
+    if Gp.shape[1]:
+        Qg, Rg = np.linalg.qr(Gp)
+        dg = np.abs(np.diag(Rg))
+        keep = dg > 1e-8 * max(float(dg.max()), 1e-300)
+        if not keep.all():
+            U, sv, _ = np.linalg.svd(Gp, full_matrices=False)
+            Qg = U[:, sv > 1e-8 * sv[0]]
+    else:
+        Qg = np.zeros((m, 0))
+    rank += Qg.shape[1]
+
+    def perp(B):
+        Bp = perp_pose(np.asarray(B, dtype=float))
+        return Bp - Qg @ (Qg.T @ Bp)
+
+    h = np.sum(Qrows * Qrows, axis=1) + np.sum(Qg * Qg, axis=1)
+    return perp, h, rank
 
 
 def _field_basis(pts, c_mm, half_mm) -> np.ndarray:
@@ -214,35 +255,29 @@ def _field_basis(pts, c_mm, half_mm) -> np.ndarray:
 def _explained(lin: _Linear, B) -> tuple[float, int]:
     """Sum of squares of the residuals along span(B) minus the Jacobian's span, and its dimension."""
     B = B / np.maximum(np.linalg.norm(B, axis=0), 1e-300)
-    Bp = B - lin.Q @ (lin.Q.T @ B)
+    Bp = lin.perp(B)
     Bp = Bp[:, np.linalg.norm(Bp, axis=0) > 1e-4]  # fields the model's parameters absorb (to 1e-4) test nothing
     if Bp.shape[1] == 0:
         return 0.0, 0
     U, s, _ = np.linalg.svd(Bp, full_matrices=False)
     U = U[:, s > 1e-2 * s[0]]
-    U = U - lin.Q @ (lin.Q.T @ U)  # re-orthogonalise against the Jacobian (round-off of the projection)
+    U = lin.perp(U)  # re-orthogonalise against the Jacobian (round-off of the projection)
     U, _ = np.linalg.qr(U)
     return float(np.sum((U.T @ lin.e) ** 2)), int(U.shape[1])
 
 
 def _group_f(lin: _Linear, groups, n_groups, ssr, dof):
     """Per-group F statistics and p-values of the residual variance against the other groups'."""
-    from scipy.stats import f as fdist
+    from scipy.special import fdtrc
 
     q = lin.e.reshape(-1, 2)
-    lev = (1.0 - lin.h).reshape(-1, 2).sum(axis=1)
-    sq = np.sum(q * q, axis=1)
-    F = np.full(n_groups, np.nan)
-    pv = np.ones(n_groups)
-    for g in range(n_groups):
-        sel = groups == g
-        d_g = float(lev[sel].sum())
-        if d_g < 0.5 or dof - d_g < 0.5:
-            continue
-        s_g = float(sq[sel].sum())
-        rest = max(ssr - s_g, 1e-300)
-        F[g] = (s_g / d_g) / (rest / (dof - d_g))
-        pv[g] = float(fdist.sf(F[g], d_g, dof - d_g))
+    lev = np.bincount(groups, weights=(1.0 - lin.h).reshape(-1, 2).sum(axis=1), minlength=n_groups)
+    sq = np.bincount(groups, weights=np.sum(q * q, axis=1), minlength=n_groups)
+    usable = (lev >= 0.5) & (dof - lev >= 0.5)
+    d_g = np.where(usable, lev, 1.0)
+    d_r = np.where(usable, dof - lev, 1.0)
+    F = np.where(usable, (sq / d_g) / (np.maximum(ssr - sq, 1e-300) / d_r), np.nan)
+    pv = np.where(usable, fdtrc(d_g, d_r, np.nan_to_num(F)), 1.0)
     return F, pv
 
 
@@ -275,9 +310,38 @@ def assess(result, *, noise_mm: float | None = None, points_kind: str | None = N
         return _assess(result, noise_mm=noise_mm, points_kind=points_kind, diagnose=diagnose)
 
 
+class _F:
+    """F distribution tails through scipy.special (scipy.stats' generic machinery costs 50 us a call)."""
+
+    @staticmethod
+    def sf(x, d1, d2):
+        from scipy.special import fdtrc
+
+        return float(fdtrc(d1, d2, x))
+
+    @staticmethod
+    def isf(a, d1, d2):
+        from scipy.special import fdtri
+
+        return float(fdtri(d1, d2, 1.0 - a))
+
+
+class _Chi2:
+    @staticmethod
+    def sf(x, k):
+        from scipy.special import chdtrc
+
+        return float(chdtrc(k, x))
+
+    @staticmethod
+    def isf(a, k):
+        from scipy.special import chdtri
+
+        return float(chdtri(k, a))
+
+
 def _assess(result, *, noise_mm, points_kind, diagnose) -> Verdict:
-    from scipy.stats import chi2
-    from scipy.stats import f as fdist
+    chi2, fdist = _Chi2, _F
 
     checks = []
     sensor = np.asarray(result.sensor_mm, dtype=float)
@@ -422,7 +486,7 @@ def _assess(result, *, noise_mm, points_kind, diagnose) -> Verdict:
 
 def terms_test(lin: _Linear):
     """(F, p, dim, most significant term) of the nested-model test of the left-out terms, None without any."""
-    from scipy.stats import f as fdist
+    fdist = _F
 
     if lin.extra is None or lin.extra.shape[1] == 0:
         return None
@@ -592,7 +656,6 @@ def _structure_ok(result) -> bool:
 
 def _permutation_advice(result, lin, base) -> str | None:
     """When swapping template LEDs (among the least consistent) makes the fit far better, say which."""
-    from scipy.stats import f as fdist  # noqa: F401  (scipy already loaded by assess)
 
     M = len(result.point_ids)
     q = lin.e.reshape(-1, 2)
@@ -618,7 +681,7 @@ def _permutation_advice(result, lin, base) -> str | None:
 
 def structure_test(result, exclude=None) -> tuple[float, float]:
     """(F, p-value) of the structure check on ``result``'s residuals, ``exclude`` (n_images, M) observations left out."""
-    from scipy.stats import f as fdist
+    fdist = _F
 
     lin = _linearise(result, exclude)
     dof = lin.e.size - lin.n
