@@ -431,8 +431,10 @@ def calibrate(
         the refinement (optical centre at the electrical centre), and the
         start used when the views alone give none (:func:`linear_starts`).
     verdict : bool
-        Attach the statistical verdict (:func:`psdcal.calibration.verdict.assess`,
-        with diagnosis) as ``result.verdict`` (JSON ``verdict`` and ``checks``).
+        Attach the statistical verdict (:func:`psdcal.calibration.verdict.assess`)
+        as ``result.verdict`` (JSON ``verdict`` and ``checks``); about 2 ms.
+        The diagnosis (refits that name the cause of a failed check) is left
+        to ``assess(result)`` and the CLI, so that loops over many fits stay fast.
     noise_mm : float, optional
         Known noise standard deviation per coordinate of the points, mm, for
         the verdict's ``noise`` check.
@@ -464,15 +466,16 @@ def calibrate(
             f_guess_mm=f_guess_mm,
         )
         if verdict:
-            res = with_verdict(res, noise_mm=noise_mm)
+            res = with_verdict(res, noise_mm=noise_mm, diagnose=False)
         return res
 
 
-def with_verdict(res: CalibrationResult, *, noise_mm: float | None = None, points_kind: str | None = None) -> CalibrationResult:
+def with_verdict(res: CalibrationResult, *, noise_mm: float | None = None, points_kind: str | None = None,
+                 diagnose: bool = True) -> CalibrationResult:
     """``res`` with its statistical verdict attached (:func:`psdcal.calibration.verdict.assess`)."""
     from psdcal.calibration.verdict import assess
 
-    return replace(res, verdict=assess(res, noise_mm=noise_mm, points_kind=points_kind).to_dict())
+    return replace(res, verdict=assess(res, noise_mm=noise_mm, points_kind=points_kind, diagnose=diagnose).to_dict())
 
 
 def _calibrate(template_mm, points_mm, *, cost, radial, tangential, psd_radial, skew, preliminary, normalize,

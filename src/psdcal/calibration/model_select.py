@@ -114,7 +114,7 @@ def select_model(template_mm, points_mm, *, alpha: float = ALPHA, start: dict | 
         else:
             spec["skew"] = True
     res = replace(res, problem={**res.problem, "model_selection": {"alpha": alpha, "steps": steps}})
-    return with_verdict(res), steps
+    return with_verdict(res, diagnose=False), steps
 
 
 def describe_selection(steps) -> list[str]:

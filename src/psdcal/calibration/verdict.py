@@ -467,6 +467,14 @@ def _assess(result, *, noise_mm, points_kind, diagnose) -> Verdict:
                       "channel gains (raw amplitudes: --fit-gains)",
         severe=rel > 1.0,
     ))
+    conv = bool(result.converged)
+    checks.append(Check(
+        "converged", float(result.iterations), None, None, 0.0, conv,
+        f"the refinement {'converged' if conv else 'did NOT converge'} in {result.iterations} iterations",
+        "" if conv else "no minimum was reached: the data do not fit the model (see the other checks: a bad view, "
+                        "a template permutation, ignored gains), or allow more iterations (--max-iterations)",
+        severe=not conv,
+    ))
     mono = _monotonic(result)
     checks.append(Check(
         "distortion_monotonic", None, None, None, 0.0, mono, "the distortion is one-to-one over the sensor" if mono else
@@ -602,13 +610,19 @@ def _diagnose(result, checks, lin, points_kind, bad_view):
             if extra:
                 extra.sort()
                 cause = f"the model lacks terms the data need: add {extra[0][1]} (or try --model auto)"
-    if cause is None and leds is not None and leds.passed is False:
+    unconverged = by.get("converged") is not None and by["converged"].passed is False
+    if cause is None and unconverged and len(result.image_ids) >= 4:
+        cause = _view_advice(result)
+    if cause is None and ((leds is not None and leds.passed is False) or unconverged):
         perm = _permutation_advice(result, lin, base)
         if perm:
             cause = perm
-            by["leds"] = replace(leds, advice=perm)
+            if leds is not None and leds.passed is False:
+                by["leds"] = replace(leds, advice=perm)
     if cause is None and bad_view is not None:
         cause = f"view {result.image_ids[bad_view]} disagrees with the others: check its labels or leave it out"
+    if unconverged and cause is not None:
+        by["converged"] = replace(by["converged"], advice=cause)
     for name in ("structure", "optical_centre", "model_terms", "views", "leds"):
         c = by.get(name)
         if c is None or c.passed is not False:
