@@ -238,13 +238,6 @@ def test_cross_validation_matches_the_claimed_uncertainty_on_correct_fits():
         assert cv.dof > 0 and len(cv.per_view) == 10
     assert 0.8 < np.median(ratios) < 1.25
     # a mislabelled view is predicted far worse than claimed
-    from psdcal.errors import ConvergenceError
-
-    for seed in range(7, 30):  # the first mislabelled set whose fit converges (others are refused outright)
-        c = random_case(seed, fault="mislabel", noise_mm=1e-3, n_images=10, lens="lens2")
-        try:
-            res = calibrate(c.template_mm, c.points_mm, **c.model, verdict=False)
-            break
-        except ConvergenceError:
-            continue
+    c = random_case(11, fault="mislabel", noise_mm=1e-3, n_images=10, lens="lens2")
+    res = calibrate(c.template_mm, c.points_mm, **c.model, verdict=False)
     assert not cross_validate(res, 5).passed
