@@ -241,3 +241,20 @@ def test_cross_validation_matches_the_claimed_uncertainty_on_correct_fits():
     c = random_case(11, fault="mislabel", noise_mm=1e-3, n_images=10, lens="lens2")
     res = calibrate(c.template_mm, c.points_mm, **c.model, verdict=False)
     assert not cross_validate(res, 5).passed
+
+
+def test_study_scripts_stay_runnable(capsys):
+    import importlib.util
+    from pathlib import Path
+
+    bench = Path(__file__).resolve().parent.parent / "benchmarks"
+    mods = {}
+    for name in ("study_minima", "study_verdict"):
+        spec = importlib.util.spec_from_file_location(f"_study_{name}", bench / f"{name}.py")
+        mods[name] = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(mods[name])
+    assert mods["study_minima"].main(["--fits", "6"]) == 0
+    mods["study_verdict"].main(["--correct", "4", "--faults", "1"])
+    out = capsys.readouterr().out
+    assert "6 fits: 0 wrong minima, 0 refusals" in out
+    assert "| gains | 1 | 1 | 100.0 %" in out
