@@ -82,12 +82,42 @@ def faulty(args) -> dict:
     return out
 
 
+def advice(args) -> dict:
+    """Whether the diagnosis (advice of the failed checks, or the refusal's message) names the planted cause."""
+    kind, seed = args
+    from psdcal.calibration.core import calibrate
+    from psdcal.calibration.verdict import assess
+    from psdcal.errors import PsdcalError
+    from psdcal.study.faults import random_case, wrong_minimum
+
+    text = ""
+    if kind == "wrong_min":
+        c, r = wrong_minimum(seed)
+    else:
+        c = random_case(90_000 + seed, fault=kind)
+        try:
+            r = calibrate(c.template_mm, c.points_mm, **c.model, verdict=False)
+        except PsdcalError as exc:
+            text = str(exc)
+            r = getattr(exc, "result", None)
+    if r is not None:
+        v = assess(r, points_kind="amplitudes" if kind == "gains" else "points")
+        text += " " + " ".join(ch.advice for ch in v.failed)
+    want = {"gains": ["--fit-gains"], "wrong_min": ["local minimum"], "metres": ["metres"], "no_k2": ["--radial 2"],
+            "mislabel": [f"view {c.bad_image} "]}.get(kind)
+    if kind == "swap":
+        a, b = np.nonzero(np.any(c.template_mm != c.set.template_mm, axis=1))[0]
+        want = [f"LEDs {a} and {b}", f"LEDs {b} and {a}"]
+    return {"kind": kind, "seed": seed, "named": any(w in text for w in want), "text": text[:200]}
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--correct", type=int, default=500)
     ap.add_argument("--faults", type=int, default=100)
     ap.add_argument("--jobs", type=int, default=1)
     ap.add_argument("--markdown", action="store_true")
+    ap.add_argument("--advice", type=int, default=0, help="cases per fault whose diagnosis is checked (slower: refits)")
     a = ap.parse_args(argv)
     from concurrent.futures import ProcessPoolExecutor
 
@@ -95,16 +125,19 @@ def main(argv=None):
     mp = ex.map if ex else map
     rows = list(mp(correct, range(a.correct)))
     frows = list(mp(faulty, [(k, s) for k in FAULT_KINDS for s in range(a.faults)]))
+    arows = list(mp(advice, [(k, s) for k in FAULT_KINDS for s in range(a.advice)])) if a.advice else []
     if ex:
         ex.shutdown()
-    n = len(rows)
+    n = max(len(rows), 1)
     fa = sum(r["verdict"] != "good" for r in rows)
     fan = sum(r["verdict_noise"] != "good" for r in rows)
     per = Counter(name for r in rows for name in r["failed"])
     print(f"correct fits: {n}; verdict not good: {fa} ({100 * fa / n:.2f} %) without a stated noise, "
           f"{fan} ({100 * fan / n:.2f} %) with the true noise stated")
     print("  failed checks (noise stated): " + (", ".join(f"{k} {v}" for k, v in per.most_common()) or "none"))
-    print(f"  median fit {np.median([r['t_fit'] for r in rows]) * 1e3:.1f} ms, verdict {np.median([r['t_verdict'] for r in rows]) * 1e3:.1f} ms")
+    if rows:
+        print(f"  median fit {np.median([r['t_fit'] for r in rows]) * 1e3:.1f} ms, "
+              f"verdict {np.median([r['t_verdict'] for r in rows]) * 1e3:.1f} ms")
     print("| fault | cases | detected (verdict not good or refused) | rate | wrong | suspect | refused | checks failing most |")
     print("|---|---|---|---|---|---|---|---|")
     for k in FAULT_KINDS:
@@ -123,6 +156,15 @@ def main(argv=None):
         for r in rs:
             if r["verdict"] == "good":
                 print(f"    missed: {r}")
+    if arows:
+        print("| fault | cases | advice names the planted cause |")
+        print("|---|---|---|")
+        for k in FAULT_KINDS:
+            rs = [r for r in arows if r["kind"] == k]
+            print(f"| {k} | {len(rs)} | {sum(r['named'] for r in rs)} |")
+        for r in arows:
+            if not r["named"]:
+                print(f"    not named: {r}")
 
 
 if __name__ == "__main__":

@@ -454,7 +454,9 @@ def _assess(result, *, noise_mm, points_kind, diagnose) -> Verdict:
     checks.append(Check(
         "focal_length", f, None, None, 0.0, ok,
         f"f = {f:.4g} mm" + ("" if ok else f", outside {F_RANGE_MM[0]:g}-{F_RANGE_MM[1]:g} mm"),
-        "" if ok else "not a lens for a PSD: check the units of the points (mm) and the template",
+        "" if ok else ("not a lens for a PSD: check the units of the points (mm) and the template" if frac < SPAN_SUSPECT
+                       else "the fit collapsed to a focal length no lens has: the views or the template do not fit "
+                            "a camera (see the other checks: a mislabelled view, a template permutation)"),
         severe=not ok,
     ))
     c = np.asarray(result.intrinsics.c, dtype=float)
@@ -467,10 +469,14 @@ def _assess(result, *, noise_mm, points_kind, diagnose) -> Verdict:
                       "channel gains (raw amplitudes: --fit-gains)",
         severe=rel > 1.0,
     ))
-    conv = bool(result.converged)
+    from psdcal.calibration.core import implausible
+
+    why = implausible(result)
+    conv = bool(result.converged) and not why
     checks.append(Check(
         "converged", float(result.iterations), None, None, 0.0, conv,
-        f"the refinement {'converged' if conv else 'did NOT converge'} in {result.iterations} iterations",
+        f"the refinement {'converged' if result.converged else 'did NOT converge'} in {result.iterations} iterations"
+        + (f", to a solution that is not a camera ({why})" if why else ""),
         "" if conv else "no minimum was reached: the data do not fit the model (see the other checks: a bad view, "
                         "a template permutation, ignored gains), or allow more iterations (--max-iterations)",
         severe=not conv,
@@ -575,7 +581,6 @@ def _diagnose(result, checks, lin, points_kind, bad_view):
     """Name the likely cause of the failed checks by refitting the alternatives."""
     by = {c.name: c for c in checks}
     base = _ssr(result)
-    notes = []
 
     def better(r, factor):
         return r is not None and _ssr(r) < base / factor
@@ -583,16 +588,32 @@ def _diagnose(result, checks, lin, points_kind, bad_view):
     st = by.get("structure")
     leds = by.get("leds")
     m = result.model
-    cause = None  # (advice, explains the other failed checks too)
     mt = by.get("model_terms")
-    if (st is not None and st.passed is False) or by["optical_centre"].passed is False or (mt is not None and mt.passed is False):
+    cause = None
+    # a fit that collapsed (f no lens has) or is not a camera: a bad view or a template permutation first
+    broken = (by["converged"].passed is False) or (by["focal_length"].passed is False and by["scale"].passed is not False)
+    if broken and len(result.image_ids) >= 4:
+        cause = _view_advice(result)
+    if broken and cause is None:
+        perm = _homography_hint(result) or _permutation_advice(result, lin, base)
+        if perm:
+            cause = perm
+            if leds is not None and leds.passed is False:
+                by["leds"] = replace(leds, advice=perm)
+    if cause is None and ((st is not None and st.passed is False) or by["optical_centre"].passed is False
+                          or (mt is not None and mt.passed is False)):
         again = _refit(result)
         if better(again, 1.01):
             cause = ("the fit stopped in a local minimum: re-run psdcal calibrate (it starts from several optical "
                      "centres) or give the lens' nominal focal length with --f-guess")
-        if cause is None and not m.fit_gains and not m.skew and not m.aspect and m.radial >= 1 and points_kind != "points":
-            g = _refit(result, fit_gains=True)
-            if better(g, 4.0):
+        if cause is None and not m.fit_gains and points_kind != "points":
+            # the first-order effect of unequal channel gains on the readout (three ratios), off the model's columns
+            from psdcal.model.readout import gain_map
+
+            dg = gain_map(lin.pts, np.ones(4), *result.sensor_mm, jacobians=True)[2][..., 1:]  # (N, 2, 3)
+            expl_g, _ = _explained(lin, dg.reshape(-1, 3))
+            g = None if expl_g > 0.5 * base or m.skew or m.aspect or m.radial < 1 else _refit(result, fit_gains=True)
+            if expl_g > 0.5 * base or better(g, 4.0):
                 cause = ("residuals show a projective pattern: raw amplitudes through unequal channel gains; "
                          "run with --fit-gains (or calibrate the gains electrically)")
         if cause is None and len(result.image_ids) >= 4:
@@ -605,15 +626,21 @@ def _diagnose(result, checks, lin, points_kind, bad_view):
                 if flag is None:
                     continue
                 r = _refit(result, **ch)
-                if r is not None and _ssr(r) < base / 1.05 and _structure_ok(r):
+                if r is not None and _ssr(r) < base / 1.05 and _structure_ok(r) \
+                        and F_RANGE_MM[0] <= r.intrinsics.f_mm <= F_RANGE_MM[1]:
                     extra.append((_ssr(r), flag))
             if extra:
                 extra.sort()
                 cause = f"the model lacks terms the data need: add {extra[0][1]} (or try --model auto)"
     unconverged = by.get("converged") is not None and by["converged"].passed is False
-    if cause is None and unconverged and len(result.image_ids) >= 4:
-        cause = _view_advice(result)
-    if cause is None and ((leds is not None and leds.passed is False) or unconverged):
+    collapsed = by["focal_length"].passed is False and by["scale"].passed is not False
+    views_failed = by.get("views") is not None and by["views"].passed is False
+    if cause is None and views_failed and not broken and len(result.image_ids) >= 4:
+        verified = _view_advice(result)
+        if verified is not None:
+            cause = verified
+            bad_view = None
+    if cause is None and not broken and leds is not None and leds.passed is False:
         perm = _permutation_advice(result, lin, base)
         if perm:
             cause = perm
@@ -621,6 +648,10 @@ def _diagnose(result, checks, lin, points_kind, bad_view):
                 by["leds"] = replace(leds, advice=perm)
     if cause is None and bad_view is not None:
         cause = f"view {result.image_ids[bad_view]} disagrees with the others: check its labels or leave it out"
+    if cause is not None and cause.startswith("view ") and views_failed:
+        by["views"] = replace(by["views"], advice=cause)
+    if cause is not None and collapsed:
+        by["focal_length"] = replace(by["focal_length"], advice=cause)
     if unconverged and cause is not None:
         by["converged"] = replace(by["converged"], advice=cause)
     for name in ("structure", "optical_centre", "model_terms", "views", "leds"):
@@ -636,12 +667,28 @@ def _diagnose(result, checks, lin, points_kind, bad_view):
                 by[name] = replace(c, advice="a systematic misfit that no richer model, gain fit or re-start removes: "
                                              "check the template coordinates, the point ids and the units")
             continue
-        if name in ("structure", "optical_centre") or not c.advice.startswith("a template permutation"):
-            if name in ("views", "leds") and not cause.startswith(("view ", "a template permutation")):
-                by[name] = replace(c, advice=f"probably a consequence of the cause found: {cause}")
-            elif name in ("structure", "optical_centre"):
-                by[name] = replace(c, advice=cause)
+        if name in ("structure", "optical_centre"):
+            by[name] = replace(c, advice=cause)
+        elif name == "views" and not cause.startswith("view "):
+            by[name] = replace(c, advice=f"probably a consequence of the cause found: {cause}")
+        elif name == "leds" and not cause.startswith("a template permutation"):
+            by[name] = replace(c, advice=f"probably a consequence of the cause found: {cause}")
     return [by[c.name] for c in checks]
+
+
+def _homography_hint(result) -> str | None:
+    """The linear stage's template diagnosis (:func:`psdcal.calibration.core.template_hint`), None when it says nothing."""
+    from psdcal.calibration._homography import homographies
+    from psdcal.calibration.core import template_hint
+    from psdcal.calibration.outliers import _points_array
+
+    try:
+        T = np.asarray(result.problem["template"]["xy_mm"], dtype=float)
+        X = _points_array(result.problem)
+        hint = template_hint(T, X, homographies(T, X), list(result.point_ids))
+    except Exception:  # noqa: BLE001 -- a diagnosis that cannot run says nothing
+        return None
+    return hint or None
 
 
 def _view_advice(result) -> str | None:
@@ -685,7 +732,7 @@ def _permutation_advice(result, lin, base) -> str | None:
             r = _refit(result, template_mm=T2)
             if r is not None and _ssr(r) < best[0]:
                 best = (_ssr(r), (a, b))
-    if best[1] is None or best[0] > base / 4:
+    if best[1] is None or best[0] > base / 50:
         return None
     a, b = best[1]
     ids = result.point_ids
