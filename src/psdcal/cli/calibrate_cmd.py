@@ -42,7 +42,8 @@ def model_options(f):
 @click.option("--fit-gains", is_flag=True, default=False,
               help="Estimate the three relative channel gains jointly (POINTS must carry raw amplitudes vx1,vx2,vy1,vy2).")
 @click.option("--reject", "reject_k", type=click.FloatRange(min=0.0, min_open=True), default=None, metavar="K",
-              help="Remove points whose residual exceeds K robust noise sigmas, refit, and list them (e.g. 5).")
+              help="Remove points whose residual exceeds K robust noise sigmas, refit, and list them (e.g. 5). "
+                   "Refused (exit 2, with the diagnosis) when the misfit is systematic rather than a few points.")
 @click.option("--f-guess", "f_guess_mm", type=click.FloatRange(min=0.0, min_open=True), default=None, metavar="F_MM",
               help="Nominal focal length, mm (lens data sheet): one more start of the refinement, and the start "
                    "used when the views alone give none.")
