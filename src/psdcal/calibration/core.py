@@ -669,17 +669,18 @@ def focal_from_homographies(Hs, c_mm=(0.0, 0.0)) -> np.ndarray:
     (``h31 = h32 = 0``) does not fix ``f``; neither does a solution with
     ``f^2 <= 0`` (noise, distortion): both give NaN, never an error.
     """
-    out = []
-    for H in np.asarray(Hs, dtype=float):
-        G = np.array([[1.0, 0.0, -c_mm[0]], [0.0, 1.0, -c_mm[1]], [0.0, 0.0, 1.0]]) @ H
-        G = G / np.linalg.norm(G[:, :2])
-        h1, h2 = G[:, 0], G[:, 1]
-        a = np.array([h1[0] * h2[0] + h1[1] * h2[1], h1[0] ** 2 + h1[1] ** 2 - h2[0] ** 2 - h2[1] ** 2])
-        b = np.array([h1[2] * h2[2], h1[2] ** 2 - h2[2] ** 2])
-        den = float(a @ a)
-        w = -float(a @ b) / den if den > 0 else np.nan  # 1/f^2: a w + b = 0
-        out.append(1.0 / np.sqrt(w) if np.isfinite(w) and w > 0 else np.nan)
-    return np.array(out, dtype=float)
+    Hs = np.asarray(Hs, dtype=float).reshape(-1, 3, 3)
+    Tc = np.array([[1.0, 0.0, -c_mm[0]], [0.0, 1.0, -c_mm[1]], [0.0, 0.0, 1.0]])
+    G = Tc @ Hs
+    G = G / np.linalg.norm(G[:, :, :2], axis=(1, 2))[:, None, None]
+    h1, h2 = G[:, :, 0], G[:, :, 1]
+    a = np.stack([h1[:, 0] * h2[:, 0] + h1[:, 1] * h2[:, 1],
+                  h1[:, 0] ** 2 + h1[:, 1] ** 2 - h2[:, 0] ** 2 - h2[:, 1] ** 2], axis=1)
+    b = np.stack([h1[:, 2] * h2[:, 2], h1[:, 2] ** 2 - h2[:, 2] ** 2], axis=1)
+    den = np.sum(a * a, axis=1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        w = np.where(den > 0, -np.sum(a * b, axis=1) / np.where(den > 0, den, 1.0), np.nan)  # 1/f^2: a w + b = 0
+        return np.where(np.isfinite(w) & (w > 0), 1.0 / np.sqrt(np.where(w > 0, w, 1.0)), np.nan)
 
 
 def _restrict(dist: Distortion, spec: ModelSpec) -> Distortion:
@@ -779,12 +780,14 @@ def linear_starts(T, X, *, preliminary=True, normalize=True, radial=2, skew=Fals
     primary = None
     closed_error = None
     labels = [f"image {i}" for i in ids]
-    Hs_raw = homographies(T, X, normalize=normalize, labels=labels)  # raises on collinear points: degenerate in fact
     try:
         est = initial_estimate(T, X, preliminary=preliminary, normalize=normalize, radial_terms=radial,
                                skew=skew or general, aspect=aspect or general, image_ids=ids)
     except DegenerateViewsError as exc:
         closed_error, est = exc, None
+    # the views' homographies (after the preliminary step when it applied: the better start); raises on collinear
+    # points, views that are degenerate in fact
+    Hs_raw = est.homographies if est is not None else homographies(T, X, normalize=normalize, labels=labels)
     raw_too = False
     if est is None and preliminary and radial > 0:
         raw_too = True  # the closed form failed after the preliminary step: try it on the raw points
@@ -811,7 +814,7 @@ def linear_starts(T, X, *, preliminary=True, normalize=True, radial=2, skew=Fals
     fs = fs[np.isfinite(fs)]
     extent = float(np.nanmax(np.abs(X))) * 2 if np.any(np.isfinite(X)) else 1.0
     fs = fs[fs < 1e3 * extent]
-    zero = Distortion()
+    zero = est.distortion(radial) if est is not None else Distortion()  # the preliminary k with its homographies
     fallback = []
     if fs.size:
         fallback.append(("centre", float(np.median(fs))))

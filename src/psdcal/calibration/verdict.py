@@ -256,9 +256,13 @@ def _explained(lin: _Linear, B) -> tuple[float, int]:
     """Sum of squares of the residuals along span(B) minus the Jacobian's span, and its dimension."""
     B = B / np.maximum(np.linalg.norm(B, axis=0), 1e-300)
     Bp = lin.perp(B)
-    Bp = Bp[:, np.linalg.norm(Bp, axis=0) > 1e-4]  # fields the model's parameters absorb (to 1e-4) test nothing
+    nb = np.linalg.norm(Bp, axis=0)
+    Bp = Bp[:, nb > 1e-4]  # fields the model's parameters absorb (to 1e-4) test nothing
     if Bp.shape[1] == 0:
         return 0.0, 0
+    if Bp.shape[1] == 1:  # one field: its direction, no factorisation needed
+        u = Bp[:, 0] / np.linalg.norm(Bp[:, 0])
+        return float((u @ lin.e) ** 2), 1
     U, s, _ = np.linalg.svd(Bp, full_matrices=False)
     U = U[:, s > 1e-2 * s[0]]
     U = lin.perp(U)  # re-orthogonalise against the Jacobian (round-off of the projection)
@@ -513,9 +517,12 @@ def terms_test(lin: _Linear):
     p = float(fdist.sf(F, p_dim, dof - p_dim))
     # each term alone too (one degree of freedom: more power for a single missing term); Bonferroni over all tests
     single = []
+    Bn = lin.extra / np.maximum(np.linalg.norm(lin.extra, axis=0), 1e-300)
+    Bp = lin.perp(Bn)  # all columns projected at once
+    nb = np.linalg.norm(Bp, axis=0)
     for k, name in enumerate(lin.extra_names):
-        ek, dk = _explained(lin, lin.extra[:, [k]])
-        if dk:
+        if nb[k] > 1e-4:  # as in _explained: a column the model absorbs tests nothing
+            ek = float((Bp[:, k] @ lin.e / nb[k]) ** 2)
             Fk = ek / max((ssr - ek) / (dof - 1), 1e-300)
             single.append((float(fdist.sf(Fk, 1, dof - 1)), Fk, name))
     n_tests = 1 + len(single)
