@@ -127,3 +127,17 @@ def test_report_opens_with_the_verdict(cases, tmp_path):
     assert html.index('id="verdict"') < html.index('id="summary"')
     assert "--fit-gains" in html
     assert "psdcal calibrate --reject 5 removes them" not in html  # the report no longer sends a systematic misfit to --reject
+
+
+def test_seen_4_row_listed_in_reverse_points_to_the_template(tmp_path):
+    from psdcal.io import write_points, write_template
+    from psdcal.study.simulate import simulate_set
+
+    s = simulate_set("lens2", n_images=10, noise_mm=2e-3, seed=0)
+    T = s.template_mm.copy()
+    T[:5] = T[:5][::-1]  # the first row of the default template, listed in reverse
+    write_template(tmp_path / "t.csv", list(range(14)), T)
+    write_points(tmp_path / "p.csv", list(range(10)), list(range(14)), s.points_mm)
+    code, text = _run(["calibrate", tmp_path / "p.csv", "-t", tmp_path / "t.csv"])
+    assert "degenerate views" not in text
+    assert "the row of LEDs 0, 1, 2, 3, 4 looks listed in reverse" in text

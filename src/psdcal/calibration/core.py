@@ -714,7 +714,7 @@ def template_hint(T, X, Hs, point_ids=None) -> str:
         led, total = per_led(T)
     except (DegenerateViewsError, np.linalg.LinAlgError):
         return ""
-    order = [int(k) for k in np.argsort(-led)[:5]]
+    order = [int(k) for k in np.argsort(-led)[:8]]
 
     def misfit(Tm):
         Hm = homographies(Tm, X, normalize=True)
@@ -722,21 +722,45 @@ def template_hint(T, X, Hs, point_ids=None) -> str:
 
     try:
         base = misfit(T)
-        best = (base, None)
-        for i in range(len(order)):
-            for j in range(i + 1, len(order)):
-                T2 = T.copy()
-                T2[[order[i], order[j]]] = T2[[order[j], order[i]]]
-                m2 = misfit(T2)
-                if m2 < best[0]:
-                    best = (m2, (order[i], order[j]))
+        # a row listed in reverse: each line of >= 3 template points reversed
+        best_row = (base, None)
+        for line in find_lines(T, max_lines=MAX_STRAIGHTNESS_LINES):
+            idx = np.asarray(line, dtype=int)
+            T2 = T.copy()
+            T2[idx] = T[idx[::-1]]
+            m2 = misfit(T2)
+            if m2 < best_row[0]:
+                best_row = (m2, idx)
+        # swapped LEDs: up to three swaps among the least consistent LEDs, the best one each time
+        cur, swaps, best = T.copy(), [], base
+        for _ in range(3):
+            step = (best, None)
+            for i in range(len(order)):
+                for j in range(i + 1, len(order)):
+                    T2 = cur.copy()
+                    T2[[order[i], order[j]]] = T2[[order[j], order[i]]]
+                    m2 = misfit(T2)
+                    if m2 < step[0]:
+                        step = (m2, (order[i], order[j]))
+            if step[1] is None or step[0] > 0.5 * best:
+                break
+            a, b = step[1]
+            cur[[a, b]] = cur[[b, a]]
+            swaps.append(step[1])
+            best = step[0]
+            if best < base / 1e3:
+                break
     except (DegenerateViewsError, np.linalg.LinAlgError):
-        best = (np.inf, None)
+        best, swaps, best_row = np.inf, [], (np.inf, None)
         base = np.inf
-    if best[1] is not None and best[0] < base / 10:
-        a, b = best[1]
-        return (f"a template permutation fits: LEDs {ids[a]} and {ids[b]} look swapped (check the LED order in the "
-                "template: two LEDs swapped or a row listed in reverse), not the views")
+    if best_row[1] is not None and best_row[0] < base / 10 and best_row[0] <= best:
+        row = ", ".join(str(ids[k]) for k in best_row[1])
+        return (f"a template permutation fits: the row of LEDs {row} looks listed in reverse (check the LED order "
+                "in the template), not the views")
+    if swaps and best < base / 10:
+        pairs = " and ".join(f"LEDs {ids[a]} and {ids[b]}" for a, b in swaps)
+        return (f"a template permutation fits: {pairs} look swapped (check the LED order in the "
+                "template: swapped LEDs or a row listed in reverse), not the views")
     if led[order[0]] > 4.0 * np.median(led):
         a, b = order[0], order[1]
         return (f"template LEDs {ids[a]} and {ids[b]} are off the projective fit in every view: check the template "
