@@ -280,3 +280,54 @@ def test_cli_amplitudes_with_fitted_gains(tmp_path, capsys):
     write_directions(tmp_path / "pts.csv", az, el, d)
     code = main(["calibrate-directions", str(tmp_path / "pts.csv"), "--fit-gains", "-o", str(tmp_path / "x.json")])
     assert code == 2 and "amplitudes" in capsys.readouterr().err
+
+
+# -- the verdict on a direction calibration ------------------------------------------------
+def _sweep(rng, dist, noise_mm=2e-3, gains=None):
+    from psdcal.calibration import directions as D
+    from psdcal.model.params import Intrinsics
+
+    az, el = D.sweep_grid(20, 20, 9, 9)
+    pts = D.simulate_sweep(Intrinsics(8.0, 0.5, -0.7, 0.0), dist, [0.01, -0.02, 0.03], az, el, noise_mm=noise_mm,
+                           rng=rng, gains=gains)
+    return az, el, pts
+
+
+def test_direction_verdict_false_alarms_and_detection():
+    """Correct fits are 'good' (design false-alarm rate 1e-3 per check); a missing k2 and ignored
+    channel gains are caught by the residual-structure check, which names the structure."""
+    from psdcal.calibration import directions as D
+    from psdcal.model.params import Distortion
+
+    rng = np.random.default_rng(11)
+    lens = Distortion(k1=1e-2, k2=3e-5)
+    bad = 0
+    for _ in range(60):
+        az, el, pts = _sweep(rng, lens)
+        r = D.calibrate_directions(az, el, pts, radial=2, tangential=False, noise_mm=2e-3)
+        bad += r.verdict["verdict"] != "good"
+    assert bad <= 1
+    # a lens with a strong k2 fitted with k1 only: systematic residuals
+    for _ in range(10):
+        az, el, pts = _sweep(rng, Distortion(k1=1e-2, k2=3e-4))
+        r = D.calibrate_directions(az, el, pts, radial=1, tangential=False)
+        failed = {c["name"] for c in r.verdict["checks"] if c["passed"] is False}
+        assert r.verdict["verdict"] != "good" and "structure" in failed
+    # ignored gain imbalance (R 1 %, C 15 % class): a projective misfit
+    for _ in range(10):
+        az, el, pts = _sweep(rng, lens, gains=[1.0, 1.03, 0.97, 1.02])
+        r = D.calibrate_directions(az, el, pts, radial=2, tangential=False)
+        assert r.verdict["verdict"] != "good"
+
+
+def test_direction_verdict_noise_check_uses_the_stated_noise():
+    from psdcal.calibration import directions as D
+    from psdcal.model.params import Distortion
+
+    rng = np.random.default_rng(5)
+    az, el, pts = _sweep(rng, Distortion(k1=1e-2, k2=3e-5), noise_mm=6e-3)
+    ok = D.calibrate_directions(az, el, pts, radial=2, tangential=False, noise_mm=6e-3)
+    low = D.calibrate_directions(az, el, pts, radial=2, tangential=False, noise_mm=2e-3)
+    noise = {c["name"]: c for c in low.verdict["checks"]}["noise"]
+    assert ok.verdict["verdict"] == "good"
+    assert noise["passed"] is False and low.verdict["verdict"] != "good"

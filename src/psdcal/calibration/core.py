@@ -941,6 +941,8 @@ def implausible(result: CalibrationResult) -> str:
         return "non-finite parameters"
     if not (intr.f_mm > 0 and intr.fy > 0):
         return f"focal length {intr.f_mm:.3g} mm"
+    if (result.problem or {}).get("kind") == "directions":  # the one pose is the stage's rotation and offsets
+        return ""
     tz = np.asarray(result.tvecs_mm, dtype=float)[:, 2]
     if np.any(~np.isfinite(tz)) or np.any(tz <= 0):
         i = int(np.argmin(np.nan_to_num(tz, nan=-np.inf)))

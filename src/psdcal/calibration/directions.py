@@ -370,6 +370,8 @@ def calibrate_directions(
     sensor_mm: tuple[float, float] = (LX_MM, LY_MM),
     solver=None,
     point_ids=None,
+    noise_mm: float | None = None,
+    verdict: bool = True,
 ):
     """Calibrate a PSD + lens sensor from spots at known directions (a rotation stage sweep).
 
@@ -392,6 +394,11 @@ def calibrate_directions(
     sensor_mm : (Lx, Ly), mm
     solver : SolverOptions
     point_ids : (N,) identifiers of the rows (default 0..N-1)
+    noise_mm : float, optional
+        Known noise per coordinate of the points, mm, for the verdict's ``noise`` check.
+    verdict : bool
+        Attach the statistical verdict (:func:`psdcal.calibration.verdict.assess_fit`: noise, residual
+        structure over the sensor, plausibility) as ``result.verdict``.
 
     Returns
     -------
@@ -471,7 +478,13 @@ def calibrate_directions(
         model = DirectionsModel(u, Xfit, spec, base, fixed=tuple(fix), distance_mm=distance_mm, sensor_mm=sensor_mm)
         W, b = _prior_rows_full(pri, model, prior_rows)
         fit = map_fit(model.residuals, model.jacobian, model.pack(base), W, b, solver)
-    return _result(model, fit, az, el, X, ids, spec, g0, gains, fit_gains, fix, pri, distance_mm, sensor_mm, solver, linear)
+    res = _result(model, fit, az, el, X, ids, spec, g0, gains, fit_gains, fix, pri, distance_mm, sensor_mm, solver, linear)
+    if verdict and np.all(np.isfinite(fit.x)):
+        from psdcal.calibration.verdict import assess_fit
+
+        v = assess_fit(res, model.jacobian(fit.x), model.residuals(fit.x), model.predict(fit.x), noise_mm=noise_mm)
+        res = replace(res, verdict=v.to_dict())
+    return res
 
 
 def _prior_rows_full(priors, model, prior_rows):

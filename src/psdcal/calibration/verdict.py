@@ -356,37 +356,10 @@ def _assess(result, *, noise_mm, points_kind, diagnose) -> Verdict:
     ssr = float(lin.e @ lin.e)
     rms_um = np.sqrt(ssr / max(m, 1)) * 1e3
 
-    # noise
-    if noise_mm is not None and noise_mm > 0 and dof > 0:
-        stat = ssr / noise_mm ** 2
-        p = float(chi2.sf(stat, dof))
-        ok = p >= ALPHA
-        checks.append(Check(
-            "noise", stat / dof, float(chi2.isf(ALPHA, dof)) / dof, p, ALPHA, ok,
-            f"residual RMS per coordinate {np.sqrt(ssr / dof) * 1e3:.3g} um against the stated noise {noise_mm * 1e3:.3g} um "
-            f"(chi2/dof {stat / dof:.3g}, p = {p:.2g})",
-            "" if ok else "the model does not explain the points to their noise: see the other checks for the cause; "
-                          "if none fails, the stated noise is too low",
-            severe=p < WRONG_P,
-        ))
-    else:
-        checks.append(Check("noise", None, None, None, ALPHA, None,
-                            "no noise level given (--noise-um): the residual RMS is judged by the other checks only"))
-
-    # structure
-    B = _field_basis(lin.pts, result.intrinsics.c, half)
-    expl, p_dim = _explained(lin, B)
-    if p_dim > 0 and dof - p_dim > 0:
-        F = (expl / p_dim) / max((ssr - expl) / (dof - p_dim), 1e-300)
-        p = float(fdist.sf(F, p_dim, dof - p_dim))
-        ok = p >= ALPHA
-        frac = expl / ssr if ssr > 0 else 0.0
-        checks.append(Check(
-            "structure", F, float(fdist.isf(ALPHA, p_dim, dof - p_dim)), p, ALPHA, ok,
-            f"a smooth field over the sensor explains {100 * frac:.3g} % of the residuals (F = {F:.3g} on {p_dim} and "
-            f"{dof - p_dim} dof, p = {p:.2g})" + ("" if ok else f"; the residual RMS {result.rms_mm * 1e3:.3g} um is systematic, not noise"),
-            "", severe=p < WRONG_P,
-        ))
+    checks.append(_noise_check(ssr, dof, noise_mm))
+    sc = _structure_check(result, lin, ssr, dof, half)
+    if sc is not None:
+        checks.append(sc)
 
     # terms the model leaves out: a nested-model F-test (the linearised richer model)
     t = terms_test(lin)
@@ -442,6 +415,102 @@ def _assess(result, *, noise_mm, points_kind, diagnose) -> Verdict:
     ))
 
     # plausibility
+    checks += _plausibility(result, lin, sensor, half)
+
+    checks = [c for c in checks]
+    if diagnose and any(c.passed is False for c in checks):
+        checks = _diagnose(result, checks, lin, points_kind, bad_view)
+    failed = [c for c in checks if c.passed is False]
+    verdict = "good" if not failed else ("wrong" if any(c.severe for c in failed) else "suspect")
+    return Verdict(verdict, tuple(checks))
+
+
+def _noise_check(ssr: float, dof: int, noise_mm) -> Check:
+    """chi^2 of the residuals against a stated noise level (not applicable without one)."""
+    chi2 = _Chi2
+    if noise_mm is not None and noise_mm > 0 and dof > 0:
+        stat = ssr / noise_mm ** 2
+        p = float(chi2.sf(stat, dof))
+        ok = p >= ALPHA
+        return Check(
+            "noise", stat / dof, float(chi2.isf(ALPHA, dof)) / dof, p, ALPHA, ok,
+            f"residual RMS per coordinate {np.sqrt(ssr / dof) * 1e3:.3g} um against the stated noise {noise_mm * 1e3:.3g} um "
+            f"(chi2/dof {stat / dof:.3g}, p = {p:.2g})",
+            "" if ok else "the model does not explain the points to their noise: see the other checks for the cause; "
+                          "if none fails, the stated noise is too low",
+            severe=p < WRONG_P,
+        )
+    return Check("noise", None, None, None, ALPHA, None,
+                 "no noise level given (--noise-um): the residual RMS is judged by the other checks only")
+
+
+def _structure_check(result, lin: _Linear, ssr: float, dof: int, half):
+    """F-test of a smooth field over the sensor fitted to the residuals (None when no field is testable)."""
+    fdist = _F
+    B = _field_basis(lin.pts, result.intrinsics.c, half)
+    expl, p_dim = _explained(lin, B)
+    if p_dim > 0 and dof - p_dim > 0:
+        F = (expl / p_dim) / max((ssr - expl) / (dof - p_dim), 1e-300)
+        p = float(fdist.sf(F, p_dim, dof - p_dim))
+        ok = p >= ALPHA
+        frac = expl / ssr if ssr > 0 else 0.0
+        return Check(
+            "structure", F, float(fdist.isf(ALPHA, p_dim, dof - p_dim)), p, ALPHA, ok,
+            f"a smooth field over the sensor explains {100 * frac:.3g} % of the residuals (F = {F:.3g} on {p_dim} and "
+            f"{dof - p_dim} dof, p = {p:.2g})" + ("" if ok else f"; the residual RMS {result.rms_mm * 1e3:.3g} um is systematic, not noise"),
+            "", severe=p < WRONG_P,
+        )
+    return None
+
+
+def assess_fit(result, jacobian, residuals, points_mm, *, noise_mm: float | None = None) -> Verdict:
+    """The verdict on a fit given its dense Jacobian (a single-group fit, e.g. a stage sweep).
+
+    Runs the checks that need no views or template: ``noise`` (with a stated
+    noise), ``structure`` (a smooth field over the sensor explains the
+    residuals beyond noise: a wrong model, minimum or gains) and the
+    plausibility checks. Used by :func:`psdcal.calibration.directions.calibrate_directions`.
+
+    Parameters
+    ----------
+    result : CalibrationResult
+    jacobian : (2N, n) array, d(model)/d(free parameters) at the solution, rows (x0, y0, x1, ...)
+    residuals : (2N,) array, model minus measured, same row order (mm)
+    points_mm : (N, 2) array, the modelled points, mm
+    noise_mm : float, optional, known noise per coordinate (mm)
+    """
+    J = np.asarray(jacobian, dtype=float)
+    r = np.asarray(residuals, dtype=float)
+    ok = np.all(np.isfinite(J), axis=1) & np.isfinite(r)
+    J, r = J[ok], r[ok]
+    U, s, _ = np.linalg.svd(J / np.maximum(np.linalg.norm(J, axis=0), 1e-300), full_matrices=False)
+    Q = U[:, s > 1e-8 * max(float(s[0]) if s.size else 0.0, 1e-300)]
+
+    def perp(B):  # B: (m, k) over the finite rows
+        B = np.asarray(B, dtype=float)
+        return B - Q @ (Q.T @ B)
+
+    e = perp(-r[:, None])[:, 0]
+    pts = np.asarray(points_mm, dtype=float).reshape(-1, 2)
+    n_pts = pts.shape[0]
+    lin = _Linear(e, perp, np.sum(Q * Q, axis=1), pts, np.zeros(n_pts, dtype=int), np.arange(n_pts), Q.shape[1])
+    sensor = np.asarray(result.sensor_mm, dtype=float)
+    half = sensor / 2
+    dof = e.size - lin.n
+    ssr = float(e @ e)
+    checks = [_noise_check(ssr, dof, noise_mm)]
+    sc = _structure_check(result, lin, ssr, dof, half) if ok.all() else None
+    if sc is not None:
+        checks.append(sc)
+    checks += _plausibility(result, lin, sensor, half)
+    failed = [c for c in checks if c.passed is False]
+    verdict = "good" if not failed else ("wrong" if any(c.severe for c in failed) else "suspect")
+    return Verdict(verdict, tuple(checks))
+
+
+def _plausibility(result, lin: _Linear, sensor, half) -> list:
+    """The physical-plausibility checks: points' scale, f, C, convergence, a one-to-one distortion."""
+    checks = []
     X = lin.pts
     span = float(np.max(np.ptp(X, axis=0))) if len(X) > 1 else 0.0
     frac = span / float(np.max(sensor))
@@ -494,12 +563,7 @@ def _assess(result, *, noise_mm, points_kind, diagnose) -> Verdict:
         severe=not mono,
     ))
 
-    checks = [c for c in checks]
-    if diagnose and any(c.passed is False for c in checks):
-        checks = _diagnose(result, checks, lin, points_kind, bad_view)
-    failed = [c for c in checks if c.passed is False]
-    verdict = "good" if not failed else ("wrong" if any(c.severe for c in failed) else "suspect")
-    return Verdict(verdict, tuple(checks))
+    return checks
 
 
 def terms_test(lin: _Linear):

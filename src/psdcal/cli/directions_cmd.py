@@ -34,9 +34,12 @@ from psdcal.cli import cli
               help="Gaussian prior VALUE +- STD on a free global parameter (repeatable).")
 @click.option("--prior-file", "prior_files", multiple=True, type=click.Path(dir_okay=False, path_type=Path),
               help="JSON prior with names, values and covariance (e.g. the gains JSON of `psdcal gains`).")
+@click.option("--noise-um", "noise_um", type=click.FloatRange(min=0.0, min_open=True), default=None, metavar="SIGMA_UM",
+              help="Known noise standard deviation per coordinate of the points, um: the verdict then also tests "
+                   "the residual RMS against it.")
 @click.option("--quiet", "-q", is_flag=True, help="Print nothing but errors.")
 def calibrate_directions_command(directions, output, distance_mm, radial, tangential, psd_radial, skew, aspect, fit_gains,
-                                 sensor_mm, max_iterations, fix_items, prior_items, prior_files, quiet):
+                                 sensor_mm, max_iterations, fix_items, prior_items, prior_files, quiet, noise_um=None):
     """Calibrate a PSD + lens sensor from spots at known directions (rotation stage, goniometer).
 
     DIRECTIONS is a CSV `az_deg,el_deg,x_mm,y_mm` (impact points) or
@@ -72,6 +75,7 @@ def calibrate_directions_command(directions, output, distance_mm, radial, tangen
             aspect=aspect, fit_gains=fit_gains, distance_mm=distance_mm, fix=fix or None, priors=priors or None,
             sensor_mm=tuple(sensor_mm), solver=SolverOptions(max_iterations=max_iterations),
             point_ids=[int(v) for v in df.line_numbers],
+            noise_mm=None if noise_um is None else noise_um * 1e-3,
         )
     except DegenerateViewsError as exc:
         raise DegenerateViewsError(f"{directions}: {exc}") from None
