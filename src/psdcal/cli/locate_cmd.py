@@ -25,12 +25,17 @@ def _demod_options(f):
         click.option("--carrier-hz", "carriers", type=float, multiple=True, required=True,
                      help="Carrier of an emitter; repeat for several emitters at once (frequency multiplexing)."),
         click.option("--emitter", "emitters", multiple=True, help="Name of each carrier's emitter (default '<f>Hz')."),
-        click.option("--window-s", type=float, default=0.01, show_default=True,
-                     help="Demodulation window: one output per window."),
+        click.option("--window-s", type=float, default=None,
+                     help="Demodulation window, s: one output per window [default: 0.01; with --tdm chosen from "
+                          "the on-times measured on the recording]."),
         click.option("--tdm", is_flag=True, help="Time multiplexing: one row per segment where one LED is on."),
         click.option("--schedule", type=click.Path(dir_okay=False),
                      help="TDM schedule CSV emitter,t_start_s,t_end_s (implies --tdm)."),
-        click.option("--n-emitters", type=int, help="TDM without schedule: emitters per cycle (names repeat)."),
+        click.option("--n-emitters", type=int,
+                     help="TDM without schedule: emitters per cycle (names repeat); a segment count that is not "
+                          "a multiple of it is refused."),
+        click.option("--check-carriers/--no-check-carriers", default=True, show_default=True,
+                     help="Measure the carriers on the start of the recording; warn when one asked is off."),
         click.option("--min-snr", type=float, default=10.0, show_default=True,
                      help="Drop a window/segment whose total amplitude is below this many sigma."),
         click.option("--channels",
@@ -55,7 +60,7 @@ def _demod_options(f):
 @click.option("--distance-mm", type=float, help="Plane distance S: also write X_mm, Y_mm on that plane.")
 @_demod_options
 def locate_command(recordings, calib, sensors, rate_hz, carriers, emitters, distance_mm, window_s, tdm, schedule,
-                   n_emitters, min_snr, channels, dataset, group, chunk_samples, progress, output):
+                   n_emitters, check_carriers, min_snr, channels, dataset, group, chunk_samples, progress, output):
     """Demodulate RECORDING(s) and write angles of arrival and positions.
 
     \b
@@ -90,6 +95,7 @@ def locate_command(recordings, calib, sensors, rate_hz, carriers, emitters, dist
         schedule=sched,
         n_emitters=n_emitters,
         chunk_samples=chunk_samples,
+        check_carriers=check_carriers,
     )
     opts = dict(channels=_channels(channels), dataset=dataset, group=group)
     if calib is not None:
@@ -122,9 +128,17 @@ def locate_command(recordings, calib, sensors, rate_hz, carriers, emitters, dist
     finally:
         if bar:
             bar.close()
+    _report(summary, output)
+
+
+def _report(summary, output) -> None:
+    """The one-line summary (stdout) and the self-check warnings (stderr)."""
+    for w in summary.warnings:
+        click.echo(f"psdcal: warning: {w}", err=True)
+    segs = "" if summary.n_segments is None else f", {summary.n_segments} TDM segments"
     click.echo(
         f"wrote {summary.n_rows} rows to {output} ({summary.duration_s:.6g} s of signal, "
-        f"{summary.n_windows} windows of {config.window_s:g} s, {summary.n_skipped} below --min-snr)"
+        f"{summary.n_windows} windows of {summary.window_s:g} s{segs}, {summary.n_skipped} below --min-snr)"
     )
 
 
@@ -152,7 +166,8 @@ class _Bar:
 @click.argument("recording", type=click.Path(dir_okay=False))
 @click.option("--image-id", help="Write a calibration points CSV image_id,point_id,vx1,vx2,vy1,vy2 for this view.")
 @_demod_options
-def amplitudes_command(recording, rate_hz, carriers, emitters, window_s, tdm, schedule, n_emitters, min_snr,
+def amplitudes_command(recording, rate_hz, carriers, emitters, window_s, tdm, schedule, n_emitters, check_carriers,
+                       min_snr,
                        image_id, channels, dataset, group, chunk_samples, progress, output):
     """Demodulate RECORDING to carrier amplitudes (no calibration needed).
 
@@ -168,7 +183,7 @@ def amplitudes_command(recording, rate_hz, carriers, emitters, window_s, tdm, sc
     sched = load_schedule(schedule) if schedule else None
     config = LocateConfig(carriers_hz=tuple(carriers), window_s=window_s, emitters=tuple(emitters) or None,
                           min_snr=min_snr, tdm=bool(tdm or sched is not None), schedule=sched,
-                          n_emitters=n_emitters, chunk_samples=chunk_samples)
+                          n_emitters=n_emitters, chunk_samples=chunk_samples, check_carriers=check_carriers)
     rec = open_recording(recording, rate_hz, channels=_channels(channels), dataset=dataset, group=group)
     show = progress if progress is not None else (rec.n_samples is not None and rec.n_samples >= _PROGRESS_MIN_SAMPLES)
     bar = _Bar(rec.n_samples, rec.path) if show else None
@@ -177,8 +192,7 @@ def amplitudes_command(recording, rate_hz, carriers, emitters, window_s, tdm, sc
     finally:
         if bar:
             bar.close()
-    click.echo(f"wrote {summary.n_rows} rows to {output} ({summary.duration_s:.6g} s of signal, "
-               f"{summary.n_windows} windows of {config.window_s:g} s, {summary.n_skipped} below --min-snr)")
+    _report(summary, output)
 
 
 @cli.command("aoa")
