@@ -140,7 +140,7 @@ def prescan(recording: Recording, config: LocateConfig) -> tuple[float, list[str
     warning per asked carrier that is not where it was asked (carrier
     finder of :mod:`psdcal.signal.inspect`).
     """
-    from psdcal.signal.inspect import check_carrier, choose_tdm_window, find_carriers, read_prefix, scan_tdm
+    from psdcal.signal.inspect import carrier_near, check_carrier, choose_tdm_window, read_prefix, scan_tdm
 
     warnings: list[str] = []
     window_s = config.window_s
@@ -155,9 +155,8 @@ def prescan(recording: Recording, config: LocateConfig) -> tuple[float, list[str
         else:
             window_s = 0.01
     if config.check_carriers and x is not None and x.shape[1] >= 64:
-        found = find_carriers(x, recording.rate_hz)
         for f in config.carriers_hz:
-            chk = check_carrier(f, found, window_s, tdm=config.tdm)
+            chk = check_carrier(f, carrier_near(x, recording.rate_hz, f), window_s, tdm=config.tdm)
             if not chk.ok:
                 warnings.append(f"{recording.path}: {chk.message}")
     return window_s, warnings

@@ -35,6 +35,8 @@ MAX_SIGMA_INFLATION = 1.2
 MAX_AMPLITUDE_LOSS = 0.01
 #: Minimum SNR of a spectral peak to count as a carrier, dB (power over the median floor).
 MIN_CARRIER_SNR_DB = 20.0
+#: A peak this far (dB) below a stronger carrier close to it is a side-band, not a carrier.
+SIDEBAND_DB = 20.0
 
 
 @dataclass(frozen=True)
@@ -106,8 +108,10 @@ def find_carriers(x, rate_hz: float, *, min_snr_db: float = MIN_CARRIER_SNR_DB, 
     """Carriers in a record, strongest first.
 
     A carrier is a peak of the summed power spectrum that exceeds the median
-    noise floor by ``min_snr_db`` and dominates its neighbourhood of +-2 % of
-    its frequency (so the side-bands of on/off keying are not counted).
+    noise floor by ``min_snr_db``, dominates its neighbourhood of +-2 % of
+    its frequency, and is not more than :data:`SIDEBAND_DB` below a stronger
+    carrier within 50 % of it (so the side-bands of on/off keying are not
+    counted as carriers).
 
     Parameters
     ----------
@@ -137,27 +141,63 @@ def find_carriers(x, rate_hz: float, *, min_snr_db: float = MIN_CARRIER_SNR_DB, 
                           & (ptot[lo:-1] >= ptot[lo - 1:-2]) & (ptot[lo:-1] >= ptot[lo + 1:])) + lo
     cand = cand[np.argsort(ptot[cand])[::-1]]
     out: list[Carrier] = []
+    peaks: list[float] = []
     for k in cand:
         half = max(2, int(0.02 * freq[k] / df))
         if ptot[k] < ptot[max(1, k - half): k + half + 1].max():
             continue
         if any(abs(c.freq_hz - freq[k]) < 0.02 * freq[k] + 2 * df for c in out):
             continue
-        # parabolic interpolation of the log power (Eq. of a Gaussian-shaped Hann peak)
-        a, b, c = np.log(ptot[k - 1: k + 2] + 1e-300)
-        den = a - 2 * b + c
-        delta = 0.5 * (a - c) / den if den < 0 else 0.0
-        delta = float(np.clip(delta, -0.5, 0.5))
-        out.append(Carrier(
-            freq_hz=float((k + delta) * df),
-            resolution_hz=float(df),
-            snr_db=10 * np.log10(np.maximum(p[:, k], 1e-300) / floor),
-            amplitude=2 * np.sqrt(p[:, k]) / wsum,
-            noise_sigma=np.sqrt(floor / (math.log(2) * w2sum)),  # median of |X|^2 = ln2 sigma^2 sum w^2
-        ))
+        # side-band of on/off keying: > SIDEBAND_DB below a carrier within 50 % of it
+        if any(abs(c.freq_hz - freq[k]) < 0.5 * c.freq_hz and ptot[k] < pk * 10 ** (-SIDEBAND_DB / 10)
+               for c, pk in zip(out, peaks)):
+            continue
+        peaks.append(ptot[k])
+        out.append(_carrier_at(k, p, ptot, floor, df, wsum, w2sum))
         if len(out) >= max_carriers:
             break
     return out
+
+
+def _carrier_at(k, p, ptot, floor, df, wsum, w2sum) -> Carrier:
+    # parabolic interpolation of the log power around the peak bin k
+    a, b, c = np.log(ptot[k - 1: k + 2] + 1e-300)
+    den = a - 2 * b + c
+    delta = 0.5 * (a - c) / den if den < 0 else 0.0
+    delta = float(np.clip(delta, -0.5, 0.5))
+    return Carrier(
+        freq_hz=float((k + delta) * df),
+        resolution_hz=float(df),
+        snr_db=10 * np.log10(np.maximum(p[:, k], 1e-300) / floor),
+        amplitude=2 * np.sqrt(p[:, k]) / wsum,
+        noise_sigma=np.sqrt(floor / (math.log(2) * w2sum)),  # median of |X|^2 = ln2 sigma^2 sum w^2
+    )
+
+
+def carrier_near(x, rate_hz: float, asked_hz: float, *, rel: float = 0.05,
+                 min_snr_db: float = MIN_CARRIER_SNR_DB) -> Carrier | None:
+    """The strongest spectral peak within ``+-rel`` of ``asked_hz`` (None when below ``min_snr_db``).
+
+    Unlike :func:`find_carriers` no side-band rule applies: a weak emitter
+    near a strong one is still measured.
+    """
+    x = np.asarray(x, dtype=float)
+    n = x.shape[1]
+    if n < 64:
+        raise InputError(f"too few samples to find carriers ({n}; at least 64)", field="samples")
+    freq, p, wsum, w2sum = spectrum(x, rate_hz)
+    df = rate_hz / n
+    floor = np.median(p[:, 1:], axis=1)
+    floor = np.where(floor > 0, floor, np.finfo(float).tiny)
+    ptot = p.sum(axis=0)
+    lo = max(1, int(math.floor(asked_hz * (1 - rel) / df)))
+    hi = min(len(freq) - 2, int(math.ceil(asked_hz * (1 + rel) / df)))
+    if hi < lo:
+        return None
+    k = lo + int(np.argmax(ptot[lo: hi + 1]))
+    if ptot[k] <= floor.sum() * 10 ** (min_snr_db / 10):
+        return None
+    return _carrier_at(max(k, 1), p, ptot, floor, df, wsum, w2sum)
 
 
 @dataclass(frozen=True)
@@ -168,7 +208,7 @@ class CarrierCheck:
     ----------
     asked_hz : float
     measured : Carrier or None
-        The strongest carrier within +-5 % of the asked one (None: none found).
+        The strongest peak within +-5 % of the asked one (None: none found).
     offset_hz : float
         ``measured - asked`` (nan when none found).
     sigma_inflation : float
@@ -189,26 +229,24 @@ class CarrierCheck:
     message: str
 
 
-def check_carrier(asked_hz: float, carriers, window_s: float, *, tdm: bool = False) -> CarrierCheck:
-    """Compare ``asked_hz`` with the carriers found (:func:`find_carriers`).
+def check_carrier(asked_hz: float, measured: Carrier | None, window_s: float, *, tdm: bool = False) -> CarrierCheck:
+    """Compare ``asked_hz`` with the carrier measured near it (:func:`carrier_near`).
 
     Parameters
     ----------
     asked_hz : float
-    carriers : list of Carrier
+    measured : Carrier or None
     window_s : float
         Demodulation window, s.
     tdm : bool
         Time multiplexing (a missing carrier may just be an LED that is off
         in the scanned part; the amplitude is then not the duty-cycle average).
     """
-    near = [c for c in carriers if abs(c.freq_hz - asked_hz) <= 0.05 * asked_hz]
-    if not near:
-        found = ", ".join(f"{c.freq_hz:.6g} Hz" for c in carriers[:4]) or "none"
+    if measured is None:
         return CarrierCheck(asked_hz, None, math.nan, math.nan, math.nan, False,
-                            f"no carrier found within 5 % of {asked_hz:g} Hz (carriers found: {found}); "
+                            f"no carrier found within 5 % of {asked_hz:g} Hz; "
                             "check --carrier-hz and --rate-hz with 'psdcal inspect'")
-    c = max(near, key=lambda c: float(np.sum(c.amplitude ** 2)))
+    c = measured
     off = c.freq_hz - asked_hz
     # the measurement's own precision: a tenth of a bin (Hann + parabolic interpolation)
     eff = max(abs(off) - 0.1 * c.resolution_hz, 0.0)
@@ -258,7 +296,7 @@ def scan_tdm(x, rate_hz: float, carrier_hz: float, *, min_snr: float = 10.0) -> 
     from psdcal.signal.stream import MIN_PERIODS, MultiCarrierLockin, TdmSegmenter
 
     periods = max(MIN_PERIODS, math.ceil(32 * carrier_hz / rate_hz))
-    w0 = periods / carrier_hz
+    w0 = math.ceil(periods / carrier_hz * rate_hz) / rate_hz
     lk = MultiCarrierLockin(rate_hz, [carrier_hz], w0)
     seg = TdmSegmenter(lk.window_s, min_snr=min_snr)
     segs = seg.feed(lk.process(0.0, x)) + seg.finish()
@@ -290,4 +328,4 @@ def choose_tdm_window(scan: TdmScan, carrier_hz: float, *, max_window_s: float =
     on = float(np.median(scan.on_s))
     w = min(on / 8.0, max_window_s)
     w = math.floor(w * carrier_hz) / carrier_hz
-    return max(w, scan.window_s)
+    return max(w, scan.window_s + 0.1 / carrier_hz)

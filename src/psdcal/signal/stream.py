@@ -362,8 +362,9 @@ class TdmSegmenter:
     gap shorter than the window holds less light than its neighbours: the two
     LEDs around the gap are not merged).  The first and last windows of
     a run (which may straddle the switching) are dropped when the run is
-    longer than two windows; a lone window next to a jump (a transition, or
-    the partly lit edge of a run) is discarded.  Segments are named ``1, 2, ...`` (modulo ``n_emitters``
+    longer than two windows; a run of one or two windows next to a jump (a
+    transition across a short gap, or the partly lit edge of a run) is
+    discarded.  Segments are named ``1, 2, ...`` (modulo ``n_emitters``
     when the emitters repeat in cycles).  With a schedule, the windows lying
     entirely inside an entry's interval are that entry's segment.
 
@@ -407,7 +408,8 @@ class TdmSegmenter:
         self.level_floor = float(level_floor)
         self.warnings: list[str] = []
         self.segments: list[Segment] = []  # every segment returned so far
-        self.n_transitions = 0  # lone windows between two spots, discarded
+        self.n_transitions = 0  # windows between two spots, discarded
+        self.n_dropped_runs = 0  # runs of such windows
         self.k = int(carrier_index)
         self.min_snr = float(min_snr)
         self.schedule = None if schedule is None else tuple(schedule)
@@ -483,9 +485,10 @@ class TdmSegmenter:
     def _close_run(self, *, jump: bool = False) -> list[Segment]:
         run, n = self._run, self._run_len
         self._run = None
-        if n == 1 and (jump or self._run_after_jump):
-            self.n_transitions += 1
-            return []  # a lone transition window between two spots
+        if n <= 2 and (jump or self._run_after_jump):
+            self.n_transitions += n
+            self.n_dropped_runs += 1
+            return []  # transition window(s) between two spots, or the partly lit edge of a run
         if n <= 2:  # too short to drop edges: keep what there is
             for w in (self._first, self._pending):
                 if w is not None:
@@ -551,6 +554,11 @@ class TdmSegmenter:
                 f"(segment lengths {durs}{' ...' if n > 12 else ''} s): two LEDs merged or one split; "
                 "refusing to label them (give a --schedule, or check with 'psdcal inspect')",
                 field="n_emitters")
+        if self.n_dropped_runs > max(n, 1):
+            self.warnings.append(
+                f"time multiplexing: {self.n_dropped_runs} runs of 1-2 windows were discarded as transitions "
+                f"against {n} segments kept: the {self.window_s:g} s window may be too long for the LEDs' "
+                "on-times (leave --window-s out to choose it from the recording, or see 'psdcal inspect')")
         if n >= 3:
             d = np.array([s.t_end_s - s.t_start_s for s in segs])
             med = float(np.median(d))
