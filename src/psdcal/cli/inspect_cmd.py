@@ -94,4 +94,10 @@ def inspect_command(recording, rate_hz, channels, dataset, group, carriers, wind
             click.echo(f"  on-times {scan.on_s.min() * 1e3:.3g}-{scan.on_s.max() * 1e3:.3g} ms{g}; "
                        f"locate --tdm would use a {choose_tdm_window(scan, f0) * 1e3:.3g} ms window")
     if bad:
-        raise SystemExit(1)
+        raise _CarrierOff(f"{bad} asked carrier(s) not where they were asked (see the WARNING lines)")
+
+
+class _CarrierOff(click.ClickException):
+    """Exit status 1: the recording was read, but a carrier is off."""
+
+    exit_code = 1

@@ -50,7 +50,8 @@ class Carrier:
     resolution_hz : float
         Bin width of the spectrum (rate / samples), Hz.
     snr_db : (4,) ndarray
-        Peak power over the channel's median noise power, dB, per channel.
+        The carrier's power in its spectral bin over the noise power in one
+        bin (``(A sum(w) / 2)^2 / (sigma^2 sum(w^2))``), dB, per channel.
     amplitude : (4,) ndarray
         Peak amplitude per channel (signal unit; averaged over the record, so
         a time-multiplexed LED's amplitude times its duty cycle).
@@ -165,12 +166,16 @@ def _carrier_at(k, p, ptot, floor, df, wsum, w2sum) -> Carrier:
     den = a - 2 * b + c
     delta = 0.5 * (a - c) / den if den < 0 else 0.0
     delta = float(np.clip(delta, -0.5, 0.5))
+    # Hann scalloping: the response at delta bins off the peak is sinc(delta) / (1 - delta^2)
+    amp = 2 * np.sqrt(p[:, k]) / wsum / (np.sinc(delta) / (1.0 - delta * delta))
+    sigma = np.sqrt(floor / (math.log(2) * w2sum))  # white noise: median of |X|^2 = ln2 sigma^2 sum w^2
     return Carrier(
         freq_hz=float((k + delta) * df),
         resolution_hz=float(df),
-        snr_db=10 * np.log10(np.maximum(p[:, k], 1e-300) / floor),
-        amplitude=2 * np.sqrt(p[:, k]) / wsum,
-        noise_sigma=np.sqrt(floor / (math.log(2) * w2sum)),  # median of |X|^2 = ln2 sigma^2 sum w^2
+        # the carrier's power in its bin over the noise power in one bin
+        snr_db=20 * np.log10(np.maximum(amp * wsum / 2, 1e-300) / (sigma * math.sqrt(w2sum))),
+        amplitude=amp,
+        noise_sigma=sigma,
     )
 
 

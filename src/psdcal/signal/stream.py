@@ -554,7 +554,7 @@ class TdmSegmenter:
                 f"(segment lengths {durs}{' ...' if n > 12 else ''} s): two LEDs merged or one split; "
                 "refusing to label them (give a --schedule, or check with 'psdcal inspect')",
                 field="n_emitters")
-        if self.n_dropped_runs > max(n, 1):
+        if self.n_dropped_runs > 2 * n + 2:  # a segment has at most two partly lit edges
             self.warnings.append(
                 f"time multiplexing: {self.n_dropped_runs} runs of 1-2 windows were discarded as transitions "
                 f"against {n} segments kept: the {self.window_s:g} s window may be too long for the LEDs' "
