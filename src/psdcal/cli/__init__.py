@@ -33,6 +33,7 @@ _COMMANDS = (
     "report_cmd",
     "reproduce_cmd",
     "inspect_cmd",
+    "module_cmd",
 )
 
 

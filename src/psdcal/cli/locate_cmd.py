@@ -13,6 +13,11 @@ def _channels(value):
     if value is None:
         return None
     names = [v.strip() for v in value.split(",")]
+    from psdcal.signal.module import is_module_spec
+
+    if is_module_spec(value):
+        raise click.BadParameter("x, y, sum recordings of a position module are read by 'psdcal module REC "
+                                 f"--channels {value}' (LEDs found, positions, angles with --calib)")
     if len(names) != 4 or not all(names):
         raise click.BadParameter("give 4 comma-separated names (for vx1,vx2,vy1,vy2)")
     return tuple(names)

@@ -17,10 +17,13 @@ LED slot, separated by dark samples (SUM near zero) or by nothing at all
    least 1 % of the lit samples, adjacent cells joined): a plateau sample of
    one LED falls in the same few cells again and again, a transition sample
    lies on the line between two LEDs, in a sparse cell;
-3. *assignment*: a lit sample belongs to an emitter when it lies within
+3. *mixtures*: a dense place that is a mixture of two denser ones (or of
+   one and darkness) is a repeated transition, not an LED (see
+   :func:`_drop_blends`);
+4. *assignment*: a lit sample belongs to an emitter when it lies within
    ``k_sigma`` robust standard deviations (1.4826 MAD) of the emitter's
-   median in X, Y and log SUM; any other lit sample is a transition and is
-   dropped.
+   median in X and Y and ``k_sigma_sum`` in log SUM; any other lit sample
+   is a transition and is dropped.
 
 Emitters are named ``1, 2, ...`` in the order of their first clean sample,
 so a label never depends on the geometry.  Nothing is merged silently: with
@@ -306,7 +309,7 @@ def _drop_blends(cand, *, rel_tol: float = 0.02):
     of A and B (a real LED on the line between two others, as on a template
     row, has as many samples as they do).
     """
-    order = sorted(range(len(cand)), key=lambda j: -cand[j][6])
+    order = sorted(range(len(cand)), key=lambda j: -cand[j][6])  # stable: the dark end first among equals
     kept: list[int] = []
     for j in order:
         cx, cy, cl, *_, nj = cand[j]
@@ -333,7 +336,8 @@ def _drop_blends(cand, *, rel_tol: float = 0.02):
     return [cand[j] for j in sorted(kept)]
 
 
-def segment_module(x, y, s, *, n_emitters: int | None = None, k_sigma: float = 5.0, grid_frac: float = 0.01,
+def segment_module(x, y, s, *, n_emitters: int | None = None, k_sigma: float = 5.0, k_sigma_sum: float = 3.0,
+                   grid_frac: float = 0.01,
                    sum_step: float = 0.05, min_frac: float = 0.01) -> ModuleSegmentation:
     """Split X, Y, SUM samples into emitters, dark samples and transitions (see the module docstring).
 
@@ -343,8 +347,10 @@ def segment_module(x, y, s, *, n_emitters: int | None = None, k_sigma: float = 5
         Position outputs and SUM.
     n_emitters : int, optional
         Expected number of LEDs: another count raises :class:`InputError`.
-    k_sigma : float
-        Assignment tolerance, in robust standard deviations.
+    k_sigma, k_sigma_sum : float
+        Assignment tolerance in position and in log SUM, in robust standard
+        deviations (SUM is tighter: a sample where an LED switches on or off
+        keeps its position, since the module normalises, but not its SUM).
     grid_frac : float
         Grid cell, as a fraction of the lit samples' position range.
     sum_step : float
@@ -401,9 +407,16 @@ def segment_module(x, y, s, *, n_emitters: int | None = None, k_sigma: float = 5
         sy = 1.4826 * np.median(np.abs(yl[m] - cy))
         sl = 1.4826 * np.median(np.abs(ll[m] - cl))
         eps = 1e-3 * h
-        cand.append((cx, cy, cl, k_sigma * sx + eps, k_sigma * sy + eps, k_sigma * sl + 1e-3 * sum_step,
+        cand.append((cx, cy, cl, k_sigma * sx + eps, k_sigma * sy + eps, k_sigma_sum * sl + 1e-3 * sum_step,
                      int(m.sum())))
-    cand = _drop_blends(cand)
+    dark = ~lit
+    if thr > 0 and dark.sum() >= 3:
+        # darkness as one more end of a mixture (the sample that straddles an LED's switching on or off)
+        dark_end = (float(np.median(x[dark])), float(np.median(y[dark])), math.log(max(float(np.median(s[dark])),
+                    1e-300)), 0.0, 0.0, 0.0, int(dark.sum()))
+        cand = [c for c in _drop_blends([dark_end] + cand) if c is not dark_end]
+    else:
+        cand = _drop_blends(cand)
     lab = np.full(idx.size, TRANSITION, dtype=int)
     best = np.full(idx.size, np.inf)
     for j, (cx, cy, cl, tx, ty, tl, _) in enumerate(cand):
