@@ -34,6 +34,7 @@ _COMMANDS = (
     "reproduce_cmd",
     "inspect_cmd",
     "module_cmd",
+    "gains_cmd",
 )
 
 

@@ -63,8 +63,12 @@ def _demod_options(f):
 @click.option("--sensors", type=click.Path(dir_okay=False),
               help="SENSORS.json: several calibrated sensors with poses (3D triangulation).")
 @click.option("--distance-mm", type=float, help="Plane distance S: also write X_mm, Y_mm on that plane.")
+@click.option("--gains", "gains_file", type=click.Path(dir_okay=False),
+              help="Gains JSON from 'psdcal gains': channel gains (per carrier when it has them) replace the "
+                   "calibration's, their covariance enters the sigmas.")
 @_demod_options
-def locate_command(recordings, calib, sensors, rate_hz, carriers, emitters, distance_mm, window_s, tdm, schedule,
+def locate_command(recordings, calib, sensors, gains_file, rate_hz, carriers, emitters, distance_mm, window_s, tdm,
+                   schedule,
                    n_emitters, check_carriers, min_snr, channels, dataset, group, chunk_samples, progress, output):
     """Demodulate RECORDING(s) and write angles of arrival and positions.
 
@@ -109,10 +113,20 @@ def locate_command(recordings, calib, sensors, rate_hz, carriers, emitters, dist
         if len(recordings) != 1:
             raise InputError(f"give one RECORDING with --calib, got {len(recordings)}", field="RECORDING")
         model = SensorModel.load(calib)
+        models = None
+        if gains_file is not None:
+            from psdcal.calibration.bench import load_gains, with_gains
+
+            per = [with_gains(model, *load_gains(gains_file, f)) for f in carriers]
+            model = per[0]
+            models = dict(zip(config.emitter_names(), per)) if len(per) > 1 else None
         recs = [open_recording(recordings[0], rate_hz, **opts)]
     else:
         from psdcal.measure.positioning import load_sensors
 
+        if gains_file is not None:
+            raise InputError("--gains applies to one sensor (--calib); put the gains in each sensor's calibration",
+                             field="gains")
         poses = load_sensors(sensors)
         paths = list(recordings) or [p.recording for p in poses]
         if len(paths) != len(poses) or any(p is None for p in paths):
@@ -127,7 +141,7 @@ def locate_command(recordings, calib, sensors, rate_hz, carriers, emitters, dist
     try:
         cb = bar.update if bar else None
         if calib is not None:
-            summary = locate_to_csv(recs[0], model, output, config, progress=cb)
+            summary = locate_to_csv(recs[0], model, output, config, progress=cb, models=models)
         else:
             summary = locate_multi_to_csv(recs, poses, output, config, progress=cb)
     finally:
@@ -206,8 +220,11 @@ def amplitudes_command(recording, rate_hz, carriers, emitters, window_s, tdm, sc
 @click.option("--distance-mm", type=float, help="Plane distance S: also write X_mm, Y_mm.")
 @click.option("--sigma-d-mm", type=float, default=0.0, show_default=True,
               help="1-sigma noise of the impact points, mm (added to the calibration covariance).")
+@click.option("--gains", "gains_file", type=click.Path(dir_okay=False),
+              help="Gains JSON from 'psdcal gains' (amplitude input): applied to the channels, covariance "
+                   "in the sigmas.")
 @click.option("-o", "--output", required=True, type=click.Path(dir_okay=False), help="Output CSV.")
-def aoa_command(points, calib, distance_mm, sigma_d_mm, output):
+def aoa_command(points, calib, distance_mm, sigma_d_mm, gains_file, output):
     """Convert impact points (x_mm,y_mm) or amplitudes (vx1..vy2) in POINTS.csv to angles.
 
     Other columns (image_id, point_id, ...) are copied.  Output adds
@@ -217,6 +234,10 @@ def aoa_command(points, calib, distance_mm, sigma_d_mm, output):
     from psdcal.measure.sensor_model import SensorModel
 
     model = SensorModel.load(calib)
+    if gains_file is not None:
+        from psdcal.calibration.bench import load_gains, with_gains
+
+        model = with_gains(model, *load_gains(gains_file))
     n = aoa_csv(points, model, output, distance_mm=distance_mm, sigma_d_mm=sigma_d_mm)
     click.echo(f"wrote {n} rows to {output}")
 

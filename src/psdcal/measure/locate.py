@@ -302,7 +302,7 @@ def _stream_single(recording: Recording, config: LocateConfig, out_path, order, 
 
 
 def locate_to_csv(recording: Recording, model: SensorModel, out_path, config: LocateConfig,
-                  progress: Callable[[int], None] | None = None) -> LocateSummary:
+                  progress: Callable[[int], None] | None = None, models: dict | None = None) -> LocateSummary:
     """Demodulate a recording of one sensor and write angles (and positions) to CSV.
 
     Parameters
@@ -315,6 +315,9 @@ def locate_to_csv(recording: Recording, model: SensorModel, out_path, config: Lo
     config : LocateConfig
     progress : callable, optional
         Called with the number of samples (per channel) read after each chunk.
+    models : dict, optional
+        ``{emitter name: SensorModel}``: a model per emitter (e.g. channel
+        gains per carrier); emitters not in it use ``model``.
 
     Returns
     -------
@@ -322,7 +325,23 @@ def locate_to_csv(recording: Recording, model: SensorModel, out_path, config: Lo
     """
 
     def make_cols(t, nm, a, v):
-        return _rows_single(t, nm, a, v, model, config.distance_mm, config.min_snr)
+        if not models:
+            return _rows_single(t, nm, a, v, model, config.distance_mm, config.min_snr)
+        parts, skipped = [], 0
+        order = np.argsort(t, kind="stable")
+        t, nm, a, v = t[order], nm[order], a[order], v[order]
+        groups = {}
+        for i, name in enumerate(nm):
+            groups.setdefault(name, []).append(i)
+        for name, idx in groups.items():
+            idx = np.array(idx)
+            cols, sk = _rows_single(t[idx], nm[idx], a[idx], v[idx], models.get(name, model), config.distance_mm,
+                                    config.min_snr)
+            parts.append(cols)
+            skipped += sk
+        merged = {c: np.concatenate([p[c] for p in parts]) for c in parts[0]}
+        back = np.argsort(merged["t_s"], kind="stable")
+        return {c: merged[c][back] for c in merged}, skipped
 
     return _stream_single(recording, config, out_path, single_columns(config.distance_mm is not None), make_cols,
                           progress)
