@@ -37,6 +37,8 @@ MAX_AMPLITUDE_LOSS = 0.01
 MIN_CARRIER_SNR_DB = 20.0
 #: A peak this far (dB) below a stronger carrier close to it is a side-band, not a carrier.
 SIDEBAND_DB = 20.0
+#: A peak this far (dB) below the strongest carrier is not listed (use carrier_near for a weak one).
+WEAK_DB = 30.0
 
 
 @dataclass(frozen=True)
@@ -110,8 +112,8 @@ def find_carriers(x, rate_hz: float, *, min_snr_db: float = MIN_CARRIER_SNR_DB, 
 
     A carrier is a peak of the summed power spectrum that exceeds the median
     noise floor by ``min_snr_db``, dominates its neighbourhood of +-2 % of
-    its frequency, and is not more than :data:`SIDEBAND_DB` below a stronger
-    carrier within 50 % of it (so the side-bands of on/off keying are not
+    its frequency, is not more than :data:`SIDEBAND_DB` below a stronger
+    carrier within 50 % of it nor :data:`WEAK_DB` below the strongest one (so the side-bands of on/off keying are not
     counted as carriers).
 
     Parameters
@@ -149,6 +151,8 @@ def find_carriers(x, rate_hz: float, *, min_snr_db: float = MIN_CARRIER_SNR_DB, 
             continue
         if any(abs(c.freq_hz - freq[k]) < 0.02 * freq[k] + 2 * df for c in out):
             continue
+        if out and ptot[k] < peaks[0] * 10 ** (-WEAK_DB / 10):
+            continue  # far below the strongest carrier: keying side-bands, harmonics
         # side-band of on/off keying: > SIDEBAND_DB below a carrier within 50 % of it
         if any(abs(c.freq_hz - freq[k]) < 0.5 * c.freq_hz and ptot[k] < pk * 10 ** (-SIDEBAND_DB / 10)
                for c, pk in zip(out, peaks)):
