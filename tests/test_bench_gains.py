@@ -165,3 +165,33 @@ def test_gains_per_carrier_and_locate_with_them(tmp_path, capsys):
         sel0 = res[0]["emitter"] == name
         err0 = np.abs(np.c_[res[0]["alpha_x_deg"][sel0], res[0]["alpha_y_deg"][sel0]] - alpha[k])
         assert err0.mean() > 10 * err.mean()
+
+
+def test_calibrate_with_bench_gains(tmp_path, capsys):
+    """Template views read through imbalanced channels: --gains gives back the optical centre."""
+    from psdcal.model.readout import gain_map
+
+    sim = tmp_path / "sim"
+    assert main(["simulate", "--images", "8", "--noise-mm", "0.001", "--seed", "2", "-o", str(sim)]) == 0
+    truth = json.loads((sim / "truth.json").read_text())
+    lines = (sim / "points.csv").read_text().splitlines()
+    rows = [ln.split(",") for ln in lines[1:]]
+    xy = np.array([[float(r[2]), float(r[3])] for r in rows])
+    raw = gain_map(xy, G_TRUE)
+    (tmp_path / "raw.csv").write_text(lines[0] + "\n" + "".join(
+        f"{r[0]},{r[1]},{p[0]!r},{p[1]!r}\n" for r, p in zip(rows, raw.tolist())))
+    spots, a = bench(np.random.default_rng(6), noise=2e-4)
+    pos, amp = write_bench(tmp_path, spots, [a])
+    gains = tmp_path / "gains.json"
+    assert main(["gains", str(amp), "--positions", str(pos), "-o", str(gains)]) == 0
+    out = {}
+    for opt in ([], ["--gains", str(gains)]):
+        o = tmp_path / f"calib{len(opt)}.json"
+        assert main(["calibrate", str(tmp_path / "raw.csv"), "-t", str(sim / "template.csv"), "--psd-radial", "1",
+                     *opt, "-q", "-o", str(o)]) == 0, capsys.readouterr().err
+        out[len(opt)] = json.loads(o.read_text())
+    c_true = np.array([truth["intrinsics"]["cx_mm"], truth["intrinsics"]["cy_mm"]])
+    err = {k: np.hypot(*(np.array([d["intrinsics"]["cx_mm"], d["intrinsics"]["cy_mm"]]) - c_true))
+           for k, d in out.items()}
+    assert err[2] < 0.1 * err[0]
+    np.testing.assert_allclose(out[2]["gains"], load_gains(gains)[0], rtol=1e-12)

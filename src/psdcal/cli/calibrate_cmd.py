@@ -43,9 +43,12 @@ def model_options(f):
               help="Estimate the three relative channel gains jointly (POINTS must carry raw amplitudes vx1,vx2,vy1,vy2).")
 @click.option("--reject", "reject_k", type=click.FloatRange(min=0.0, min_open=True), default=None, metavar="K",
               help="Remove points whose residual exceeds K robust noise sigmas, refit, and list them (e.g. 5).")
+@click.option("--gains", "gains_file", type=click.Path(dir_okay=False),
+              help="Gains JSON from 'psdcal gains' (bench): the channel gains, held fixed (the start with "
+                   "--fit-gains); kept in the calibration JSON.")
 @click.option("--quiet", "-q", is_flag=True, help="Print nothing but errors.")
 def calibrate_command(points, template, output, cost, radial, tangential, psd_radial, skew, aspect, preliminary,
-                      normalize, sensor_mm, max_iterations, fit_gains, quiet, reject_k=None):
+                      normalize, sensor_mm, max_iterations, fit_gains, quiet, reject_k=None, gains_file=None):
     """Calibrate a PSD + lens sensor from views of a planar LED template.
 
     POINTS is a CSV of impact points, `image_id,point_id,x_mm,y_mm` (a missing
@@ -66,10 +69,16 @@ def calibrate_command(points, template, output, cost, radial, tangential, psd_ra
         raise InputError("--fit-gains needs raw amplitudes (header image_id,point_id,vx1,vx2,vy1,vy2)", path=points, line=1)
     from psdcal.calibration._refine import SolverOptions
 
+    bench_gains = None
+    if gains_file is not None:
+        from psdcal.calibration.bench import load_gains
+
+        bench_gains = load_gains(gains_file)[0]
+
     try:
         res = calibrate(
             txy, pf.points_mm, cost=cost, radial=radial, tangential=tangential, psd_radial=psd_radial, skew=skew,
-            preliminary=preliminary, normalize=normalize, aspect=aspect, fit_gains=fit_gains,
+            preliminary=preliminary, normalize=normalize, aspect=aspect, fit_gains=fit_gains, gains=bench_gains,
             image_ids=pf.image_ids, point_ids=tids, sensor_mm=tuple(sensor_mm),
             solver=SolverOptions(max_iterations=max_iterations),
         )
@@ -88,7 +97,7 @@ def calibrate_command(points, template, output, cost, radial, tangential, psd_ra
                            f"residual {p.residual_mm * 1e3:.2f} um = {p.ratio:.1f} sigma")
             for iid, pid in rej.kept_flagged:
                 click.echo(f"  kept (too few points left to remove it): image {iid}, point {pid}")
-    res = _with_inputs(res, template, points)
+    res = _with_inputs(res, template, points, gains_file)
     if output is not None:
         save_calibration(output, res)
     if not quiet:
@@ -97,12 +106,13 @@ def calibrate_command(points, template, output, cost, radial, tangential, psd_ra
             click.echo(f"wrote {output}")
 
 
-def _with_inputs(res, template, points):
+def _with_inputs(res, template, points, gains_file=None):
     """Record the input files and their checksums in the result's problem record."""
     import dataclasses
     import hashlib
 
     files = {}
-    for role, p in (("template", template), ("points", points)):
+    roles = (("template", template), ("points", points)) + ((("gains", gains_file),) if gains_file else ())
+    for role, p in roles:
         files[role] = {"path": str(p), "sha256": hashlib.sha256(Path(p).read_bytes()).hexdigest()}
     return dataclasses.replace(res, problem={**res.problem, "files": files})
