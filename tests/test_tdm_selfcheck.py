@@ -246,3 +246,15 @@ def test_cli_inspect(tmp_path, capsys):
     assert re.search(r"\n  10(09\.9|10\.0)\d* ", out) and "4 segments" in out and "check 1010 Hz: ok" in out
     rc = main(["inspect", str(tmp_path / "r.npy"), "--rate-hz", str(RATE), "--carrier-hz", "1000"])
     assert rc == 1 and "WARNING" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("noise", [1e-3, 0.05, 0.3])
+def test_level_and_ratio_splits_false_alarm_rate_is_zero_on_40_slots(noise):
+    """The split rules never cut one LED in two: 40 slots of 100 ms (10 windows each), 0 false splits."""
+    rng = np.random.default_rng(21)
+    spots = SPOTS[rng.integers(0, 4, 40)]
+    x, truth = tdm_record(spots, 0.1, 0.012, noise=noise, seed=22)
+    segs, seg = segment(x, 0.01, n_emitters=40)
+    assert len(segs) == 40 and seg.warnings == []
+    for s, (t0, t1) in zip(segs, truth):
+        assert t0 - 1e-9 <= s.t_start_s and s.t_end_s <= t1 + 1e-9 and s.n_windows >= 7
