@@ -138,13 +138,16 @@ def prescan(recording: Recording, config: LocateConfig) -> tuple[float, list[str
     Returns ``(window_s, warnings)``: ``config.window_s`` when given, else a
     window chosen from the measured TDM on-times (0.01 s without TDM); a
     warning per asked carrier that is not where it was asked (carrier
-    finder of :mod:`psdcal.signal.inspect`).
+    finder of :mod:`psdcal.signal.inspect`).  Only recordings in files
+    (kinds npy, csv, hdf5, tdms) are scanned: a live stream is not read twice.
     """
     from psdcal.signal.inspect import carrier_near, check_carrier, choose_tdm_window, read_prefix, scan_tdm
 
     warnings: list[str] = []
     window_s = config.window_s
-    need_scan = config.check_carriers or (window_s is None and config.tdm)
+    # only files can be read twice (a live stream must not lose its first chunk to the scan)
+    rereadable = getattr(recording, "kind", None) in ("npy", "csv", "hdf5", "tdms")
+    need_scan = rereadable and (config.check_carriers or (window_s is None and config.tdm))
     # one chunk's worth (the memory the user allowed), at least 4096 samples
     n_scan = min(max(int(config.chunk_samples), 4096), 1 << 18)
     x = read_prefix(recording, n_scan) if need_scan else None
