@@ -623,14 +623,13 @@ def _make_result(prob, ref, start, ids, pids, spec, cost, g0, preliminary, norma
     rms = float(np.sqrt(sq.sum() / max(n_valid, 1)))
     per_image = np.sqrt(sq.sum(axis=1) / np.maximum(valid.sum(axis=1), 1))
     n_glob = prob.n_global
-    cov_full = ref.covariance
-    cov = cov_full[:n_glob, :n_glob]
+    cov = ref.covariance_global  # the reduced (Schur) system's inverse: no matrix of all poses
     std = {n: None for n in ("f_mm", "cx_mm", "cy_mm", "skew", *DISTORTION_NAMES)}
     if spec.aspect:
         std["fy_mm"] = None
     for k, n in enumerate(prob.names):
         std[n] = float(np.sqrt(max(cov[k, k], 0.0)))
-    pose_std = np.sqrt(np.clip(np.diag(cov_full)[n_glob:], 0, None)).reshape(-1, 6)
+    pose_std = np.sqrt(np.clip(np.einsum("naa->na", ref.pose_covariance), 0, None))
     m = 2 * n_valid
     dof = max(m - ref.z.size, 1)
     sigma_mm = float(np.sqrt(np.sum(sq) / dof)) if cost == "image" else float(rms / np.sqrt(2.0) * np.sqrt(m / dof))
