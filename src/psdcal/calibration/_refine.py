@@ -189,7 +189,7 @@ class Evaluator:
         if prob.cost == "image" or not prob.spec.fit_gains:
             from psdcal import _jit
 
-            if _jit.enabled():  # the compiled costs (psdcal.calibration._image_kernel); this class's numpy code is their reference
+            if _jit.use_compiled(len(self.img_idx)):  # the compiled costs (psdcal.calibration._image_kernel); this class's numpy code is their reference
                 from psdcal.calibration._image_kernel import (block_normal, global_map, image_model, normal_equations,
                                                               template_model)
 
