@@ -143,23 +143,33 @@ def zhang_row(cv2, repeats):
 
 
 def chessboard_rows(cv2, repeats):
-    """The real chessboard sets (tests/data/chessboards), when present."""
+    """The real chessboard sets of tests/data/chessboards: one f, C, k1, k2, p1, p2 (OpenCV flags 130)."""
+    import json
+
+    from psdcal.io import read_points, read_template
+
     rows = []
     if not CHESS.exists():
         return rows
-    sys.path.insert(0, str(ROOT / "tests"))
-    try:
-        from chessboards import load_set  # tests/chessboards.py
-    except ImportError:
-        return rows
     for d in sorted(p for p in CHESS.iterdir() if p.is_dir()):
-        cs = load_set(d)
-        if cs is None:
-            continue
-        objs, imgs = cs.opencv_inputs()
-        t_p = _timed(lambda: cs.calibrate_psdcal(), repeats)
-        t_o = _timed(lambda: cs.calibrate_opencv(cv2), repeats)
-        rows.append({"set": d.name + " (real)", "views": cs.n_views, "points": cs.n_points, "model": cs.model_label,
+        meta = json.loads((d / "checks.json").read_text())
+        ids, T = read_template(d / "template.csv")
+        pts = read_points(d / "points.csv", ids)
+        pid = {str(k): n for n, k in enumerate(ids)}
+        obj = np.concatenate([T, np.zeros((len(T), 1))], axis=1).astype(np.float32)
+        by_view: dict = {}
+        with open(d / "points_px.csv") as fh:
+            next(fh)
+            for line in fh:
+                img, p, u, v = line.strip().split(",")
+                by_view.setdefault(img, []).append((pid[p], float(u), float(v)))
+        objs = [obj[[r[0] for r in rr]] for rr in by_view.values()]
+        imgs = [np.array([[r[1], r[2]] for r in rr], dtype=np.float32).reshape(-1, 1, 2) for rr in by_view.values()]
+        size = tuple(meta["image_size_px"])
+        flags = cv2.CALIB_FIX_ASPECT_RATIO | cv2.CALIB_FIX_K3
+        t_p = _timed(lambda: calibrate(T, pts.points_mm, image_ids=pts.image_ids), repeats)
+        t_o = _timed(lambda: cv2.calibrateCamera(objs, imgs, size, np.eye(3), np.zeros(5), flags=flags), repeats)
+        rows.append({"set": d.name + " (real)", "views": len(objs), "points": len(T), "model": "f, C, k1, k2, p1, p2",
                      "psdcal": t_p, "opencv": t_o, "scipy": None})
     return rows
 
