@@ -56,8 +56,12 @@ def angles_kernel(d, intr, separate_fy, coef, codes, C, cov_d, dd_dg):
     dn_dd = np.empty((N, 2, 2))
     has_noise = cov_d.shape[0] == N
     has_gain = dd_dg.shape[0] == N
-    T0 = np.empty(P)
-    T1 = np.empty(P)
+    A0 = np.empty(15)
+    A1 = np.empty(15)
+    U0 = np.empty(7)
+    U1 = np.empty(7)
+    V0 = np.empty(P)
+    V1 = np.empty(P)
     for i in range(N):
         d0, d1 = d[i, 0], d[i, 1]
         x0, x1, h2, ex, ey, r2, G00, G01, G10, G11, U00, U01, U11 = _model_terms(d0, d1, coef, cx, cy)
@@ -77,61 +81,50 @@ def angles_kernel(d, intr, separate_fy, coef, codes, C, cov_d, dd_dg):
         D11 = a11 * X11
         dn_dd[i, 0, 0], dn_dd[i, 0, 1], dn_dd[i, 1, 0], dn_dd[i, 1, 1] = D00, D01, D10, D11
         r4 = r2 * r2
+        # every derivative column, branch-free, in PARAM_CODES order; then gathered by ``codes``
+        if separate_fy:
+            A0[0], A1[0] = -xn / f, 0.0
+        else:
+            A0[0], A1[0] = -xn / f + s * yn / (f * f), -yn / f
+        A0[1], A1[1] = a00 * -G00 + a01 * -G10 - 1.0 / f, a11 * -G10  # cx: dx/dc = -G
+        A0[2], A1[2] = a00 * -G01 + a01 * -G11 + s / (f * fy), a11 * -G11 - 1.0 / fy  # cy
+        A0[3], A1[3] = -yn / f, 0.0  # skew
+        dyn = -yn / fy
+        A0[4], A1[4] = -s * dyn / f, dyn  # fy
+        U0[0], U1[0] = ex * r2, ey * r2
+        U0[1], U1[1] = ex * r4, ey * r4
+        U0[2], U1[2] = ex * r4 * r2, ey * r4 * r2
+        U0[3], U1[3] = r2 + 2 * ex * ex, 2 * ex * ey
+        U0[4], U1[4] = 2 * ex * ey, r2 + 2 * ey * ey
+        for j in range(2):  # PSD terms act through u = d s: dx/dl = (I + G) d h2^(j+1)
+            hp = h2 if j == 0 else h2 * h2
+            U0[5 + j] = (1 + G00) * d0 * hp + G01 * d1 * hp
+            U1[5 + j] = G10 * d0 * hp + (1 + G11) * d1 * hp
+        for j in range(7):
+            A0[5 + j], A1[5 + j] = a00 * U0[j] + a01 * U1[j], a11 * U1[j]
+        for j in range(3):
+            if has_gain:
+                g0, g1 = dd_dg[i, 0, j], dd_dg[i, 1, j]
+                A0[12 + j], A1[12 + j] = D00 * g0 + D01 * g1, D10 * g0 + D11 * g1
+            else:
+                A0[12 + j], A1[12 + j] = 0.0, 0.0
         for k in range(P):
-            c = codes[k]
-            if c == 0:  # f
-                if separate_fy:
-                    v0, v1 = -xn / f, 0.0
-                else:
-                    v0, v1 = -xn / f + s * yn / (f * f), -yn / f
-            elif c == 4:  # fy
-                dyn = -yn / fy
-                v0, v1 = -s * dyn / f, dyn
-            elif c == 3:  # skew
-                v0, v1 = -yn / f, 0.0
-            elif c == 1:  # cx: dx/dc = -G
-                v0, v1 = a00 * -G00 + a01 * -G10 - 1.0 / f, a11 * -G10
-            elif c == 2:  # cy
-                v0, v1 = a00 * -G01 + a01 * -G11 + s / (f * fy), a11 * -G11 - 1.0 / fy
-            elif c <= 11:  # distortion coefficient
-                j = c - 5
-                if j == 0:
-                    u0, u1 = ex * r2, ey * r2
-                elif j == 1:
-                    u0, u1 = ex * r4, ey * r4
-                elif j == 2:
-                    u0, u1 = ex * r4 * r2, ey * r4 * r2
-                elif j == 3:
-                    u0, u1 = r2 + 2 * ex * ex, 2 * ex * ey
-                elif j == 4:
-                    u0, u1 = 2 * ex * ey, r2 + 2 * ey * ey
-                else:  # PSD terms act through u = d s: dx/dl = (I + G) d h2^(j-4)
-                    hp = h2 if j == 5 else h2 * h2
-                    u0 = (1 + G00) * d0 * hp + G01 * d1 * hp
-                    u1 = G10 * d0 * hp + (1 + G11) * d1 * hp
-                v0, v1 = a00 * u0 + a01 * u1, a11 * u1
-            else:  # gain ratio
-                if has_gain:
-                    g0, g1 = dd_dg[i, 0, c - 12], dd_dg[i, 1, c - 12]
-                    v0, v1 = D00 * g0 + D01 * g1, D10 * g0 + D11 * g1
-                else:
-                    v0, v1 = 0.0, 0.0
-            dn_dp[i, 0, k] = v0
-            dn_dp[i, 1, k] = v1
+            V0[k] = A0[codes[k]]
+            V1[k] = A1[codes[k]]
+            dn_dp[i, 0, k] = V0[k]
+            dn_dp[i, 1, k] = V1[k]
         # cov_calib = dn_dp C dn_dp^T
+        c00 = c01 = c11 = 0.0
         for k in range(P):
             t0 = 0.0
             t1 = 0.0
             for m in range(P):
                 ckm = C[k, m]
-                t0 += dn_dp[i, 0, m] * ckm
-                t1 += dn_dp[i, 1, m] * ckm
-            T0[k], T1[k] = t0, t1
-        c00 = c01 = c11 = 0.0
-        for k in range(P):
-            c00 += T0[k] * dn_dp[i, 0, k]
-            c01 += T0[k] * dn_dp[i, 1, k]
-            c11 += T1[k] * dn_dp[i, 1, k]
+                t0 += V0[m] * ckm
+                t1 += V1[m] * ckm
+            c00 += t0 * V0[k]
+            c01 += t0 * V1[k]
+            c11 += t1 * V1[k]
         covc[i, 0, 0], covc[i, 0, 1], covc[i, 1, 0], covc[i, 1, 1] = c00, c01, c01, c11
         if has_noise:
             s00, s01, s10, s11 = cov_d[i, 0, 0], cov_d[i, 0, 1], cov_d[i, 1, 0], cov_d[i, 1, 1]
