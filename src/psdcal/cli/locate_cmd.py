@@ -44,7 +44,7 @@ def _demod_options(f):
                      help="Output file (CSV, or NumPy .npy with --format npy)."),
         click.option("--format", "output_format", type=click.Choice(["csv", "npy"]), default="csv", show_default=True,
                      help="Output format: CSV text, or one NumPy structured array (a field per column, full "
-                          "precision; np.load(path)), several times faster to write and read."),
+                          "precision; np.load(path)), no text formatting to write or parse."),
     ]
     for o in reversed(opts):
         f = o(f)
