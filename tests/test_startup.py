@@ -45,3 +45,21 @@ def test_auto_mode_uses_kernels_for_large_problems_only(monkeypatch):
     assert _jit.use_compiled(1)
     with pytest.raises(ValueError):
         _jit.set_mode("sometimes")
+
+
+def test_cache_check_and_first_compile_notice(tmp_path, monkeypatch, capsys):
+    import numpy as np
+
+    from psdcal import _jit
+    from psdcal.cli import calibrate_cmd
+
+    monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path))  # an empty cache: nothing compiled there
+    assert not _jit.cache_is_warm()
+    if not _jit.enabled():
+        pytest.skip("numba disabled")
+    monkeypatch.setattr(_jit, "_MODE", "always")
+    monkeypatch.setattr(_jit, "set_mode", lambda mode: None)  # keep "always": the kernels are wanted
+    calibrate_cmd._kernels_for(np.zeros((2, 3, 2)), quiet=False)
+    assert "compiling the numerical kernels" in capsys.readouterr().err
+    calibrate_cmd._kernels_for(np.zeros((2, 3, 2)), quiet=True)
+    assert capsys.readouterr().err == ""

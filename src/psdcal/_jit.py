@@ -110,16 +110,26 @@ def lazy_njit(fn):
 
 
 def cache_is_warm() -> bool:
-    """Whether the compiled image-cost kernel is in numba's disk cache (a cheap check of its index file)."""
+    """Whether the compiled image-cost kernel of this source is in numba's disk cache.
+
+    A cheap check without importing numba: the index file numba names after the
+    kernel's first line (``_image_kernel.image_model-<line>.py<ver>.nbi``), newer
+    than the source file, in ``NUMBA_CACHE_DIR`` or next to the module.
+    """
     from pathlib import Path
 
-    here = Path(__file__).resolve().parent / "calibration"
-    places = [here / "__pycache__"]
-    if os.environ.get("NUMBA_CACHE_DIR"):
-        places.append(Path(os.environ["NUMBA_CACHE_DIR"]))
+    src = Path(__file__).resolve().parent / "calibration" / "_image_kernel.py"
+    try:
+        lines = src.read_text(encoding="utf-8").splitlines()
+        line = next(k for k, t in enumerate(lines, start=1) if t.startswith("def image_model(")) - 1  # the decorator
+        src_mtime = src.stat().st_mtime
+    except (OSError, StopIteration):
+        return False
+    name = f"_image_kernel.image_model-{line}.py{sys.version_info[0]}{sys.version_info[1]}.nbi"
+    places = [Path(os.environ["NUMBA_CACHE_DIR"])] if os.environ.get("NUMBA_CACHE_DIR") else [src.parent / "__pycache__"]
     for p in places:
         try:
-            if any(p.rglob("_image_kernel.image_model-*.nbi")):
+            if any(f.stat().st_mtime >= src_mtime for f in p.rglob(name)):
                 return True
         except OSError:
             continue
@@ -147,7 +157,11 @@ def warm_up(verbose: bool = True) -> float:
             calibrate(s.template_mm, s.points_mm, **kw)
         except Exception:  # a warm-up: the kernels are compiled even when a fit fails
             pass
-    _ = np  # numpy is needed by the kernels' callers
+    from psdcal.measure.aoa import angles_from_points
+    from psdcal.measure.sensor_model import SensorModel
+
+    model = SensorModel.from_dict({"intrinsics": {"f_mm": 8.0, "cx_mm": 0.0, "cy_mm": 0.0}})
+    angles_from_points(np.zeros((4, 2)), model, np.zeros((4, 2, 2)))
     dt = time.perf_counter() - t0
     if verbose:
         print(f"psdcal: kernels ready ({dt:.1f} s)", file=sys.stderr, flush=True)
