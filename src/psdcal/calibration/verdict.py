@@ -40,6 +40,7 @@ from dataclasses import asdict, dataclass, replace
 
 import numpy as np
 
+from psdcal import _stats
 from psdcal.errors import PsdcalError
 
 #: Design false-alarm rate of each statistical check (p-value threshold).
@@ -272,8 +273,6 @@ def _explained(lin: _Linear, B) -> tuple[float, int]:
 
 def _group_f(lin: _Linear, groups, n_groups, ssr, dof):
     """Per-group F statistics and p-values of the residual variance against the other groups'."""
-    from scipy.special import fdtrc
-
     q = lin.e.reshape(-1, 2)
     lev = np.bincount(groups, weights=(1.0 - lin.h).reshape(-1, 2).sum(axis=1), minlength=n_groups)
     sq = np.bincount(groups, weights=np.sum(q * q, axis=1), minlength=n_groups)
@@ -281,7 +280,8 @@ def _group_f(lin: _Linear, groups, n_groups, ssr, dof):
     d_g = np.where(usable, lev, 1.0)
     d_r = np.where(usable, dof - lev, 1.0)
     F = np.where(usable, (sq / d_g) / (np.maximum(ssr - sq, 1e-300) / d_r), np.nan)
-    pv = np.where(usable, fdtrc(d_g, d_r, np.nan_to_num(F)), 1.0)
+    Fz = np.nan_to_num(F)
+    pv = np.array([_stats.f_sf(f, a, b) if u else 1.0 for f, a, b, u in zip(Fz, d_g, d_r, usable)])
     return F, pv
 
 
@@ -315,33 +315,15 @@ def assess(result, *, noise_mm: float | None = None, points_kind: str | None = N
 
 
 class _F:
-    """F distribution tails through scipy.special (scipy.stats' generic machinery costs 50 us a call)."""
+    """F distribution tails (:mod:`psdcal._stats`: no scipy import on the path of every calibration)."""
 
-    @staticmethod
-    def sf(x, d1, d2):
-        from scipy.special import fdtrc
-
-        return float(fdtrc(d1, d2, x))
-
-    @staticmethod
-    def isf(a, d1, d2):
-        from scipy.special import fdtri
-
-        return float(fdtri(d1, d2, 1.0 - a))
+    sf = staticmethod(lambda x, d1, d2: _stats.f_sf(x, d1, d2))
+    isf = staticmethod(lambda a, d1, d2: _stats.f_isf(a, d1, d2))
 
 
 class _Chi2:
-    @staticmethod
-    def sf(x, k):
-        from scipy.special import chdtrc
-
-        return float(chdtrc(k, x))
-
-    @staticmethod
-    def isf(a, k):
-        from scipy.special import chdtri
-
-        return float(chdtri(k, a))
+    sf = staticmethod(lambda x, k: _stats.chi2_sf(x, k))
+    isf = staticmethod(lambda a, k: _stats.chi2_isf(a, k))
 
 
 def _assess(result, *, noise_mm, points_kind, diagnose) -> Verdict:
