@@ -32,6 +32,7 @@ _COMMANDS = (
     "locate_cmd",
     "report_cmd",
     "reproduce_cmd",
+    "export_cmd",
 )
 
 
