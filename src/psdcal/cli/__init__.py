@@ -33,6 +33,7 @@ _COMMANDS = (
     "report_cmd",
     "reproduce_cmd",
     "export_cmd",
+    "capture_cmd",
 )
 
 
