@@ -4,6 +4,7 @@
     python3 tasks.py demo    # calibrate the bundled default data (main job)
     python3 tasks.py test    # run the test suite
     python3 tasks.py bench   # run the benchmarks
+    python3 tasks.py docs    # build the documentation site into site/ (strict)
 
 Each task creates the virtual environment ``.venv`` at the repository root
 when it is missing and installs psdcal into it (editable, with test extras).
@@ -43,7 +44,7 @@ def run(args: list[str]) -> int:
 def main(argv: list[str]) -> int:
     task = argv[1] if len(argv) > 1 else "help"
     extra = argv[2:]
-    if task not in {"demo", "test", "bench"}:
+    if task not in {"demo", "test", "bench", "docs"}:
         print(__doc__)
         return 0 if task == "help" else 2
     ensure_venv()
@@ -51,6 +52,10 @@ def main(argv: list[str]) -> int:
         return run([str(BIN / "psdcal"), "demo", *extra])
     if task == "test":
         return run([str(PY), "-m", "pytest", "-n", "2", "-q", *extra])
+    if task == "docs":
+        # Strict: a broken link, a missing anchor or a docstring mkdocstrings cannot read fails the build.
+        os.environ.setdefault("NO_MKDOCS_2_WARNING", "1")
+        return run([str(PY), "-m", "mkdocs", "build", "--strict", "--site-dir", str(ROOT / "site"), *extra])
     return run([str(PY), str(ROOT / "benchmarks" / "run_all.py"), *extra])
 
 

@@ -1,13 +1,13 @@
 #!/usr/bin/env python3
 """Time ``psdcal.calibrate`` against ``cv2.calibrateCamera`` on the same synthetic sets.
 
-For each of the paper's lenses (MODEL.md 8) and 9 and 12 views of the
+For each of the paper's lenses (docs/model.md#paper-simulation-setup) and 9 and 12 views of the
 14-point default template, ``--sets`` synthetic sets (seeds 0, 1, ...) with
 Gaussian noise of ``--noise-mm`` on the impact points are calibrated by both
 libraries in the same process:
 
 - psdcal: ``calibrate(template, points, cost="image", radial=2, tangential=False)``
-  (one focal length, no skew, k1, k2 of the undistortion model, MODEL.md 5);
+  (one focal length, no skew, k1, k2 of the undistortion model, docs/model.md#distortion);
 - OpenCV: ``cv2.calibrateCamera`` on the same points in pixel units (pitch
   ``--pitch-um``, pixel (W/2, H/2) at the sensor's electrical centre, a
   900 x 900 image for the 9 mm PSD), template points float32 with Z = 0,
@@ -255,7 +255,7 @@ def main(argv=None) -> int:
     ap.add_argument("--repeats", type=int, default=3, help="timed calls per set and library (median)")
     ap.add_argument("--noise-mm", type=float, default=0.002)
     ap.add_argument("--pitch-um", type=float, default=10.0, help="pixel pitch given to OpenCV")
-    ap.add_argument("--markdown", action="store_true", help="print a Markdown table (for the README)")
+    ap.add_argument("--markdown", action="store_true", help="print a Markdown table (for docs/benchmarks.md)")
     ap.add_argument("--no-startup", action="store_true", help="skip the fresh-process (start-up) timing")
     a = ap.parse_args(argv)
     import cv2

@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """Statistical efficiency of the two calibration costs against the Cramér-Rao bound.
 
-For each of the paper's lenses (MODEL.md 8) one pose set is fixed
+For each of the paper's lenses (docs/model.md#paper-simulation-setup) one pose set is fixed
 (``simulate_set(lens, n_images, seed=...)``); every Monte Carlo trial adds
 fresh Gaussian noise of ``sigma`` mm per coordinate to its noiseless impact
 points and calibrates with the ``image`` cost and with the ``template`` cost
@@ -213,7 +213,7 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=7)
     ap.add_argument("--lenses", nargs="+", default=["lens1", "lens2"])
     ap.add_argument("--jobs", type=int, default=min(2, os.cpu_count() or 1), help="worker processes")
-    ap.add_argument("--markdown", action="store_true", help="print a Markdown table (for the README)")
+    ap.add_argument("--markdown", action="store_true", help="print a Markdown table (for docs/benchmarks.md)")
     a = ap.parse_args(argv)
     t0 = time.perf_counter()
     rows = []

@@ -6,7 +6,7 @@ its answers and events to descriptor 4. That needs no port, no websocket and
 no Python package beyond the standard library.
 
 Used by ``tests/test_report.py`` (the report loads without console errors and
-its figures are not blank) and to make the README's screenshot::
+its figures are not blank) and to make the screenshot docs/report.png::
 
     python tests/browser.py REPORT.html docs/report.png [HEIGHT_PX]
 """

@@ -1,4 +1,4 @@
-"""The calibration pipeline (MODEL.md 6) on synthetic data with known truth."""
+"""The calibration pipeline (docs/model.md#calibration) on synthetic data with known truth."""
 from dataclasses import replace
 
 import numpy as np

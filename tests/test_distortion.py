@@ -1,4 +1,4 @@
-"""The undistortion model and its inverse (MODEL.md 5)."""
+"""The undistortion model and its inverse (docs/model.md#distortion)."""
 import numpy as np
 import pytest
 from hypothesis import given

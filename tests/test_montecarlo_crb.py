@@ -1,6 +1,6 @@
 """Monte Carlo check of the calibration's statistical efficiency.
 
-One fixed pose set of the paper's Lens 2 (MODEL.md 8); every trial adds fresh
+One fixed pose set of the paper's Lens 2 (docs/model.md#paper-simulation-setup); every trial adds fresh
 Gaussian noise of ``SIGMA_MM`` per coordinate to the noiseless impact points
 and calibrates (one focal length, no skew, k1, k2, no tangential terms).
 

@@ -1,4 +1,4 @@
-"""Poses, pinhole model, homographies (MODEL.md 4)."""
+"""Poses, pinhole model, homographies (docs/model.md#pinhole-model)."""
 import numpy as np
 import pytest
 from hypothesis import given

@@ -1,4 +1,4 @@
-"""PSD readout, Eq 1-2, and the gain map (MODEL.md 2-3)."""
+"""PSD readout, Eq 1-2, and the gain map (docs/model.md#psd-readout, #gain-homography)."""
 import numpy as np
 import pytest
 from hypothesis import given

@@ -136,7 +136,7 @@ def test_browser_check_catches_errors(tmp_path):
 
 
 def test_report_of_a_minimal_calibration_file(made, tmp_path):
-    """A calibration JSON with only the keys of MODEL.md 9 (no problem record, residual rows or covariance)."""
+    """A calibration JSON with only the contract keys of docs/model.md#calibration-json (no problem record, residual rows or covariance)."""
     import json
 
     d = json.loads((made / "raw.json").read_text())

@@ -15,7 +15,7 @@ def test_paper_values_transcribed_with_misprints_corrected():
     assert pv[(4, "without_30", "k1")].mean == pytest.approx(9.873e-3)
     assert pv[(4, "with_40", "k2")].mean == pytest.approx(2.4541e-5)
     assert pv[(3, "with_50", "f_mm")].std == pytest.approx(5.4405e-3)
-    # MODEL.md's list: ideal f of Lens 1 in Tables 5, 9; Lens 2 ideal f and k2 in Table 8; exponents
+    # docs/model.md#misprints-in-the-paper lists: ideal f of Lens 1 in Tables 5, 9; Lens 2 ideal f and k2 in Table 8; exponents
     assert pv[(5, "imb_40", "f_mm")].ideal == 25 and pv[(9, "snr40", "f_mm")].ideal == 25
     assert pv[(8, "psd", "f_mm")].ideal == 8 and pv[(8, "psd", "k2")].ideal == 3e-5
     assert pv[(6, "imb_50", "k1")].mean == pytest.approx(1.012e-2)

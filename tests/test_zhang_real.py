@@ -9,7 +9,7 @@ u0 = 303.959, v0 = 206.585 (pixels), k1 = -0.228601, k2 = 0.190353
 (320, 240): a 6.4 x 4.8 mm sensor.
 
 psdcal fits the same data with one focal length, the skew free, two radial
-terms of its *undistortion* model (MODEL.md 5: the correction from the
+terms of its *undistortion* model (docs/model.md#distortion: the correction from the
 measured to the ideal point, in mm about C), no tangential terms, image
 cost. Both are maximum-likelihood fits of the same points; only the
 distortion models differ, so f, C and the skew must agree to a small

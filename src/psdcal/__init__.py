@@ -1,10 +1,42 @@
 """psdcal: model, calibration and measurement toolkit for PSD + lens AoA sensors.
 
 The reference model is Rodriguez-Navarro et al., Sensors 2016, 16(9), 1484,
-with the conventions and corrections of ``docs/conventions.md``.
+with the conventions and corrections of ``docs/model.md``.
+
+The public API, importable from ``psdcal`` itself (``psdcal.__all__``).
+Everything but the errors and the parameter records is loaded on first use,
+so ``import psdcal`` stays light (no matplotlib, scipy, numba or click).
+
+Calibration
+    ``calibrate`` (the validating front door), ``CalibrationResult``,
+    ``initial_estimate`` (the linear stage alone), ``recalibrate`` (re-run a
+    calibration JSON's problem record).
+Model (plain functions over arrays; docs/model.md)
+    ``impact_point`` and ``photocurrents`` (Eq 1-2 and their inverse),
+    ``undistort`` and ``distort`` (Eq 7-16 and their numerical inverse),
+    ``project`` (Eq 3-4); parameter records ``Intrinsics``, ``Distortion``,
+    ``ModelSpec``, ``Pose``.
+Files
+    ``read_template``, ``read_points``, ``load_calibration``,
+    ``save_calibration`` (docs/model.md#file-formats).
+Measurement
+    ``SensorModel`` (a calibration as the measuring side needs it),
+    ``angles_from_points``, ``angles_from_amplitudes`` (angles of arrival with
+    their covariance), ``plane_position``, ``triangulate``.
+Studies and reports
+    ``simulate_set`` (synthetic views with known truth), ``run_trials``,
+    ``TrialTable`` (seeded Monte Carlo), ``compare`` (two calibrations),
+    ``build_report``, ``write_report`` (the HTML report).
+Errors
+    ``PsdcalError`` and its subclasses ``InputError``, ``DegenerateViewsError``,
+    ``ZeroSignalError``, ``ConvergenceError``.
+
+Sub-packages follow the data flow ``model`` -> ``calibration`` -> ``signal``
+-> ``measure`` -> ``study`` -> ``report``; the command line is ``psdcal.cli``.
 """
 from __future__ import annotations
 
+from importlib import import_module
 from importlib.metadata import PackageNotFoundError, version as _version
 
 try:
@@ -15,27 +47,61 @@ except PackageNotFoundError:  # pragma: no cover
 from psdcal.errors import ConvergenceError, DegenerateViewsError, InputError, PsdcalError, ZeroSignalError
 from psdcal.model.params import Distortion, Intrinsics, ModelSpec, Pose
 
+#: Lazily imported public names -> the module that defines them.
+_LAZY = {
+    "calibrate": "psdcal.calibration.core",
+    "CalibrationResult": "psdcal.calibration.core",
+    "initial_estimate": "psdcal.calibration.core",
+    "recalibrate": "psdcal.calibration.core",
+    "impact_point": "psdcal.model.readout",
+    "photocurrents": "psdcal.model.readout",
+    "undistort": "psdcal.model.distortion",
+    "distort": "psdcal.model.distortion",
+    "project": "psdcal.model.projection",
+    "read_template": "psdcal.io",
+    "read_points": "psdcal.io",
+    "load_calibration": "psdcal.io",
+    "save_calibration": "psdcal.io",
+    "SensorModel": "psdcal.measure.sensor_model",
+    "angles_from_points": "psdcal.measure.aoa",
+    "angles_from_amplitudes": "psdcal.measure.aoa",
+    "plane_position": "psdcal.measure.positioning",
+    "triangulate": "psdcal.measure.positioning",
+    "simulate_set": "psdcal.study.simulate",
+    "run_trials": "psdcal.study.montecarlo",
+    "TrialTable": "psdcal.study.montecarlo",
+    "compare": "psdcal.report.compare",
+    "build_report": "psdcal.report.page",
+    "write_report": "psdcal.report.page",
+}
 
-def __getattr__(name):
-    # Lazy: keeps `import psdcal` (and the CLI's argument parsing) light.
-    if name in {"calibrate", "CalibrationResult"}:
-        from psdcal.calibration import core as calibration
 
-        return getattr(calibration, name)
-    raise AttributeError(f"module 'psdcal' has no attribute {name!r}")
+def __getattr__(name: str):
+    module = _LAZY.get(name)
+    if module is None:
+        raise AttributeError(f"module 'psdcal' has no attribute {name!r}")
+    value = getattr(import_module(module), name)
+    globals()[name] = value  # later look-ups skip this function
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(__all__))
 
 
 __all__ = [
     "__version__",
-    "calibrate",
-    "CalibrationResult",
-    "ConvergenceError",
-    "DegenerateViewsError",
-    "Distortion",
+    # errors
+    "PsdcalError",
     "InputError",
+    "DegenerateViewsError",
+    "ZeroSignalError",
+    "ConvergenceError",
+    # parameter records
     "Intrinsics",
+    "Distortion",
     "ModelSpec",
     "Pose",
-    "PsdcalError",
-    "ZeroSignalError",
+    # lazily loaded
+    *_LAZY,
 ]

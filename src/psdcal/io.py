@@ -1,4 +1,4 @@
-"""Reading and writing psdcal's files (MODEL.md 9).
+"""Reading and writing psdcal's files (docs/model.md#calibration-json).
 
 - Template CSV: ``point_id,X_mm,Y_mm``.
 - Impact points CSV: ``image_id,point_id,x_mm,y_mm`` (a missing point is a missing row),

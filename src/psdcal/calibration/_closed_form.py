@@ -3,7 +3,7 @@
 With one focal length and no skew, ``B = A^-T A^-1`` has ``b12 = 0`` and
 ``b11 = b22`` (Eq 21), so the unknown is ``b = [b11, b13, b23, b33]`` and each
 view gives two equations (Eq 19, 20, 22). The recovery below is the corrected
-one of MODEL.md 6.3 (the paper's Eq 23-25 are misprinted):
+one of docs/model.md#closed-form-intrinsics (the paper's Eq 23-25 are misprinted):
 
     Cx = -b13 / b11,  Cy = -b23 / b11,
     lambda = b33 - (b13^2 + b23^2) / b11,  f = sqrt(lambda / b11)
@@ -109,7 +109,7 @@ def intrinsics_from_homographies(Hs, *, skew: bool = False, aspect: bool = False
 
 
 def extrinsics_from_homography(H, intr: Intrinsics):
-    """Pose of the template from its homography and the intrinsics (Eq 26-28, MODEL.md 6.4).
+    """Pose of the template from its homography and the intrinsics (Eq 26-28, docs/model.md#extrinsics).
 
     ``r1 = l A^-1 h1``, ``r2 = l A^-1 h2``, ``r3 = r1 x r2``, ``t = l A^-1 h3``,
     ``l = 1/|A^-1 h1|``; R is then replaced by the nearest rotation and the

@@ -10,7 +10,7 @@ view ``v``:
 - ideal point ``x = (f xn + s yn + cx, fy yn + cy)``, ``xn = Pc_x / Pc_z``
   (Eq 4);
 - measured point ``d`` with ``undistort(d) = x`` by Newton's method
-  (Eq 7-16 inverted, MODEL.md 5), from a warm start, then from the measured
+  (Eq 7-16 inverted, docs/model.md#distortion), from a warm start, then from the measured
   point, then from a fixed-point start, the first that converges;
 - the Jacobian of ``d`` with respect to (f, cx, cy, skew, fy, k1, k2, k3,
   p1, p2, l1, l2) and the view's (r, t) from the implicit function theorem,

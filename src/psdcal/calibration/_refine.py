@@ -1,6 +1,6 @@
 """Levenberg-Marquardt refinement of intrinsics, distortion and all poses (Section 3.1).
 
-Two costs (MODEL.md 6.5):
+Two costs (docs/model.md#refinement):
 
 - ``image``: residual ``G(distort(project(P))) - d`` in mm on the sensor, the
   maximum-likelihood estimate when the noise is on the measured points
@@ -100,6 +100,8 @@ class Problem:
     cost : "image" | "template"
     fixed_intrinsics, fixed_distortion, fixed_gains :
         Values of the parameters that are not free (and the start of the free ones).
+    fixed : names of global parameters of ``spec`` held at their start value
+        (``calibrate(fix=...)``); they leave the state vector.
     """
 
     template_mm: np.ndarray
@@ -107,6 +109,7 @@ class Problem:
     spec: ModelSpec
     cost: str = "image"
     sensor_mm: tuple[float, float] = (LX_MM, LY_MM)
+    fixed: tuple = ()
     valid: np.ndarray = field(init=False, repr=False)
 
     def __post_init__(self):
@@ -118,7 +121,7 @@ class Problem:
 
     @property
     def names(self) -> tuple[str, ...]:
-        return self.spec.global_names
+        return tuple(n for n in self.spec.global_names if n not in self.fixed)
 
     @property
     def n_global(self) -> int:
@@ -142,7 +145,7 @@ class Problem:
             cx_mm=float(vals.get("cx_mm", base_intr.cx_mm)),
             cy_mm=float(vals.get("cy_mm", base_intr.cy_mm)),
             skew=float(vals.get("skew", base_intr.skew if self.spec.skew else 0.0)),
-            fy_mm=float(vals["fy_mm"]) if "fy_mm" in vals else None,
+            fy_mm=float(vals["fy_mm"]) if "fy_mm" in vals else (base_intr.fy_mm if self.spec.aspect else None),
         )
         coef = base_dist.as_array().copy()
         for i, n in enumerate(DISTORTION_NAMES):
@@ -197,7 +200,7 @@ class Evaluator:
                 self._normal = normal_equations
                 self._gmap = global_map(prob.names)
                 self._no_warm = np.full(self.d_meas.shape, np.nan)
-                self._separate_fy = "fy_mm" in prob.names
+                self._separate_fy = prob.spec.aspect
                 skew = base_intr.skew if prob.spec.skew else 0.0
                 self._theta0 = np.array([base_intr.f_mm, base_intr.cx_mm, base_intr.cy_mm, skew, base_intr.fy,
                                          *base_dist.as_array(), *np.asarray(base_gains, dtype=float)], dtype=float)

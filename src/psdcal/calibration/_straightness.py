@@ -2,7 +2,7 @@
 
 Template points that are collinear stay collinear under perspective, so after
 a correct undistortion their measured points are collinear again. The paper's
-slope form (Eq 30-35) has misprinted derivatives; as MODEL.md 6.1 says, we
+slope form (Eq 30-35) has misprinted derivatives; as docs/model.md#line-straightness says, we
 minimise instead the squared distance of each undistorted point to the
 total-least-squares line of its group, divided by the group's spread along
 the line (which makes the cost invariant to a common scaling and rules out the

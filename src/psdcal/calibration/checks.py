@@ -42,7 +42,7 @@ def with_points(result, point_ids, template_mm, points_mm):
     """The result aligned to a template and points given from files (for results without a problem record).
 
     The residual columns are put in the order of ``point_ids``; when the
-    calibration file carries no per-point residuals (MODEL.md 9 does not
+    calibration file carries no per-point residuals (docs/model.md#calibration-json does not
     require them), they are computed from its parameters and poses
     (``points_mm - distort(project(P))``), with the RMS values.  The template
     and the points are added to the problem record (without options: such a

@@ -1,4 +1,4 @@
-"""The calibration front door: ``psdcal.calibrate`` (the paper's Section 3, MODEL.md 6).
+"""The calibration front door: ``psdcal.calibrate`` (the paper's Section 3, docs/model.md#calibration).
 
 Steps, each usable on its own from its private module:
 
@@ -129,7 +129,7 @@ def initial_estimate(
 class CalibrationResult:
     """A calibration: parameters, their uncertainty, residuals and how it was obtained.
 
-    ``to_dict()`` is the calibration JSON of MODEL.md 9 (plus extra keys).
+    ``to_dict()`` is the calibration JSON of docs/model.md#calibration-json (plus extra keys).
 
     Attributes
     ----------
@@ -177,6 +177,7 @@ class CalibrationResult:
     problem: dict = field(default_factory=dict)
     sensor_mm: tuple = (LX_MM, LY_MM)
     created: str = ""
+    verdict: dict | None = None  # psdcal.calibration.verdict.Verdict.to_dict(): {"verdict", "checks"}
 
     # -- use --------------------------------------------------------------------------
     def undistort(self, d_mm):
@@ -223,7 +224,7 @@ class CalibrationResult:
 
     # -- serialisation ------------------------------------------------------------------
     def to_dict(self) -> dict:
-        """The calibration JSON (MODEL.md 9); extra keys keep their meaning across versions."""
+        """The calibration JSON (docs/model.md#calibration-json); extra keys keep their meaning across versions."""
         valid = np.all(np.isfinite(self.residuals_mm), axis=-1)
         pts = []
         for i, iid in enumerate(self.image_ids):
@@ -271,6 +272,7 @@ class CalibrationResult:
             "software": {"name": "psdcal", "version": __version__},
             "created": self.created,
             "warnings": self.warnings(),
+            **({"verdict": self.verdict["verdict"], "checks": self.verdict["checks"]} if self.verdict else {}),
         }
 
     @classmethod
@@ -329,6 +331,7 @@ class CalibrationResult:
                 problem=d.get("problem", {}),
                 sensor_mm=(float(sensor.get("lx_mm", LX_MM)), float(sensor.get("ly_mm", LY_MM))),
                 created=str(d.get("created", "")),
+                verdict={"verdict": d["verdict"], "checks": list(d.get("checks", []))} if "verdict" in d else None,
             )
         except (KeyError, TypeError, ValueError) as exc:
             raise InputError(f"not a psdcal calibration ({type(exc).__name__}: {exc})", path=source) from None
@@ -377,11 +380,16 @@ def calibrate(
     point_ids=None,
     sensor_mm: tuple[float, float] = (LX_MM, LY_MM),
     solver: SolverOptions = SolverOptions(),
+    fix: dict | None = None,
+    priors=None,
+    f_guess_mm: float | None = None,
+    verdict: bool = True,
+    noise_mm: float | None = None,
 ) -> CalibrationResult:
     """Calibrate a PSD + lens sensor from views of a planar LED template.
 
     The adapted Zhang method of the paper (Section 3), with the corrections of
-    MODEL.md 6: line-straightness preliminary distortion (3.2), Hartley
+    docs/model.md#calibration: line-straightness preliminary distortion (3.2), Hartley
     normalised DLT (3.3), closed-form intrinsics (Eq 19-25 corrected),
     extrinsics (Eq 26-28) and Levenberg-Marquardt over intrinsics,
     distortion and all poses on the chosen cost.
@@ -420,6 +428,26 @@ def calibrate(
         Identifiers carried into the result (default 0..n-1).
     sensor_mm : (Lx, Ly) active lengths of the PSD, mm.
     solver : SolverOptions
+    fix : dict name -> value, optional
+        Global parameters held at the given value (``{"f_mm": 8.0, "k2": 0.0}``;
+        any of :data:`psdcal.calibration.priors.PARAMETER_NAMES`). Their
+        standard error is None and they cost no degree of freedom.
+    priors : GaussianPrior, dict ``{name: (value, std)}``, prior-file path, or a list of these
+        Gaussian priors on free global parameters (:mod:`psdcal.calibration.priors`):
+        the maximum a-posteriori fit, with degrees of freedom and standard
+        errors that account for them (``s^2`` from the data residuals only).
+    f_guess_mm : float, optional
+        A nominal focal length, mm (the lens' data sheet): one more start of
+        the refinement (optical centre at the electrical centre), and the
+        start used when the views alone give none (:func:`linear_starts`).
+    verdict : bool
+        Attach the statistical verdict (:func:`psdcal.calibration.verdict.assess`)
+        as ``result.verdict`` (JSON ``verdict`` and ``checks``); about 2 ms.
+        The diagnosis (refits that name the cause of a failed check) is left
+        to ``assess(result)`` and the CLI, so that loops over many fits stay fast.
+    noise_mm : float, optional
+        Known noise standard deviation per coordinate of the points, mm, for
+        the verdict's ``noise`` check.
 
     Returns
     -------
@@ -440,16 +468,83 @@ def calibrate(
     """
     from psdcal.calibration._refine import _single_threaded_blas
 
-    with _single_threaded_blas():  # small dense linear algebra: one BLAS thread is fastest
-        return _calibrate(
+    if fix or priors is not None:
+        return _calibrate_constrained(
             template_mm, points_mm, cost=cost, radial=radial, tangential=tangential, psd_radial=psd_radial,
             skew=skew, preliminary=preliminary, normalize=normalize, aspect=aspect, fit_gains=fit_gains,
             gains=gains, image_ids=image_ids, point_ids=point_ids, sensor_mm=sensor_mm, solver=solver,
+            fix=fix, priors=priors, f_guess_mm=f_guess_mm, verdict=verdict, noise_mm=noise_mm,
         )
+    with _single_threaded_blas():  # small dense linear algebra: one BLAS thread is fastest
+        res = _calibrate(
+            template_mm, points_mm, cost=cost, radial=radial, tangential=tangential, psd_radial=psd_radial,
+            skew=skew, preliminary=preliminary, normalize=normalize, aspect=aspect, fit_gains=fit_gains,
+            gains=gains, image_ids=image_ids, point_ids=point_ids, sensor_mm=sensor_mm, solver=solver,
+            f_guess_mm=f_guess_mm,
+        )
+        if verdict:
+            res = with_verdict(res, noise_mm=noise_mm, diagnose=False)
+        return res
+
+
+def with_verdict(res: CalibrationResult, *, noise_mm: float | None = None, points_kind: str | None = None,
+                 diagnose: bool = True) -> CalibrationResult:
+    """``res`` with its statistical verdict attached (:func:`psdcal.calibration.verdict.assess`)."""
+    from psdcal.calibration.verdict import assess
+
+    return replace(res, verdict=assess(res, noise_mm=noise_mm, points_kind=points_kind, diagnose=diagnose).to_dict())
+
+
+def _calibrate_constrained(template_mm, points_mm, *, fix, priors, gains, fit_gains, solver, verdict=True, noise_mm=None,
+                           **kw) -> CalibrationResult:
+    """``calibrate`` with fixed parameters and Gaussian priors (:mod:`psdcal.calibration.priors`).
+
+    The free calibration (all start strategies) gives the start; the fixed /
+    prior-weighted problem is then refined from it. Known gains given by
+    ``fix`` (without ``fit_gains``) are applied like ``gains=``.
+    """
+    from psdcal.calibration._refine import _single_threaded_blas
+    from psdcal.calibration.priors import GAIN_NAMES, PARAMETER_NAMES, as_priors, constrain, split_priors
+
+    fix = {str(n): float(v) for n, v in (fix or {}).items()}
+    for n, v in fix.items():
+        if n not in PARAMETER_NAMES:
+            raise InputError(f"fix: unknown parameter {n!r} (one of {', '.join(PARAMETER_NAMES)})", field="fix")
+        if not np.isfinite(v):
+            raise InputError(f"fix: {n} must be finite", field="fix")
+    pri, fix = split_priors(as_priors(priors), fix)
+    merged = {}
+    if not fit_gains and any(n in GAIN_NAMES for n in fix):
+        g = np.ones(4) if gains is None else np.asarray(gains, dtype=float) / float(np.asarray(gains)[0])
+        for i, n in enumerate(GAIN_NAMES, start=1):
+            if n in fix:
+                merged[n] = fix.pop(n)
+                g[i] = merged[n]
+        gains = g
+    with _single_threaded_blas():
+        try:
+            free = _calibrate(template_mm, points_mm, gains=gains, fit_gains=fit_gains, solver=solver, **kw)
+        except ConvergenceError as exc:  # the constraints may be what makes the problem well posed
+            if exc.result is None:
+                raise
+            free = exc.result
+        # without any fix or informative prior this is the free fit, polished by Gauss-Newton steps
+        result = constrain(free, fix, pri, solver, merged_gain_fix=merged)
+    what = "constrained " + result.cost
+    if not result.converged:
+        raise ConvergenceError(f"the {what}-cost refinement did not converge in {result.iterations} iterations "
+                               f"({result.message}); check the fixed values and priors", result=result)
+    why = implausible(result)
+    if why:
+        raise ConvergenceError(f"the {what}-cost refinement stopped at a solution that is not a camera ({why}); "
+                               "check the fixed values and priors", result=result)
+    if verdict:
+        result = with_verdict(result, noise_mm=noise_mm, diagnose=False)
+    return result
 
 
 def _calibrate(template_mm, points_mm, *, cost, radial, tangential, psd_radial, skew, preliminary, normalize,
-               aspect, fit_gains, gains, image_ids, point_ids, sensor_mm, solver) -> CalibrationResult:
+               aspect, fit_gains, gains, image_ids, point_ids, sensor_mm, solver, f_guess_mm=None) -> CalibrationResult:
     if cost not in COSTS:
         raise InputError(f"cost must be one of {COSTS}, got {cost!r}", field="cost")
     spec = ModelSpec(radial=radial, tangential=tangential, psd_radial=psd_radial, skew=skew, aspect=aspect, fit_gains=fit_gains)
@@ -474,40 +569,37 @@ def _calibrate(template_mm, points_mm, *, cost, radial, tangential, psd_radial, 
         from psdcal.calibration.gains import correct_points
 
         known_gains, X, g0 = g0, correct_points(X, g0, *sensor_mm), np.ones(4)
-    if fit_gains:
-        # Raw readout through unequal gains is a homography of the sensor plane (psdcal.calibration.gains):
-        # the single-f closed form may fail on it (f^2 < 0) or put C tens of mm off (the
-        # projective part looks like a tilt); the general closed form absorbs it. Start from
-        # its f with C at the electrical centre (a lens mount puts it within about 1 mm).
-        start = initial_estimate(
-            T, X, preliminary=preliminary, normalize=normalize, radial_terms=radial, skew=True, aspect=True, image_ids=ids
-        )
-        intr_s = Intrinsics(f_mm=float(np.sqrt(start.intrinsics.f_mm * start.intrinsics.fy)))
-        rv_s, tv_s = poses_from_homographies(start.homographies, intr_s)
-        start = replace(start, intrinsics=intr_s, rvecs=rv_s, tvecs_mm=tv_s)
-    else:
-        start = initial_estimate(
-            T, X, preliminary=preliminary, normalize=normalize, radial_terms=radial, skew=skew, aspect=aspect, image_ids=ids
-        )
-    dist0 = start.distortion(radial)
+    primary, cands = linear_starts(
+        T, X, preliminary=preliminary, normalize=normalize, radial=radial, skew=skew, aspect=aspect,
+        general=fit_gains, f_guess_mm=f_guess_mm, image_ids=ids, point_ids=pids,
+    )
+    start = primary
+    g0_start = g0
     prob = Problem(T, X, spec, cost=cost, sensor_mm=tuple(sensor_mm))
-    intr0 = start.intrinsics
+    staged = staged_start(spec)
+    # Every start is refined on the image cost with the core model (or the model itself
+    # when it has nothing beyond the core); the lowest cost wins (global minimum).
+    first = staged if staged is not None else spec
+    pfirst = Problem(T, X, first, cost="image", sensor_mm=tuple(sensor_mm))
+    tried = _refine_starts(pfirst, first, cands, g0_start, solver)
+    good = [t for t in tried if t[2]]
+    if not good:
+        good = [t for t in tried if np.isfinite(t[1].cost_rms)]
+    if not good:
+        hint = template_hint(T, X, start.homographies, pids)
+        raise DegenerateViewsError(f"no start of the refinement converged: {hint}" if hint else
+                                   "no start of the refinement converged: the views do not determine the intrinsics; "
+                                   "tilt the template differently between views, or give --f-guess")
+    label, best0, _ = min(good, key=lambda t: t[1].cost_rms)
+    start_record = {"starts": [{"start": lb, "cost_rms": float(r.cost_rms), "converged": bool(r.converged), "f_mm": float(r.intrinsics.f_mm),
+                                "cx_mm": float(r.intrinsics.cx_mm), "cy_mm": float(r.intrinsics.cy_mm)} for lb, r, _ in tried],
+                    "chosen": label}
+    intr0 = best0.intrinsics
     if aspect and intr0.fy_mm is None:
         intr0 = replace(intr0, fy_mm=intr0.f_mm)
-    rv0, tv0 = start.rvecs, start.tvecs_mm
-    staged = staged_start(spec)
-    if staged is not None:
-        # Stage 1: the core model (f, C, lens radial) from the linear start; the
-        # PSD, tangential, skew, aspect and gain terms are then freed from its
-        # solution. Freed all at once from the linear start, k1 and l1 (nearly
-        # interchangeable when C is near the electrical centre) can drift into a
-        # false minimum.
-        p1 = Problem(T, X, staged, cost=cost, sensor_mm=tuple(sensor_mm))
-        r1 = refine(p1, replace(intr0, fy_mm=None, skew=0.0), dist0, g0, rv0, tv0, solver)
-        if r1.converged and np.isfinite(r1.cost_rms):
-            intr0 = replace(r1.intrinsics, fy_mm=r1.intrinsics.f_mm if aspect else None)
-            dist0 = Distortion.from_array(r1.coeffs)
-            rv0, tv0 = r1.rvecs, r1.tvecs
+    dist0 = Distortion.from_array(best0.coeffs)
+    rv0, tv0 = best0.rvecs, best0.tvecs
+    final_done = best0 if (staged is None and cost == "image") else None
     if spec.psd_radial > 0:
         best = _psd_multistart(T, X, spec, sensor_mm, start, intr0, dist0, g0, rv0, tv0, solver)
         if best is not None:
@@ -522,8 +614,11 @@ def _calibrate(template_mm, points_mm, *, cost, radial, tangential, psd_radial, 
             intr0 = ri.intrinsics
             dist0 = Distortion.from_array(ri.coeffs)
             rv0, tv0 = ri.rvecs, ri.tvecs
-    ref = refine(prob, intr0, dist0, g0, rv0, tv0, solver)
+    ref = final_done if final_done is not None and spec.psd_radial == 0 else refine(prob, intr0, dist0, g0, rv0, tv0, solver)
     result = _make_result(prob, ref, start, ids, pids, spec, cost, g0, preliminary, normalize, solver)
+    result = replace(result, stages={**result.stages, "multistart": start_record})
+    if f_guess_mm is not None:
+        result = replace(result, problem={**result.problem, "options": {**result.problem["options"], "f_guess_mm": float(f_guess_mm)}})
     if known_gains is not None:
         result = replace(result, gains=known_gains)
     if not ref.converged:
@@ -542,6 +637,297 @@ def _calibrate(template_mm, points_mm, *, cost, radial, tangential, psd_radial, 
     return result
 
 
+#: LM iterations a further start runs before it is compared with the best solution so far
+#: (:func:`_refine_starts`).
+PROBE_ITERATIONS = 3
+
+
+def _fc(intr) -> np.ndarray:
+    """(f, cx, cy) of an Intrinsics, mm."""
+    return np.array([intr.f_mm, intr.cx_mm, intr.cy_mm])
+
+
+def _gap(a, b) -> float:
+    """Distance between two (f, cx, cy) in the valley's terms: C in mm plus f in 1 % steps of 0.1 mm."""
+    return float(np.hypot(np.hypot(a[1] - b[1], a[2] - b[2]), 10.0 * (a[0] - b[0]) / abs(b[0])))
+
+
+def _same_basin(start, probe, solution) -> bool:
+    """Whether a probe heads into a solution's valley: within 0.05 mm of it, or half-way there."""
+    g = _gap(probe, solution)
+    return g < 0.05 or g < 0.5 * _gap(start, solution)
+
+
+def _refine_starts(pfirst, first, cands, g0, solver):
+    """Refine every start; ``[(label, RefineResult, ok)]``.
+
+    The first start is refined to convergence. Each further start first runs
+    :data:`PROBE_ITERATIONS` iterations: when it is then in the valley of a
+    solution already found (:func:`_same_basin`) it can only end there and
+    stops; otherwise it is refined to convergence from where it is. So the
+    usual case (every start in one valley) costs a few iterations per start,
+    and a start in another valley gets its full refinement.
+    """
+    tried = []
+    probe = replace(solver, max_iterations=min(PROBE_ITERATIONS, solver.max_iterations))
+    seen = []  # (start (f, C), solution (f, C)) of the converged refinements
+    for label, i0, d0, rv, tv in cands:
+        if first.aspect and i0.fy_mm is None:
+            i0 = replace(i0, fy_mm=i0.f_mm)
+        if not (first.aspect or first.skew):
+            i0 = replace(i0, fy_mm=None, skew=0.0)
+        d0 = _restrict(d0, first)
+        x0 = _fc(i0)
+        if any(_gap(x0, a) < 0.02 for a, _ in seen):
+            continue  # the same start as one already refined
+        try:
+            if seen:
+                r = refine(pfirst, i0, d0, g0, rv, tv, probe)
+                if r.converged or any(_same_basin(x0, _fc(r.intrinsics), b) for _, b in seen):
+                    tried.append((label, r, False))  # a probe: never chosen over the converged solution of its valley
+                    continue
+                i0, d0, g0r, rv, tv = r.intrinsics, Distortion.from_array(r.coeffs), r.gains, r.rvecs, r.tvecs
+            else:
+                g0r = g0
+            r = refine(pfirst, i0, d0, g0r, rv, tv, solver)
+        except (np.linalg.LinAlgError, FloatingPointError, ValueError):  # a start that breaks the solver is not a candidate
+            continue
+        ok = bool(r.converged and np.isfinite(r.cost_rms) and r.intrinsics.f_mm > 0 and np.all(r.tvecs[:, 2] > 0))
+        tried.append((label, r, ok))
+        if ok:
+            seen.append((x0, _fc(r.intrinsics)))
+    # A probe or an unconverged refinement below the best converged cost is in a lower valley (a converged
+    # solution is a local minimum: points of its own valley cost more): refine it on, from where it stopped.
+    for _ in range(2):
+        best = min((t[1].cost_rms for t in tried if t[2]), default=np.inf)
+        lower = [t for t in tried if not t[2] and np.isfinite(t[1].cost_rms) and t[1].cost_rms < best * (1 - 1e-6)]
+        if not lower:
+            break
+        label, r0, _ = min(lower, key=lambda t: t[1].cost_rms)
+        try:
+            r = refine(pfirst, r0.intrinsics, Distortion.from_array(r0.coeffs), r0.gains, r0.rvecs, r0.tvecs,
+                       replace(solver, max_iterations=2 * solver.max_iterations))
+        except (np.linalg.LinAlgError, FloatingPointError, ValueError):
+            break
+        ok = bool(r.converged and np.isfinite(r.cost_rms) and r.intrinsics.f_mm > 0 and np.all(r.tvecs[:, 2] > 0))
+        tried = [t for t in tried if t[1] is not r0] + [(label + "+", r, ok)]
+        if not ok and not r.cost_rms < r0.cost_rms:
+            break
+    return tried
+
+
+#: Focal lengths (mm) tried when neither the closed form nor any single view gives one.
+F_GRID_MM = (4.0, 8.0, 16.0, 32.0, 64.0)
+
+
+def focal_from_homographies(Hs, c_mm=(0.0, 0.0)) -> np.ndarray:
+    """Focal length (n,) of each view with the optical centre known, mm (NaN where the view does not fix it).
+
+    With ``C`` known, ``H' = T(-C) H`` is ``diag(f, f, 1) [r1 r2 t]`` up to
+    scale, and the orthonormality of ``r1, r2`` (Zhang's Eq 22 with the
+    principal point fixed) gives two estimates of ``f^2`` per view::
+
+        f^2 = -(h11 h12 + h21 h22) / (h31 h32)
+        f^2 = -(h11^2 + h21^2 - h12^2 - h22^2) / (h31^2 - h32^2)
+
+    combined by least squares in ``1/f^2``. A view parallel to the sensor
+    (``h31 = h32 = 0``) does not fix ``f``; neither does a solution with
+    ``f^2 <= 0`` (noise, distortion): both give NaN, never an error.
+    """
+    Hs = np.asarray(Hs, dtype=float).reshape(-1, 3, 3)
+    Tc = np.array([[1.0, 0.0, -c_mm[0]], [0.0, 1.0, -c_mm[1]], [0.0, 0.0, 1.0]])
+    G = Tc @ Hs
+    G = G / np.linalg.norm(G[:, :, :2], axis=(1, 2))[:, None, None]
+    h1, h2 = G[:, :, 0], G[:, :, 1]
+    a = np.stack([h1[:, 0] * h2[:, 0] + h1[:, 1] * h2[:, 1],
+                  h1[:, 0] ** 2 + h1[:, 1] ** 2 - h2[:, 0] ** 2 - h2[:, 1] ** 2], axis=1)
+    b = np.stack([h1[:, 2] * h2[:, 2], h1[:, 2] ** 2 - h2[:, 2] ** 2], axis=1)
+    den = np.sum(a * a, axis=1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        w = np.where(den > 0, -np.sum(a * b, axis=1) / np.where(den > 0, den, 1.0), np.nan)  # 1/f^2: a w + b = 0
+        return np.where(np.isfinite(w) & (w > 0), 1.0 / np.sqrt(np.where(w > 0, w, 1.0)), np.nan)
+
+
+def _restrict(dist: Distortion, spec: ModelSpec) -> Distortion:
+    """``dist`` with the terms that ``spec`` does not estimate set to zero."""
+    free = set(spec.distortion_names)
+    return Distortion(**{n: v for n, v in dist.to_dict().items() if n in free})
+
+
+def template_hint(T, X, Hs, point_ids=None) -> str:
+    """A message naming template LEDs that no view's homography fits ("" when none stands out).
+
+    Each view's residuals from its homography (lens distortion makes them
+    smooth in the image, different from view to view) are divided by that
+    view's median; an LED whose median over the views is far above the other
+    LEDs' is off in every view: a wrong template coordinate, or a permutation
+    of the LED order (two LEDs swapped, a row listed in reverse). When
+    swapping the two worst LEDs makes the homographies fit, say so.
+    """
+    from psdcal.calibration._homography import apply_homography
+
+    T = np.asarray(T, dtype=float)
+    ids = list(range(len(T))) if point_ids is None else list(point_ids)
+
+    def per_led(Tm):
+        Hm = homographies(Tm, X, normalize=True)
+        res = np.stack([np.hypot(*(apply_homography(H, Tm) - x).T) for H, x in zip(Hm, X)])  # (n_images, M)
+        res = res / np.maximum(np.nanmedian(res, axis=1, keepdims=True), 1e-300)
+        return np.nanmedian(res, axis=0), float(np.nansum(res ** 2))
+
+    try:
+        led, total = per_led(T)
+    except (DegenerateViewsError, np.linalg.LinAlgError):
+        return ""
+    order = [int(k) for k in np.argsort(-led)[:8]]
+
+    def misfit(Tm):
+        Hm = homographies(Tm, X, normalize=True)
+        return sum(float(np.nansum(np.sum((apply_homography(H, Tm) - x) ** 2, axis=-1))) for H, x in zip(Hm, X))
+
+    try:
+        base = misfit(T)
+        # a row listed in reverse: each line of >= 3 template points reversed
+        best_row = (base, None)
+        for line in find_lines(T, max_lines=MAX_STRAIGHTNESS_LINES):
+            idx = np.asarray(line, dtype=int)
+            T2 = T.copy()
+            T2[idx] = T[idx[::-1]]
+            m2 = misfit(T2)
+            if m2 < best_row[0]:
+                best_row = (m2, idx)
+        # swapped LEDs: up to three swaps among the least consistent LEDs, the best one each time
+        cur, swaps, best = T.copy(), [], base
+        for _ in range(3):
+            step = (best, None)
+            for i in range(len(order)):
+                for j in range(i + 1, len(order)):
+                    T2 = cur.copy()
+                    T2[[order[i], order[j]]] = T2[[order[j], order[i]]]
+                    m2 = misfit(T2)
+                    if m2 < step[0]:
+                        step = (m2, (order[i], order[j]))
+            if step[1] is None or step[0] > 0.5 * best:
+                break
+            a, b = step[1]
+            cur[[a, b]] = cur[[b, a]]
+            swaps.append(step[1])
+            best = step[0]
+            if best < base / 1e3:
+                break
+    except (DegenerateViewsError, np.linalg.LinAlgError):
+        best, swaps, best_row = np.inf, [], (np.inf, None)
+        base = np.inf
+    if best_row[1] is not None and best_row[0] < base / 10 and best_row[0] <= best:
+        row = ", ".join(str(ids[k]) for k in best_row[1])
+        return (f"a template permutation fits: the row of LEDs {row} looks listed in reverse (check the LED order "
+                "in the template), not the views")
+    if swaps and best < base / 10:
+        pairs = " and ".join(f"LEDs {ids[a]} and {ids[b]}" for a, b in swaps)
+        return (f"a template permutation fits: {pairs} look swapped (check the LED order in the "
+                "template: swapped LEDs or a row listed in reverse), not the views")
+    if led[order[0]] > 4.0 * np.median(led):
+        a, b = order[0], order[1]
+        return (f"template LEDs {ids[a]} and {ids[b]} are off the projective fit in every view: check the template "
+                "(LED order: swapped LEDs or a row listed in reverse; coordinates), not the views")
+    return ""
+
+
+def linear_starts(T, X, *, preliminary=True, normalize=True, radial=2, skew=False, aspect=False, general=False,
+                  f_guess_mm=None, image_ids=None, point_ids=None):
+    """Starts of the refinement from the linear stages, the first that fail being replaced by ones that cannot.
+
+    Returns ``(primary, starts)``: ``primary`` is the :class:`InitialEstimate`
+    recorded in the result's stages (the closed form when it works, else the
+    first fallback); ``starts`` is a list of ``(label, Intrinsics,
+    Distortion, rvecs, tvecs_mm)``:
+
+    - ``closed-form``: Zhang's closed form after the line-straightness step
+      (the general one, sqrt(fx fy) and C at the electrical centre, with
+      ``general`` for raw readouts through unequal gains);
+    - ``closed-form-raw``: the same without the preliminary step, when the
+      closed form after that step fails (without lines in the template the
+      step does nothing and the closed form is this one); when both work the
+      raw one is the worse start of the same method (distorted points bias
+      its f by several %) and is not tried;
+    - ``centre``: C at the electrical centre and the median of the focal
+      lengths each homography gives with that C (:func:`focal_from_homographies`):
+      the closed form's C is unreliable on distorted points without lines
+      (irregular templates), where it lands in another valley of the cost;
+    - ``f-guess``: C at the electrical centre and ``f_guess_mm``;
+    - ``f-grid``: C at the electrical centre and each of :data:`F_GRID_MM`,
+      only when nothing above gave a start.
+
+    Raises DegenerateViewsError only when the views are degenerate in fact:
+    collinear template points (no homography) or no view tilted enough to
+    fix a focal length, and no ``f_guess_mm``.
+    """
+    T = np.asarray(T, dtype=float)
+    X = np.asarray(X, dtype=float)
+    ids = list(range(X.shape[0])) if image_ids is None else list(image_ids)
+    starts = []
+    primary = None
+    closed_error = None
+    labels = [f"image {i}" for i in ids]
+    try:
+        est = initial_estimate(T, X, preliminary=preliminary, normalize=normalize, radial_terms=radial,
+                               skew=skew or general, aspect=aspect or general, image_ids=ids)
+    except DegenerateViewsError as exc:
+        closed_error, est = exc, None
+    # the views' homographies (after the preliminary step when it applied: the better start); raises on collinear
+    # points, views that are degenerate in fact
+    Hs_raw = est.homographies if est is not None else homographies(T, X, normalize=normalize, labels=labels)
+    raw_too = False
+    if est is None and preliminary and radial > 0:
+        raw_too = True  # the closed form failed after the preliminary step: try it on the raw points
+    for est_i, label in ((est, "closed-form"), (None if not raw_too else "raw", "closed-form-raw")):
+        if est_i is None:
+            continue
+        if est_i == "raw":
+            try:
+                intr = intrinsics_from_homographies(Hs_raw, skew=skew or general, aspect=aspect or general)
+            except DegenerateViewsError as exc:
+                closed_error = exc
+                continue
+            est_i = InitialEstimate(np.zeros(2), 0, Hs_raw, intr, *poses_from_homographies(Hs_raw, intr))
+        elif est_i.n_lines == 0:
+            label = "closed-form-raw"
+        if general:
+            i_s = Intrinsics(f_mm=float(np.sqrt(est_i.intrinsics.f_mm * est_i.intrinsics.fy)))
+            est_i = replace(est_i, intrinsics=i_s, rvecs=poses_from_homographies(est_i.homographies, i_s)[0],
+                            tvecs_mm=poses_from_homographies(est_i.homographies, i_s)[1])
+        if primary is None:
+            primary = est_i
+        starts.append((label, est_i.intrinsics, est_i.distortion(radial), est_i.rvecs, est_i.tvecs_mm))
+    fs = focal_from_homographies(Hs_raw)
+    fs = fs[np.isfinite(fs)]
+    extent = float(np.nanmax(np.abs(X))) * 2 if np.any(np.isfinite(X)) else 1.0
+    fs = fs[fs < 1e3 * extent]
+    zero = est.distortion(radial) if est is not None else Distortion()  # the preliminary k with its homographies
+    fallback = []
+    if fs.size:
+        fallback.append(("centre", float(np.median(fs))))
+    if f_guess_mm is not None:
+        fallback.append(("f-guess", float(f_guess_mm)))
+    if not starts and not fallback:
+        if closed_error is not None and fs.size == 0:
+            hint = template_hint(T, X, Hs_raw, point_ids)
+            if hint:
+                raise DegenerateViewsError(f"no camera fits these views: {hint}")
+            raise DegenerateViewsError(
+                f"the views do not determine the intrinsics ({closed_error}; no single view fixes a focal length): "
+                "tilt the template differently between views, or give a nominal focal length with --f-guess"
+            )
+        fallback += [("f-grid", f) for f in F_GRID_MM]
+    for label, f in fallback:
+        i0 = Intrinsics(f_mm=f)
+        rv, tv = poses_from_homographies(Hs_raw, i0)
+        starts.append((label, i0, zero, rv, tv))
+        if primary is None:
+            primary = InitialEstimate(np.zeros(2), 0, Hs_raw, i0, rv, tv)
+    return primary, starts
+
+
 def implausible(result: CalibrationResult) -> str:
     """Why a refined solution cannot be a real sensor ("" when it can).
 
@@ -555,6 +941,8 @@ def implausible(result: CalibrationResult) -> str:
         return "non-finite parameters"
     if not (intr.f_mm > 0 and intr.fy > 0):
         return f"focal length {intr.f_mm:.3g} mm"
+    if (result.problem or {}).get("kind") == "directions":  # the one pose is the stage's rotation and offsets
+        return ""
     tz = np.asarray(result.tvecs_mm, dtype=float)[:, 2]
     if np.any(~np.isfinite(tz)) or np.any(tz <= 0):
         i = int(np.argmin(np.nan_to_num(tz, nan=-np.inf)))
@@ -686,14 +1074,27 @@ def _make_result(prob, ref, start, ids, pids, spec, cost, g0, preliminary, norma
     )
 
 
-def recalibrate(calib: dict | CalibrationResult) -> CalibrationResult:
+def recalibrate(calib: dict | CalibrationResult, *, verdict: bool = True) -> CalibrationResult:
     """Re-run a calibration exactly from the problem record saved inside it."""
+    return _calibrate_record(calib, verdict=verdict)
+
+
+def _calibrate_record(calib, *, verdict: bool = False, template_mm=None, drop_image=None, **changes) -> CalibrationResult:
+    """Re-run the calibration recorded in ``calib`` with ``changes`` to its options (another template, an image left out)."""
     d = calib.to_dict() if isinstance(calib, CalibrationResult) else calib
     p = d["problem"]
-    o = p["options"]
+    if p.get("kind") == "directions":  # a rotation-stage calibration (psdcal.calibration.directions)
+        from psdcal.calibration.directions import recalibrate_directions
+
+        return recalibrate_directions(d)
+    o = {**p["options"], **changes}
     X = np.array([[[np.nan if v is None else v for v in pt] for pt in img] for img in p["points"]["xy_mm"]], dtype=float)
+    image_ids = list(p["points"]["image_ids"])
+    if drop_image is not None:
+        X = np.delete(X, drop_image, axis=0)
+        del image_ids[drop_image]
     return calibrate(
-        np.array(p["template"]["xy_mm"], dtype=float),
+        np.array(p["template"]["xy_mm"], dtype=float) if template_mm is None else np.asarray(template_mm, dtype=float),
         X,
         cost=o["cost"],
         radial=o["radial"],
@@ -705,8 +1106,18 @@ def recalibrate(calib: dict | CalibrationResult) -> CalibrationResult:
         aspect=o.get("aspect", False),
         fit_gains=o.get("fit_gains", False),
         gains=o.get("gains"),
-        image_ids=p["points"]["image_ids"],
+        image_ids=image_ids,
         point_ids=p["template"]["point_ids"],
         sensor_mm=tuple(o.get("sensor_mm", (LX_MM, LY_MM))),
         solver=SolverOptions(**o.get("solver", {})),
+        fix=o.get("fix") or None,
+        priors=[_prior_from_record(q) for q in o.get("priors") or []] or None,
+        f_guess_mm=o.get("f_guess_mm"),
+        verdict=verdict,
     )
+
+
+def _prior_from_record(q: dict):
+    from psdcal.calibration.priors import GaussianPrior
+
+    return GaussianPrior.from_dict(q)

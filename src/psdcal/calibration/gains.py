@@ -2,7 +2,7 @@
 
 The readout through unequal channel gains is a homography
 ------------------------------------------------------------
-With the current split of MODEL.md 2 (``a = 2x/Lx``, ``b = 2y/Ly`` of the
+With the current split of docs/model.md#psd-readout (``a = 2x/Lx``, ``b = 2y/Ly`` of the
 true spot), the four photocurrents are affine in ``(a, b)``::
 
     I_x1 = (1 - a - b)/4,  I_x2 = (1 + a + b)/4,  I_y1 = (1 + a - b)/4,  I_y2 = (1 - a + b)/4

@@ -273,7 +273,37 @@ def _refit(result, points_mm):
 
     d = result.to_dict()
     d["problem"] = {**d["problem"], "points": {**d["problem"]["points"], "xy_mm": _jsonable(points_mm)}}
-    return recalibrate(d)
+    return recalibrate(d, verdict=False)
+
+
+class SystematicMisfitError(PsdcalError, ValueError):
+    """``--reject`` refused: the misfit is systematic (a wrong model, gains or template), not a few bad points."""
+
+
+def refuse_if_systematic(result, k: float = DEFAULT_K, *, points_kind=None, alpha: float | None = None) -> None:
+    """Raise :class:`SystematicMisfitError` when the residuals, without the points above ``k`` sigma, still show structure.
+
+    Removing points cannot repair a misfit that a smooth field over the sensor
+    explains (:func:`psdcal.calibration.verdict.structure_test` at the
+    verdict's false-alarm rate): deleting the worst points of such a fit
+    deletes good points and leaves a wrong calibration. The message carries
+    the verdict's diagnosis (the command that fixes the cause).
+    """
+    from psdcal.calibration.verdict import ALPHA, assess, structure_test
+
+    alpha = ALPHA if alpha is None else alpha
+    flags = flag_outliers(align_to_problem(result), k)
+    F, p = structure_test(result, exclude=flags.points)
+    if not p < alpha:
+        return
+    v = assess(result, points_kind=points_kind)
+    advice = next((c.advice for c in v.failed if c.name == "structure" and c.advice), "") or \
+        next((c.advice for c in v.failed if c.advice), "")
+    raise SystematicMisfitError(
+        f"--reject refused: the misfit is systematic, not a few bad points (with the {int(flags.points.sum())} point(s) "
+        f"above {k:g} sigma left out, a smooth field over the sensor still explains the residuals: F = {F:.3g}, "
+        f"p = {p:.2g}); removing points would delete good ones" + (f". {advice}" if advice else "")
+    )
 
 
 def reject_outliers(

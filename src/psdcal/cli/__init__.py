@@ -19,19 +19,21 @@ from psdcal.errors import PsdcalError
 def cli():
     """psdcal: model, calibrate and use PSD + lens angle-of-arrival sensors.
 
-    Files are CSV in millimetres (see the README's "File formats"); a
+    Files are CSV in millimetres (docs/model.md#file-formats); a
     calibration is a JSON file.  Run `psdcal COMMAND --help` for details.
     """
 
 
 # Command modules: each one adds its commands to `cli` when imported.
 _COMMANDS = (
+    "system_cmd",
     "calibrate_cmd",
     "simulate_cmd",
     "signal_cmd",
     "locate_cmd",
     "report_cmd",
     "reproduce_cmd",
+    "directions_cmd",
     "export_cmd",
     "capture_cmd",
 )

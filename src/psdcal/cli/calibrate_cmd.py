@@ -42,42 +42,90 @@ def model_options(f):
 @click.option("--fit-gains", is_flag=True, default=False,
               help="Estimate the three relative channel gains jointly (POINTS must carry raw amplitudes vx1,vx2,vy1,vy2).")
 @click.option("--reject", "reject_k", type=click.FloatRange(min=0.0, min_open=True), default=None, metavar="K",
-              help="Remove points whose residual exceeds K robust noise sigmas, refit, and list them (e.g. 5).")
+              help="Remove points whose residual exceeds K robust noise sigmas, refit, and list them (e.g. 5). "
+                   "Refused (exit 2, with the diagnosis) when the misfit is systematic rather than a few points.")
+@click.option("--fix", "fix_items", multiple=True, metavar="NAME=VALUE",
+              help="Hold a global parameter at VALUE (repeatable): f_mm, cx_mm, cy_mm, skew, fy_mm, k1-k3, p1, p2, "
+                   "l1, l2, g_x2, g_y1, g_y2. E.g. --fix f_mm=8.0 --fix k2=0. Its std is reported as null.")
+@click.option("--prior", "prior_items", multiple=True, metavar="NAME=VALUE,STD",
+              help="Gaussian prior VALUE +- STD on a free global parameter (repeatable), e.g. --prior f_mm=8.0,0.05. "
+                   "STD 0 fixes it, inf is no prior.")
+@click.option("--prior-file", "prior_files", multiple=True, type=click.Path(dir_okay=False, path_type=Path),
+              help="JSON prior with a mean vector and covariance (keys names, values|mean|gains, covariance|std), "
+                   "e.g. the gains JSON of `psdcal gains` with --fit-gains (repeatable).")
+@click.option("--f-guess", "f_guess_mm", type=click.FloatRange(min=0.0, min_open=True), default=None, metavar="F_MM",
+              help="Nominal focal length, mm (lens data sheet): one more start of the refinement, and the start "
+                   "used when the views alone give none.")
+@click.option("--noise-um", "noise_um", type=click.FloatRange(min=0.0, min_open=True), default=None, metavar="SIGMA_UM",
+              help="Known noise standard deviation per coordinate of the points, um (e.g. from the lock-in's "
+                   "amplitude noise): the verdict then also tests the residual RMS against it.")
+@click.option("--model", "model_choice", type=click.Choice(["manual", "auto"]), default="manual", show_default=True,
+              help="auto: choose radial, tangential, PSD radial terms and skew by nested F-tests (forward selection "
+                   "from f, C, k1; the switches are then ignored) and print the selection path.")
+@click.option("--cross-validate", "cv_k", type=click.IntRange(min=2), default=None, metavar="K",
+              help="Refit K times leaving a fold of views out, predict the left-out views' points and test the "
+                   "errors against the predicted uncertainty (adds the check 'cross_validation').")
+@click.option("--strict", is_flag=True, default=False,
+              help="Exit 2 (and write no --output) unless the verdict is good.")
 @click.option("--quiet", "-q", is_flag=True, help="Print nothing but errors.")
 def calibrate_command(points, template, output, cost, radial, tangential, psd_radial, skew, aspect, preliminary,
-                      normalize, sensor_mm, max_iterations, fit_gains, quiet, reject_k=None):
+                      normalize, sensor_mm, max_iterations, fit_gains, quiet, reject_k=None, f_guess_mm=None,
+                      noise_um=None, strict=False, model_choice="manual", cv_k=None, fix_items=(),
+                      prior_items=(), prior_files=()):
     """Calibrate a PSD + lens sensor from views of a planar LED template.
 
     POINTS is a CSV of impact points, `image_id,point_id,x_mm,y_mm` (a missing
     point is a missing row), or of raw amplitudes `image_id,point_id,vx1,vx2,vy1,vy2`.
-    Prints the parameters with standard errors and the residual RMS, and
-    writes the calibration JSON to --output.
+    Prints the parameters with standard errors and the residual RMS, the
+    verdict (good / suspect / wrong) with the self-checks that failed and the
+    advice that fixes their cause, and writes the calibration JSON (with
+    `verdict` and `checks`) to --output.
 
     Example: psdcal calibrate points.csv -t template.csv -o calib.json --psd-radial 1
     """
-    from psdcal.calibration.core import calibrate
-    from psdcal.errors import DegenerateViewsError, InputError
+    from psdcal.calibration.core import calibrate, with_verdict
+    from psdcal.errors import ConvergenceError, DegenerateViewsError, InputError
     from psdcal.io import read_points, read_template, save_calibration
     from psdcal.report.text import print_calibration
 
+    from psdcal.calibration.priors import parse_fix, parse_prior, read_prior_file
+
+    fix = parse_fix(fix_items) or None
+    priors = [parse_prior(t) for t in prior_items] + [read_prior_file(f) for f in prior_files]
     tids, txy = read_template(template)
     pf = read_points(points, tids, sensor_mm=sensor_mm)
     if fit_gains and pf.kind != "amplitudes":
         raise InputError("--fit-gains needs raw amplitudes (header image_id,point_id,vx1,vx2,vy1,vy2)", path=points, line=1)
     from psdcal.calibration._refine import SolverOptions
 
+    noise_mm = None if noise_um is None else noise_um * 1e-3
+    common = dict(cost=cost, preliminary=preliminary, normalize=normalize, aspect=aspect, fit_gains=fit_gains,
+                  image_ids=pf.image_ids, point_ids=tids, sensor_mm=tuple(sensor_mm),
+                  solver=SolverOptions(max_iterations=max_iterations), f_guess_mm=f_guess_mm)
     try:
-        res = calibrate(
-            txy, pf.points_mm, cost=cost, radial=radial, tangential=tangential, psd_radial=psd_radial, skew=skew,
-            preliminary=preliminary, normalize=normalize, aspect=aspect, fit_gains=fit_gains,
-            image_ids=pf.image_ids, point_ids=tids, sensor_mm=tuple(sensor_mm),
-            solver=SolverOptions(max_iterations=max_iterations),
-        )
+        if model_choice == "auto" and (fix or priors):
+            raise InputError("--model auto cannot be combined with --fix, --prior or --prior-file", field="model")
+        if model_choice == "auto":
+            from psdcal.calibration.model_select import describe_selection, select_model
+
+            res, steps = select_model(txy, pf.points_mm, **common)
+            if not quiet:
+                m = res.model
+                click.echo(f"--model auto: radial {m.radial}, tangential {'on' if m.tangential else 'off'}, "
+                           f"psd-radial {m.psd_radial}, skew {'on' if m.skew else 'off'} (nested F-tests, alpha 1e-3):")
+                for line in describe_selection(steps):
+                    click.echo(line)
+        else:
+            res = calibrate(txy, pf.points_mm, radial=radial, tangential=tangential, psd_radial=psd_radial, skew=skew,
+                            verdict=False, **common, **({"fix": fix, "priors": priors} if (fix or priors) else {}))
     except DegenerateViewsError as exc:
         raise DegenerateViewsError(f"{points}: {exc}") from None
+    except ConvergenceError as exc:
+        raise ConvergenceError(f"{points}: {exc}{_diagnosis(exc.result, noise_mm, pf.kind)}") from None
     if reject_k is not None:
-        from psdcal.calibration.outliers import reject_outliers
+        from psdcal.calibration.outliers import refuse_if_systematic, reject_outliers
 
+        refuse_if_systematic(res, reject_k, points_kind=pf.kind)
         rej = reject_outliers(res, reject_k, line_numbers=pf.line_numbers)
         res = rej.result
         if not quiet:
@@ -88,13 +136,47 @@ def calibrate_command(points, template, output, cost, radial, tangential, psd_ra
                            f"residual {p.residual_mm * 1e3:.2f} um = {p.ratio:.1f} sigma")
             for iid, pid in rej.kept_flagged:
                 click.echo(f"  kept (too few points left to remove it): image {iid}, point {pid}")
+    res = with_verdict(res, noise_mm=noise_mm, points_kind=pf.kind)
+    if cv_k is not None:
+        import dataclasses
+
+        from psdcal.calibration.model_select import cross_validate
+        from psdcal.calibration.verdict import with_check
+
+        cv = cross_validate(res, cv_k)
+        res = dataclasses.replace(res, verdict=with_check(res.verdict, cv.check()),
+                                  problem={**res.problem, "cross_validation": cv.to_dict()})
+        if not quiet:
+            click.echo(cv.line())
     res = _with_inputs(res, template, points)
+    if strict and res.verdict["verdict"] != "good":
+        from psdcal.calibration.verdict import Verdict, VerdictError
+
+        if not quiet:
+            print_calibration(res)
+        v = Verdict.from_dict(res.verdict)
+        raise VerdictError(f"--strict: the verdict is {v.verdict} ({'; '.join(v.reasons)}); nothing written")
     if output is not None:
         save_calibration(output, res)
     if not quiet:
         print_calibration(res)
+        _echo_constraints(res)
         if output is not None:
             click.echo(f"wrote {output}")
+
+
+def _diagnosis(result, noise_mm, points_kind) -> str:
+    """'; verdict: ...' with the first advice of the verdict on an unconverged result ('' when none)."""
+    if result is None:
+        return ""
+    try:
+        from psdcal.calibration.verdict import assess
+
+        v = assess(result, noise_mm=noise_mm, points_kind=points_kind)
+    except Exception:  # noqa: BLE001 -- the diagnosis of a failed fit is best effort; the error stands without it
+        return ""
+    tips = [c.advice for c in v.failed if c.advice]
+    return f"; diagnosis: {tips[0]}" if tips else ""
 
 
 def _with_inputs(res, template, points):
@@ -106,3 +188,18 @@ def _with_inputs(res, template, points):
     for role, p in (("template", template), ("points", points)):
         files[role] = {"path": str(p), "sha256": hashlib.sha256(Path(p).read_bytes()).hexdigest()}
     return dataclasses.replace(res, problem={**res.problem, "files": files})
+
+
+def _echo_constraints(res):
+    """One line each for the fixed parameters and the priors of a constrained calibration (none otherwise)."""
+    o = res.problem.get("options", {}) if res.problem else {}
+    if o.get("fix"):
+        click.echo("fixed: " + ", ".join(f"{n} = {v:.6g}" for n, v in o["fix"].items()))
+    for p in o.get("priors") or []:
+        sd = [c[i] ** 0.5 if c[i] is not None else float("inf") for i, c in enumerate(p["covariance"])]
+        click.echo(f"prior ({p.get('source') or 'argument'}): " + ", ".join(
+            f"{n} = {m:.6g} +- {s:.2g}" for n, m, s in zip(p["names"], p["mean"], sd)))
+    pf = res.problem.get("prior_fit") if res.problem else None
+    if pf:
+        click.echo(f"degrees of freedom {pf['dof']:.2f} (the priors determine {pf['prior_dof']:.2f} parameters); "
+                   "noise estimated from the data residuals only")

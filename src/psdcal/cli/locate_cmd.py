@@ -53,9 +53,20 @@ def _demod_options(f):
 @click.option("--sensors", type=click.Path(dir_okay=False),
               help="SENSORS.json: several calibrated sensors with poses (3D triangulation).")
 @click.option("--distance-mm", type=float, help="Plane distance S: also write X_mm, Y_mm on that plane.")
+@click.option("--track", "track_path", type=click.Path(dir_okay=False),
+              help="Also write TRACK.csv: each emitter filtered by a constant-velocity Kalman filter "
+                   "(positions, velocities, sigmas, NIS, gated); see `psdcal track --help`.")
+@click.option("--track-q", type=float, default=None,
+              help="Tracking process noise, mm^2/s^3 (deg^2/s^3 for angles) [default: 1e6, 10].")
+@click.option("--raw-dtype", type=click.Choice(["float32", "float64", "int16"]), default="float64",
+              show_default=True, help="Live input (RECORDING '-' or tcp://127.0.0.1:PORT): sample type of the "
+                                      "interleaved vx1,vx2,vy1,vy2 frames (little-endian).")
+@click.option("--raw-scale", type=float, default=1.0, show_default=True,
+              help="Live input: factor applied to every sample (e.g. volts per int16 count).")
 @_demod_options
 def locate_command(recordings, calib, sensors, rate_hz, carriers, emitters, distance_mm, window_s, tdm, schedule,
-                   n_emitters, min_snr, channels, dataset, group, chunk_samples, progress, output):
+                   n_emitters, min_snr, channels, dataset, group, chunk_samples, progress, output, track_path=None,
+                   track_q=None, raw_dtype="float64", raw_scale=1.0):
     """Demodulate RECORDING(s) and write angles of arrival and positions.
 
     \b
@@ -71,6 +82,14 @@ def locate_command(recordings, calib, sensors, rate_hz, carriers, emitters, dist
 
     Recordings: .npy (n, 4), .csv (header vx1,vx2,vy1,vy2[,t_s]), .h5/.hdf5, .tdms.
     Sigmas are 1-sigma, from the signal noise and the calibration covariance.
+    Signs: seen from behind the sensor with the chip's +y edge up, alpha_x > 0
+    is an emitter right of the optical axis, alpha_y > 0 one below it (the lens
+    inverts the image; docs/model.md#hardware-conventions).
+
+    \b
+    Live input (one sensor): RECORDING '-' (stdin) or tcp://127.0.0.1:PORT (a local server
+    sending interleaved frames, --raw-dtype, --raw-scale) or nidaqmx://Dev1/ai0:3 (psdcal[daq]);
+    --rate-hz required; rows are written and flushed as windows complete.
     """
     from psdcal.errors import InputError
     from psdcal.measure.locate import LocateConfig, locate_multi_to_csv, locate_to_csv
@@ -79,6 +98,13 @@ def locate_command(recordings, calib, sensors, rate_hz, carriers, emitters, dist
 
     if (calib is None) == (sensors is None):
         raise InputError("give exactly one of --calib (one sensor) or --sensors (several)", field="calib")
+    from psdcal.signal.live import is_stream_source
+
+    if any(is_stream_source(str(r)) for r in recordings):  # live input: see `psdcal.cli.system_cmd.live_locate`
+        from psdcal.cli.system_cmd import live_locate
+
+        return live_locate(recordings, calib, rate_hz, carriers, emitters, distance_mm, window_s, tdm, schedule,
+                           n_emitters, min_snr, output, raw_dtype, raw_scale, track_path, track_q)
     sched = load_schedule(schedule) if schedule else None
     config = LocateConfig(
         carriers_hz=tuple(carriers),
@@ -126,6 +152,12 @@ def locate_command(recordings, calib, sensors, rate_hz, carriers, emitters, dist
         f"wrote {summary.n_rows} rows to {output} ({summary.duration_s:.6g} s of signal, "
         f"{summary.n_windows} windows of {config.window_s:g} s, {summary.n_skipped} below --min-snr)"
     )
+    if track_path:
+        from psdcal.measure.tracking import track_csv
+
+        info = track_csv(output, track_path, q=track_q)
+        click.echo(f"wrote {info['n_rows']} tracked rows to {track_path} ({info['n_gated']} gated, "
+                   f"mean NIS {info['mean_nis']:.3g} for {info['dims']} dimensions)")
 
 
 class _Bar:
@@ -193,6 +225,10 @@ def aoa_command(points, calib, distance_mm, sigma_d_mm, output):
 
     Other columns (image_id, point_id, ...) are copied.  Output adds
     x_mm,y_mm,alpha_x_deg,alpha_y_deg[,X_mm,Y_mm],sigma_alpha_x_deg,sigma_alpha_y_deg[,sigma_X_mm,sigma_Y_mm].
+
+    Signs: seen from behind the sensor with the chip's +y edge up, alpha_x > 0
+    is an emitter right of the optical axis, alpha_y > 0 one below it (the lens
+    inverts the image; docs/model.md#hardware-conventions).
     """
     from psdcal.measure.locate import aoa_csv
     from psdcal.measure.sensor_model import SensorModel

@@ -41,6 +41,12 @@ def report_command(calibration, points, template, output, k, cells, region_mm, t
     inputs = ReportInputs(calibration=str(calibration), points=None if points is None else str(points),
                           template=None if template is None else str(template),
                           command="psdcal " + " ".join(sys.argv[1:]) if sys.argv and "psdcal" in Path(sys.argv[0]).name else None)
+    from psdcal.report.page import report_verdict
+
+    v = report_verdict(res)
+    if v is not None:
+        for line in v.lines():
+            click.echo(line)
     write_report(output, res, inputs, k=k, n_cells=cells, region_mm=region_mm, title=title)
     click.echo(f"wrote {output}")
 

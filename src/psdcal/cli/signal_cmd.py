@@ -8,7 +8,7 @@ from psdcal.cli import cli
 
 @cli.command("signal-noise")
 @click.option("--snr-db", "snr_db", type=float, multiple=True, metavar="DB",
-              help="SNR in dB (MODEL.md 3); repeat for several. Default: 30 40 50 60.")
+              help="SNR in dB (docs/model.md#snr-definition); repeat for several. Default: 30 40 50 60.")
 @click.option("--method", type=click.Choice(["lockin", "bandpass"]), default="lockin", show_default=True,
               help="Amplitude estimation: lock-in, or the paper's 600 Hz Butterworth band-pass.")
 @click.option("--rate-hz", type=float, default=None, help="Sampling rate, Hz.  [default: 50000]")
@@ -62,4 +62,4 @@ def signal_noise(snr_db, method, rate_hz, duration_s, carrier_hz, x_mm, y_mm, tr
             f"{p[1]:.2e}",
         )
     Console().print(table)
-    Console().print("predicted: first-order propagation of the amplitude noise (README, Signal chain)")
+    Console().print("predicted: first-order propagation of the amplitude noise (docs/guide/signal-chain.md)")

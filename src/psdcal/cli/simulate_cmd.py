@@ -32,7 +32,7 @@ from psdcal.cli import cli
 @click.option("--amplitudes", is_flag=True, default=False,
               help="Write raw amplitudes (image_id,point_id,vx1,vx2,vy1,vy2) through the simulated signal chain "
                    "(paper's band-pass, Eq 43 gains) instead of points with --noise-mm.")
-@click.option("--snr-db", type=float, default=None, help="With --amplitudes: SNR in dB (MODEL.md 3). [default: no noise]")
+@click.option("--snr-db", type=float, default=None, help="With --amplitudes: SNR in dB (docs/model.md#snr-definition). [default: no noise]")
 @click.option("--r-tol", type=click.FloatRange(0.0, 1.0, max_open=True), default=0.0, show_default=True,
               help="With --amplitudes: resistor tolerance of the channel gains (the paper: 0.01).")
 @click.option("--c-tol", type=click.FloatRange(0.0, 1.0, max_open=True), default=0.0, show_default=True,

@@ -1,4 +1,4 @@
-"""Angles of arrival with their uncertainty (MODEL.md 7, the paper's Eq 39-42).
+"""Angles of arrival with their uncertainty (docs/model.md#angle-of-arrival-and-position, the paper's Eq 39-42).
 
 The chain, for one measurement::
 
@@ -112,7 +112,7 @@ def impact_from_amplitudes(a, model: SensorModel, var_a=None, *, on_zero: str = 
 
 @dataclass(frozen=True)
 class AoAResult:
-    """Angles of arrival and their covariance (MODEL.md 7, Eq 39).
+    """Angles of arrival and their covariance (docs/model.md#angle-of-arrival-and-position, Eq 39).
 
     Attributes
     ----------

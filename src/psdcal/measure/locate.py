@@ -32,7 +32,7 @@ import numpy as np
 from psdcal._atomic import atomic_path
 from psdcal.measure.aoa import angles_from_amplitudes, angles_from_points, impact_from_amplitudes
 from psdcal.errors import InputError, ZeroSignalError
-from psdcal.measure.positioning import plane_position, triangulate
+from psdcal.measure.positioning import plane_position, ray_inputs, triangulate
 from psdcal.signal.recording import DEFAULT_CHUNK, Recording
 from psdcal.measure.sensor_model import SensorModel
 from psdcal.signal.stream import MultiCarrierLockin, TdmSegmenter
@@ -288,7 +288,7 @@ def amplitudes_to_csv(recording: Recording, out_path, config: LocateConfig, *, i
     Without ``image_id`` the columns are :data:`AMPLITUDE_COLUMNS` (one row
     per window and emitter, or per time-multiplexed segment).  With
     ``image_id`` the output is a calibration points CSV from raw amplitudes
-    (MODEL.md 9): ``image_id,point_id,vx1,vx2,vy1,vy2``, ``point_id`` the
+    (docs/model.md#calibration-json): ``image_id,point_id,vx1,vx2,vy1,vy2``, ``point_id`` the
     emitter (segment or schedule name): one view of the calibration template.
 
     Rows whose total amplitude is below ``config.min_snr`` sigma are dropped.
@@ -365,16 +365,17 @@ def locate_multi_to_csv(recordings, sensors, out_path, config: LocateConfig,
                 nw = len(blocks[0])
                 n_windows += nw
                 if nw:
-                    ns, covs = [], []
+                    results, seens = [], []
                     for blk, sp in zip(blocks, sensors):
                         a = blk.amplitude.reshape(-1, 4)
                         v = blk.var_amplitude.reshape(-1, 4)
                         seen = (a.sum(-1) > config.min_snr * np.sqrt(v.sum(-1))) & np.all(np.isfinite(a), -1)
                         a_safe = np.where(seen[:, None], a, 1.0)
-                        res = angles_from_amplitudes(a_safe, sp.model, v, on_zero="nan")
-                        ns.append(np.where(seen[:, None], res.n, np.nan))
-                        covs.append(np.where(seen[:, None, None], res.cov_n, np.nan))
-                    tri = triangulate(np.stack(ns), np.stack(covs), R, t)
+                        results.append(angles_from_amplitudes(a_safe, sp.model, v, on_zero="nan"))
+                        seens.append(seen)
+                    # the rays with their covariance; poses from `psdcal pose` add theirs (ray_inputs)
+                    ns, covs, kw = ray_inputs(results, sensors, seens)
+                    tri = triangulate(ns, covs, R, t, **kw)
                     ok = tri.n_sensors >= 2
                     n_skipped += int((~ok).sum())
                     sig = tri.sigma_p_mm

@@ -1,8 +1,8 @@
-"""Positions from angles of arrival (MODEL.md 7; the paper's Section 3.4 and Introduction).
+"""Positions from angles of arrival (docs/model.md#angle-of-arrival-and-position; the paper's Section 3.4 and Introduction).
 
 * One sensor and a known plane: a transmitter moving on a plane parallel to
   the sensor at distance ``S`` sits at ``X = S xn``, ``Y = S yn`` in the
-  camera frame (MODEL.md 7; ``X = S ex / f`` without skew and distortion).
+  camera frame (docs/model.md#angle-of-arrival-and-position; ``X = S ex / f`` without skew and distortion).
 * Two or more sensors with known poses: the 3D point is the weighted
   least-squares intersection of their rays (AoA positioning needs two
   receivers, the paper's Introduction).
@@ -29,7 +29,7 @@ from psdcal.measure.sensor_model import SensorModel
 # --------------------------------------------------------------------------- plane
 @dataclass(frozen=True)
 class PlanePosition:
-    """Position on a plane parallel to the sensor (MODEL.md 7).
+    """Position on a plane parallel to the sensor (docs/model.md#angle-of-arrival-and-position).
 
     Attributes
     ----------
@@ -51,7 +51,7 @@ class PlanePosition:
 
 
 def plane_position(aoa: AoAResult, distance_mm: float) -> PlanePosition:
-    """Transmitter position on the plane ``Zc = distance_mm`` (MODEL.md 7).
+    """Transmitter position on the plane ``Zc = distance_mm`` (docs/model.md#angle-of-arrival-and-position).
 
     ``X = S xn``, ``Y = S yn`` (the paper's ``X = S ex / f``); the covariance is
     ``S^2 cov(n)``.  ``S`` is taken as exact.
@@ -72,6 +72,14 @@ class SensorPose:
     rvec: np.ndarray
     tvec_mm: np.ndarray
     recording: str | None = None
+    #: Covariance (6, 6) of the pose over ``(omega_rad, t_mm)``, ``R = exp([omega]) R_hat``
+    #: (the sensors file's optional ``pose_covariance``, from ``psdcal pose``); None: exact pose.
+    cov_pose: np.ndarray | None = None
+    #: The pose's dependence on the sensor's calibration (the sensors file's optional
+    #: ``pose_calibration``): ``(jacobian (6, m) over (omega, t) by the model's parameters,
+    #: noise-only pose covariance (6, 6))``.  With it, a ray's calibration error and the pose's
+    #: (which partly compensate each other) are propagated together.
+    pose_calib: tuple | None = None
 
     @property
     def R(self) -> np.ndarray:
@@ -138,9 +146,53 @@ def load_sensors(path) -> list[SensorPose]:
                 rvec=vecs["rvec"],
                 tvec_mm=vecs["tvec_mm"],
                 recording=None if rec is None else str(path.parent / str(rec)),
+                cov_pose=_pose_covariance(item.get("pose_covariance"), path, f"{where}.pose_covariance"),
+                pose_calib=_pose_calibration(item.get("pose_calibration"), model, path, f"{where}.pose_calibration"),
             )
         )
     return out
+
+
+def _pose_covariance(obj, path, where):
+    """The optional ``pose_covariance`` of a sensors-file entry: (6, 6) over (omega_rad, t_mm), or None."""
+    if obj is None:
+        return None
+    from psdcal.measure.pose import POSE_COV_NAMES
+
+    if not isinstance(obj, dict) or list(obj.get("names", [])) != list(POSE_COV_NAMES):
+        raise InputError(f"'pose_covariance' must be an object with names {list(POSE_COV_NAMES)} and a matrix",
+                         path=path, field=where)
+    try:
+        c = np.asarray(obj.get("matrix"), dtype=float)
+    except (TypeError, ValueError):
+        c = np.zeros(0)
+    if c.shape != (6, 6) or not np.all(np.isfinite(c)) or not np.allclose(c, c.T, rtol=1e-6, atol=1e-300) \
+            or np.any(np.diag(c) < 0):
+        raise InputError("'pose_covariance.matrix' must be a symmetric 6x6 matrix with a non-negative diagonal",
+                         path=path, field=f"{where}.matrix")
+    return 0.5 * (c + c.T)
+
+
+def _pose_calibration(obj, model, path, where):
+    """The optional ``pose_calibration`` of a sensors-file entry -> (jacobian (6, m), noise covariance (6, 6))."""
+    if obj is None:
+        return None
+    if not isinstance(obj, dict):
+        raise InputError("'pose_calibration' must be an object", path=path, field=where)
+    names = obj.get("names")
+    if list(names or []) != list(model.names):
+        raise InputError(f"'pose_calibration.names' {names} are not the calibration's parameters "
+                         f"{list(model.names)}: the pose was estimated with another calibration", path=path,
+                         field=f"{where}.names")
+    try:
+        J = np.asarray(obj.get("jacobian"), dtype=float).reshape(6, len(model.names))
+        C = np.asarray(obj.get("noise_covariance"), dtype=float).reshape(6, 6)
+    except (TypeError, ValueError):
+        raise InputError("'pose_calibration' needs a 6 x m 'jacobian' and a 6 x 6 'noise_covariance'", path=path,
+                         field=where) from None
+    if not (np.all(np.isfinite(J)) and np.all(np.isfinite(C))):
+        raise InputError("'pose_calibration' has non-finite entries", path=path, field=where)
+    return J, 0.5 * (C + C.T)
 
 
 @dataclass(frozen=True)
@@ -171,7 +223,7 @@ class Triangulation:
         return np.sqrt(np.clip(np.diagonal(self.cov_p_mm2, axis1=-2, axis2=-1), 0.0, None))
 
 
-def triangulate(n, cov_n, R, t_mm, *, iterations: int = 8) -> Triangulation:
+def triangulate(n, cov_n, R, t_mm, *, iterations: int = 8, cov_pose=None, calib=None) -> Triangulation:
     """3D point from the normalised image coordinates seen by several sensors.
 
     Minimises ``sum_i r_i^T W_i r_i`` with ``r_i = n_i - pi(R_i P + t_i)``,
@@ -191,6 +243,19 @@ def triangulate(n, cov_n, R, t_mm, *, iterations: int = 8) -> Triangulation:
         Rotations world -> camera.
     t_mm : (k, 3) array_like
         Translations, ``Pc = R Pw + t``.
+    cov_pose : (k, 6, 6) array_like or None, optional
+        Covariance of each sensor's pose over ``(omega_rad, t_mm)`` with
+        ``R = exp([omega]) R_hat`` (NaN or zeros for an exact pose).  Each
+        ray's covariance then gains ``J_pose C_pose J_pose^T`` evaluated at the
+        current point, ``J_pose = d pi / d Pc [-[R P]_x, I]``, so the point's
+        covariance includes the poses' uncertainty.
+    calib : tuple or None, optional
+        ``(dn_dcalib (k, ..., 2, m), cov_calib (k, m, m), pose_dcalib (k, 6, m))``:
+        the rays' and the poses' common dependence on each sensor's
+        calibration.  The calibration error ``d theta`` then moves a ray's
+        residual by ``(dn_dcalib - J_pose pose_dcalib) d theta`` (a pose fitted
+        with the same calibration partly compensates it); ``cov_n`` and
+        ``cov_pose`` must then be their noise parts only.
 
     Returns
     -------
@@ -225,6 +290,16 @@ def triangulate(n, cov_n, R, t_mm, *, iterations: int = 8) -> Triangulation:
     p = np.linalg.solve(A_safe, b[..., None])[..., 0]
     info = np.broadcast_to(np.eye(3), batch + (3, 3))
     chi2 = np.zeros(batch)
+    cp = None
+    if cov_pose is not None:
+        cp = np.nan_to_num(np.asarray(cov_pose, dtype=float))[expand]  # (k, 1.., 6, 6)
+    if calib is not None:
+        D = np.nan_to_num(np.asarray(calib[0], dtype=float))
+        Sc = np.asarray(calib[1], dtype=float)[expand]
+        Ap = np.asarray(calib[2], dtype=float)[expand]
+        calib = (D, Sc, Ap)
+        if cp is None:
+            cp = np.zeros((len(R),) + (1,) * len(batch) + (6, 6))
     for it in range(iterations + 1):
         pc = np.einsum("k...ij,...j->k...i", Rb, p) + tb
         z = pc[..., 2]
@@ -241,6 +316,8 @@ def triangulate(n, cov_n, R, t_mm, *, iterations: int = 8) -> Triangulation:
             axis=-2,
         )
         J = dpred_dpc @ Rb
+        if cp is not None:
+            W = _pose_weights(cov, cp, pc - tb, dpred_dpc, ok, calib)
         JtW = np.swapaxes(J, -1, -2) @ W
         info = (JtW @ J).sum(0)
         grad = np.einsum("k...ij,k...j->...i", JtW, r)  # sums over the sensors k
@@ -260,6 +337,22 @@ def triangulate(n, cov_n, R, t_mm, *, iterations: int = 8) -> Triangulation:
     return Triangulation(p_w_mm=p, cov_p_mm2=cov_p, chi2=chi2, n_sensors=n_used)
 
 
+def _pose_weights(cov, cov_pose, rp, dpred_dpc, ok, calib=None):
+    """Inverse of the ray covariance ``cov`` plus the pose part ``Jp Cp Jp^T``, ``Jp = dpi/dPc [-[R P]_x, I]``,
+    plus, with ``calib = (D, Sigma, A)``, the common calibration part ``(D - Jp A) Sigma (D - Jp A)^T``."""
+    x, y, zz = rp[..., 0], rp[..., 1], rp[..., 2]
+    zero = np.zeros_like(x)
+    # -[v]_x for v = R P
+    neg_skew = np.stack([np.stack([zero, zz, -y], -1), np.stack([-zz, zero, x], -1), np.stack([y, -x, zero], -1)], -2)
+    Jp = np.concatenate([dpred_dpc @ neg_skew, dpred_dpc], axis=-1)  # (k, ..., 2, 6)
+    total = cov + Jp @ cov_pose @ np.swapaxes(Jp, -1, -2)
+    if calib is not None:
+        D, Sc, Ap = calib
+        E = D - Jp @ Ap  # (k, ..., 2, m)
+        total = total + E @ Sc @ np.swapaxes(E, -1, -2)
+    return np.linalg.inv(total) * ok[..., None, None]
+
+
 def triangulate_aoa(results, sensors) -> Triangulation:
     """Triangulate from one :class:`AoAResult` per sensor (same leading shape).
 
@@ -274,7 +367,57 @@ def triangulate_aoa(results, sensors) -> Triangulation:
     cov = np.stack([r.cov_n for r in results])
     R = np.stack([s.R for s in sensors])
     t = np.stack([np.asarray(s.tvec_mm, dtype=float) for s in sensors])
-    return triangulate(n, cov, R, t)
+    n, cov, kw = ray_inputs(results, sensors)
+    return triangulate(n, cov, R, t, **kw)
+
+
+def ray_inputs(results, sensors, seen=None):
+    """Rays, their covariances and the keyword arguments of :func:`triangulate` for these sensors.
+
+    Without pose uncertainty: ``n`` and the total ``cov_n`` of each
+    :class:`AoAResult`.  With ``pose_covariance`` only: plus ``cov_pose``.
+    When every sensor's pose carries ``pose_calibration`` (from ``psdcal
+    pose``): the noise parts of the rays and poses, and ``calib`` with the
+    common calibration dependence (the two partly compensate).
+
+    Parameters
+    ----------
+    results : sequence of AoAResult (same leading shape)
+    sensors : sequence of SensorPose
+    seen : sequence of bool arrays, optional
+        Rows where each sensor saw the emitter (others become NaN).
+
+    Returns
+    -------
+    n : (k, ..., 2), cov : (k, ..., 2, 2), kwargs : dict
+    """
+    if seen is None:
+        seen = [np.ones(np.shape(r.n)[:-1], bool) for r in results]
+    joint = all(getattr(s, "pose_calib", None) is not None for s in sensors)
+    n = np.stack([np.where(sn[..., None], r.n, np.nan) for r, sn in zip(results, seen)])
+    if not joint:
+        cov = np.stack([np.where(sn[..., None, None], r.cov_n, np.nan) for r, sn in zip(results, seen)])
+        return n, cov, {"cov_pose": pose_covariances(sensors)}
+    cov = np.stack([np.where(sn[..., None, None], r.cov_n_noise, np.nan) for r, sn in zip(results, seen)])
+    m = max(len(s.model.names) for s in sensors)
+    batch = np.shape(results[0].n)[:-1]
+    D = np.zeros((len(sensors),) + batch + (2, m))
+    Sc = np.zeros((len(sensors), m, m))
+    Ap = np.zeros((len(sensors), 6, m))
+    for j, (r, s) in enumerate(zip(results, sensors)):
+        q = len(s.model.names)
+        D[j, ..., :q] = r.dn_dp
+        Sc[j, :q, :q] = s.model.covariance
+        Ap[j, :, :q] = s.pose_calib[0]
+    cov_pose = np.stack([s.pose_calib[1] for s in sensors])
+    return n, cov, {"cov_pose": cov_pose, "calib": (D, Sc, Ap)}
+
+
+def pose_covariances(sensors):
+    """Stacked pose covariances (k, 6, 6) of sensors (zeros for exact poses), or None when all are exact."""
+    if all(getattr(s, "cov_pose", None) is None for s in sensors):
+        return None
+    return np.stack([np.zeros((6, 6)) if s.cov_pose is None else np.asarray(s.cov_pose, float) for s in sensors])
 
 
 # --------------------------------------------------------------------------- error maps

@@ -1,4 +1,4 @@
-"""A calibrated sensor as the measurement side needs it (MODEL.md 9).
+"""A calibrated sensor as the measurement side needs it (docs/model.md#calibration-json).
 
 :class:`SensorModel` reads the calibration JSON written by ``psdcal calibrate``
 and keeps what angle-of-arrival measurement needs: the intrinsics, the
@@ -137,7 +137,7 @@ class SensorModel:
     # ------------------------------------------------------------------ I/O
     @classmethod
     def from_dict(cls, data: dict, *, source=None) -> "SensorModel":
-        """Build from a parsed calibration JSON (MODEL.md 9).
+        """Build from a parsed calibration JSON (docs/model.md#calibration-json).
 
         Raises
         ------

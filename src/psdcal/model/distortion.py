@@ -1,4 +1,4 @@
-"""The undistortion model and its inverse (MODEL.md 5, the paper's Eq 7-16).
+"""The undistortion model and its inverse (docs/model.md#distortion, the paper's Eq 7-16).
 
 ``undistort`` maps a measured impact point ``d`` to the ideal pinhole point
 ``x``; ``distort`` solves ``undistort(d) = x`` for ``d`` by Newton's method.
@@ -26,7 +26,7 @@ def _as_coeffs(dist) -> np.ndarray:
 
 
 def undistort(d_mm, dist, c_mm, *, jacobians: bool = False):
-    """Ideal pinhole point from a measured impact point (Eq 7-16, MODEL.md 5).
+    """Ideal pinhole point from a measured impact point (Eq 7-16, docs/model.md#distortion).
 
     ``u = d (1 + l1 h^2 + l2 h^4)`` with ``h = |d|`` (PSD, Eq 7-10); then with
     ``e = u - c``, ``r = |e|``:
@@ -148,7 +148,7 @@ def distort(
     keep_failed: bool = False,
     jacobians: bool = False,
 ) -> DistortResult:
-    """Measured point ``d`` with ``undistort(d) = x`` (MODEL.md 5), by Newton's method.
+    """Measured point ``d`` with ``undistort(d) = x`` (docs/model.md#distortion), by Newton's method.
 
     The start is a fixed-point estimate of the radial inverse; each Newton step
     is halved while it does not reduce the residual.  A point is converged when

@@ -1,4 +1,4 @@
-"""Frozen parameter records of the sensor model (MODEL.md 4, 5).
+"""Frozen parameter records of the sensor model (docs/model.md#pinhole-model, #distortion).
 
 Change them with :func:`dataclasses.replace`; they are never mutated.
 """
@@ -47,7 +47,7 @@ class Intrinsics:
 
 @dataclass(frozen=True)
 class Distortion:
-    """Undistortion coefficients (MODEL.md 5).
+    """Undistortion coefficients (docs/model.md#distortion).
 
     k1 [mm^-2], k2 [mm^-4], k3 [mm^-6]: lens radial about the optical centre;
     p1, p2 [mm^-1]: lens tangential; l1 [mm^-2], l2 [mm^-4]: PSD radial about

@@ -1,4 +1,4 @@
-"""Rigid poses and the pinhole model (MODEL.md 4, the paper's Eq 3-6).
+"""Rigid poses and the pinhole model (docs/model.md#pinhole-model, the paper's Eq 3-6).
 
 Rotation vectors (axis * angle, rad) parametrise rotations; ``R_from_r``
 gives R and, on request, its derivatives (Gallego & Yezzi 2015, J Math
@@ -133,7 +133,7 @@ def transform(P, rvec, tvec, *, jacobians: bool = False):
 
 
 def pinhole(Pc, intr: Intrinsics, *, jacobians: bool = False):
-    """Ideal image point of camera-frame points (Eq 4, MODEL.md 4).
+    """Ideal image point of camera-frame points (Eq 4, docs/model.md#pinhole-model).
 
     ``x = f Xc/Zc + skew Yc/Zc + cx``, ``y = fy Yc/Zc + cy``.
 
@@ -195,7 +195,7 @@ def backproject_to_plane(x_mm, intr: Intrinsics, rvec, tvec):
 
 
 def rays(x_mm, intr: Intrinsics) -> np.ndarray:
-    """Unit ray directions (..., 3) in the sensor frame of ideal image points (MODEL.md 7)."""
+    """Unit ray directions (..., 3) in the sensor frame of ideal image points (docs/model.md#angle-of-arrival-and-position)."""
     x = np.asarray(x_mm, dtype=float)
     xh = np.concatenate([x, np.ones(x.shape[:-1] + (1,))], axis=-1)
     n = np.linalg.solve(intr.matrix(), xh.reshape(-1, 3).T).T.reshape(xh.shape)

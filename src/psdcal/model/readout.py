@@ -1,4 +1,4 @@
-"""PSD readout: four amplified anode signals <-> impact point (MODEL.md section 2).
+"""PSD readout: four amplified anode signals <-> impact point (docs/model.md#psd-readout).
 
 Pin-cushion (improved tetra-lateral) PSD, channel order everywhere in psdcal:
 ``(vx1, vx2, vy1, vy2)``.  Lengths in mm, signals in any unit (they cancel).
@@ -9,7 +9,7 @@ import numpy as np
 
 from psdcal.errors import ZeroSignalError
 
-#: Active area of the Hamamatsu S5991-01, mm (MODEL.md 1).
+#: Active area of the Hamamatsu S5991-01, mm (docs/model.md#frames-and-units).
 LX_MM = 9.0
 LY_MM = 9.0
 CHANNELS = ("vx1", "vx2", "vy1", "vy2")
@@ -65,7 +65,7 @@ def impact_point(v, lx_mm: float = LX_MM, ly_mm: float = LY_MM, *, min_sum: floa
 def photocurrents(xy_mm, total=1.0, lx_mm: float = LX_MM, ly_mm: float = LY_MM):
     """Split of the photocurrent of a spot at ``xy_mm`` over the four anodes.
 
-    The split ``I (1 +- a +- b) / 4`` (MODEL.md 2) makes :func:`impact_point`
+    The split ``I (1 +- a +- b) / 4`` (docs/model.md#psd-readout) makes :func:`impact_point`
     return ``xy_mm`` exactly.
 
     Parameters
@@ -141,8 +141,7 @@ def gain_map(xy_mm, gains, lx_mm: float = LX_MM, ly_mm: float = LY_MM, *, jacobi
 def gain_homography(gains, lx_mm: float = LX_MM, ly_mm: float = LY_MM):
     """The 3x3 homography H with ``[x_meas, y_meas, 1] ~ H [x_true, y_true, 1]``.
 
-    Exact closed form of :func:`gain_map` (section "Gain calibration" of the
-    README derives it).
+    Exact closed form of :func:`gain_map` (docs/model.md#gain-homography derives it).
     """
     g = np.asarray(gains, dtype=float)
     w = g[:, None] * _SPLIT  # (4, 3): v = w @ (1, a, b)

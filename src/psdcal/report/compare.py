@@ -1,7 +1,7 @@
 """Angle of arrival over the field of view: its uncertainty, and two calibrations compared.
 
 For a point ``d`` on the sensor (a measured impact point, after any gain
-correction) a calibration gives the angle of arrival (MODEL.md 7)::
+correction) a calibration gives the angle of arrival (docs/model.md#angle-of-arrival-and-position)::
 
     x = undistort(d),  (xn, yn, 1) = A^-1 (x, y, 1),  alpha = (atan xn, atan yn)
 
@@ -278,7 +278,7 @@ def compare(a, b, *, n: int = 41, margin_mm: float = 0.0, distance_mm: float | N
         Distance kept from the sensor's edges, mm.
     distance_mm : float, optional
         Also report the position difference on a plane at this distance
-        from the sensor, parallel to it (MODEL.md 7: ``X = S xn``), mm.
+        from the sensor, parallel to it (docs/model.md#angle-of-arrival-and-position: ``X = S xn``), mm.
     names : (str, str)
         Labels of ``a`` and ``b`` for tables and figures.
 

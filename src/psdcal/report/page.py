@@ -165,6 +165,42 @@ def _files_and_points(result, inputs: ReportInputs):
     return result, pts, lines, [(role, str(p), sha256_file(p), Path(p).stat().st_size) for role, p in files]
 
 
+def report_verdict(result):
+    """The calibration's verdict (:class:`psdcal.calibration.verdict.Verdict`): the one saved in it, else assessed now.
+
+    None when the file holds no problem record to assess.
+    """
+    from psdcal.calibration.verdict import Verdict, assess
+
+    if getattr(result, "verdict", None):
+        return Verdict.from_dict(result.verdict)
+    if not (result.problem or {}).get("points"):
+        return None
+    try:
+        return assess(result)
+    except Exception:  # noqa: BLE001 -- an old or partial file: the report goes on without a verdict
+        return None
+
+
+def _verdict_html(verdict) -> list:
+    """The report's first section: the verdict and the table of checks."""
+    if verdict is None:
+        return ['<h2 id="verdict">Verdict</h2>', '<div class="warn">No verdict: the calibration file holds no problem '
+                'record (points, template) to check it against.</div>']
+    cls = {"good": "ok", "suspect": "warn", "wrong": "warn"}[verdict.verdict]
+    head = {"good": "GOOD: every self-check passed", "suspect": "SUSPECT: " + "; ".join(verdict.reasons),
+            "wrong": "WRONG: " + "; ".join(verdict.reasons)}[verdict.verdict]
+    out = ['<h2 id="verdict">Verdict</h2>', f'<div class="{cls}"><b>{_esc(head)}</b></div>']
+    out += [f'<div class="warn">Advice ({_esc(c.name)}): {_esc(c.advice)}</div>' for c in verdict.failed if c.advice]
+    rows = []
+    for c in verdict.checks:
+        state = "n/a" if c.passed is None else ("passed" if c.passed else "FAILED")
+        rows.append([_esc(c.name), state, "-" if c.p_value is None else f"{c.p_value:.2g}",
+                     f"{c.false_alarm:.2g}" if c.false_alarm else "rule", _esc(c.message)])
+    out.append(_table(["check", "result", "p-value", "false-alarm rate", "finding"], rows, left=(0, 1, 4)))
+    return out
+
+
 def build_report(result, inputs: ReportInputs = ReportInputs(), *, k: float = DEFAULT_K, n_cells: int = 6,
                  region_mm=None, title: str | None = None) -> str:
     """The calibration report as one self-contained HTML document.
@@ -216,7 +252,12 @@ def build_report(result, inputs: ReportInputs = ReportInputs(), *, k: float = DE
     warnings = []
     if not result.converged:
         warnings.append(f"the refinement did not converge ({result.message})")
-    if flags.n_points:
+    verdict = report_verdict(result)
+    systematic = verdict is not None and any(c.name == "structure" and c.passed is False for c in verdict.checks)
+    if flags.n_points and systematic:
+        warnings.append(f"{flags.n_points} point(s) above {k:g} robust sigma, but the misfit is systematic (see the "
+                        "verdict): --reject would delete good points; fix the cause first")
+    elif flags.n_points:
         warnings.append(f"{flags.n_points} outlier point(s) above {k:g} robust sigma (see Outliers); "
                         f"psdcal calibrate --reject {k:g} removes them and refits")
     if flags.images.any():
@@ -237,6 +278,7 @@ def build_report(result, inputs: ReportInputs = ReportInputs(), *, k: float = DE
              f'<p class="info">{len(result.image_ids)} images, {int(np.isfinite(result.residuals_mm[..., 0]).sum())} points, '
              f"{_esc(result.cost)} cost; calibrated {_esc(result.created or 'unknown')}; report made {_esc(now)} "
              f"by psdcal {_esc(__version__)}.</p>"]
+    parts += _verdict_html(verdict)
     parts.append("<h2 id=\"summary\">Summary</h2>")
     s_tot = fov.sigma_total_deg
     parts.append(_table(["quantity", "value"], [

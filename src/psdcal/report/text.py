@@ -51,3 +51,22 @@ def print_calibration(res, truth: dict | None = None, console=None) -> None:
                       f"(worst: image {res.image_ids[worst]})")
     for w in res.warnings():
         console.print(f"[bold yellow]warning:[/] {w}", markup=True)
+    print_verdict(res, console)
+
+
+def print_verdict(res, console=None) -> None:
+    """Print a calibration's verdict (good / suspect / wrong) and the failed checks with their advice."""
+    if not getattr(res, "verdict", None):
+        return
+    from rich.console import Console
+    from rich.markup import escape
+
+    from psdcal.calibration.verdict import Verdict
+
+    console = console or Console()
+    v = Verdict.from_dict(res.verdict)
+    colour = {"good": "green", "suspect": "yellow", "wrong": "red"}[v.verdict]
+    lines = v.lines()
+    console.print(f"[bold {colour}]{escape(lines[0])}[/]", markup=True)
+    for line in lines[1:]:
+        console.print(escape(line), markup=True, soft_wrap=True)

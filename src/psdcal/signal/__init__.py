@@ -5,4 +5,5 @@
 - :mod:`psdcal.signal.demod`: lock-in and band-pass amplitude estimators.
 - :mod:`psdcal.signal.recording`: readers for NPY, CSV, HDF5 and TDMS recordings (chunked).
 - :mod:`psdcal.signal.stream`: windowed multi-carrier lock-in and time-multiplexing segmentation.
+- :mod:`psdcal.signal.live`: raw four-channel streams from stdin, a localhost socket or a NI DAQ.
 """

@@ -1,4 +1,4 @@
-"""Simulated signal chain of the PSD sensor (MODEL.md 3, the paper's Sections 4.3-4.5).
+"""Simulated signal chain of the PSD sensor (docs/model.md#signal-chain, the paper's Sections 4.3-4.5).
 
 For each light spot (one LED of the template switched on, time multiplexing)::
 
@@ -12,15 +12,15 @@ Conventions
   in Hz, photocurrents in A, gains in V/A (ohm), signals in V.
 * Each channel carries ``A_i sin(2 pi f_c t + phase) + noise``, ``t = k / rate``
   for ``k = 0 .. n - 1``, ``n = round(rate_hz * duration_s)``.
-* **SNR** (MODEL.md 3): every channel of a spot gets the *same* white Gaussian
+* **SNR** (docs/model.md#snr-definition): every channel of a spot gets the *same* white Gaussian
   noise, ``sigma = A_mean / sqrt(2) / 10^(snr_db / 20)``, ``A_mean`` the mean
   of the four channel amplitudes (absolute values) of that spot.  The noise
   does not scale with each channel's own light.
 * **PSD distortion** ``l1`` [mm^-2] (Section 4.5): the readout of a spot at
   the true position ``p`` is the point ``d`` with ``d (1 + l1 |d|^2) = p``
-  (the PSD part of the undistortion model, MODEL.md 5, centre (0, 0));
+  (the PSD part of the undistortion model, docs/model.md#distortion, centre (0, 0));
   ``d`` is what the chain feeds to the current split, so Eq 1-2 return ``d``.
-* **Signed amplitudes.**  The linear current split of MODEL.md 2 keeps all
+* **Signed amplitudes.**  The linear current split of docs/model.md#psd-readout keeps all
   four currents positive only inside the diamond ``|2x/Lx| + |2y/Ly| <= 1``;
   outside it (towards the corners of the square active area) one channel's
   current is negative, i.e. its carrier is in antiphase.  The estimators
@@ -67,7 +67,7 @@ _EXACT_FACTOR_MAX_SAMPLES = 16384
 
 @dataclass(frozen=True)
 class ChainSettings:
-    """Settings of the simulated signal chain (MODEL.md 3).
+    """Settings of the simulated signal chain (docs/model.md#signal-chain).
 
     Change with :func:`dataclasses.replace`; never mutated.
 
@@ -289,7 +289,7 @@ def channel_gains(settings: ChainSettings | None = None, rng=None) -> np.ndarray
 def psd_distort(xy_mm, l1: float):
     """Readout position of a spot under the PSD's pin-cushion distortion.
 
-    Solves ``d (1 + l1 |d|^2) = p`` for ``d`` (MODEL.md 5, PSD part, centre
+    Solves ``d (1 + l1 |d|^2) = p`` for ``d`` (docs/model.md#distortion, PSD part, centre
     (0, 0)) with :func:`psdcal.model.distortion.distort` (only ``l1`` set).
 
     Parameters
@@ -337,7 +337,7 @@ def _gains_array(settings: ChainSettings, gains) -> np.ndarray:
 def signal_amplitudes(xy_mm, settings: ChainSettings | None = None, gains=None, l1: float = 0.0):
     """Noiseless carrier amplitudes of the four channels, V (signed).
 
-    ``A_i = K_i I_i`` with the current split of MODEL.md 2 at the PSD readout
+    ``A_i = K_i I_i`` with the current split of docs/model.md#psd-readout at the PSD readout
     position of the spot (:func:`psd_distort`).  Negative where the linear
     split gives a negative current (outside the diamond
     ``|2x/Lx| + |2y/Ly| <= 1``).
@@ -369,7 +369,7 @@ def signal_amplitudes(xy_mm, settings: ChainSettings | None = None, gains=None, 
 
 
 def noise_sigma(amplitudes, snr_db: float):
-    """Noise standard deviation of a spot's channels for a given SNR (MODEL.md 3).
+    """Noise standard deviation of a spot's channels for a given SNR (docs/model.md#signal-chain).
 
     ``sigma = A_mean / sqrt(2) / 10^(snr_db / 20)`` with ``A_mean`` the mean
     of the four channel amplitudes (absolute values): the SNR is the mean
@@ -504,7 +504,7 @@ def measure_amplitudes(
     demodulation (:func:`estimate_amplitudes`).  Works in blocks of spots
     (at most about 16 MiB of samples at a time); the noise drawn does not
     depend on the block size.  These are the raw amplitudes of the points
-    file ``image_id,point_id,vx1,vx2,vy1,vy2`` (MODEL.md 9).
+    file ``image_id,point_id,vx1,vx2,vy1,vy2`` (docs/model.md#calibration-json).
 
     Parameters
     ----------

@@ -1,4 +1,4 @@
-"""Amplitude estimation of a modulated carrier (MODEL.md 3).
+"""Amplitude estimation of a modulated carrier (docs/model.md#signal-chain).
 
 One implementation shared by the signal-chain simulator and the measurement
 side (``psdcal locate``).  Signals are arrays whose **last axis is time**;

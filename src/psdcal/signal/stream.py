@@ -1,4 +1,4 @@
-"""Streaming demodulation of four-channel recordings (MODEL.md 3).
+"""Streaming demodulation of four-channel recordings (docs/model.md#signal-chain).
 
 * :class:`MultiCarrierLockin`: windowed synchronous demodulation of several
   carriers at once (frequency multiplexing).  Every window of ``n_window``

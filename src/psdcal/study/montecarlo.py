@@ -17,8 +17,8 @@ good row); :func:`run_trials` then warns with the number of failures and the
 first failing trial's index.  ``on_error="raise"`` raises
 :class:`TrialError` naming the trial instead.
 
-Example
--------
+Examples
+--------
 >>> from psdcal.study.montecarlo import run_trials
 >>> from psdcal.signal.chain import measure_point_trial
 >>> table = run_trials(measure_point_trial, 200, seed=1, executor="serial",

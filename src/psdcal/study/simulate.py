@@ -20,7 +20,7 @@ from psdcal.model.readout import LX_MM, LY_MM
 #: Optical centre offset from the electrical centre used by the paper, mm (Section 4.1).
 PAPER_CENTRE_MM = (0.5, -0.7)
 
-#: The paper's two lenses (Section 4.1); k in powers of mm (MODEL.md 1).
+#: The paper's two lenses (Section 4.1); k in powers of mm (docs/model.md#frames-and-units).
 LENSES: dict[str, tuple[Intrinsics, Distortion]] = {
     "lens1": (Intrinsics(f_mm=25.0, cx_mm=0.5, cy_mm=-0.7), Distortion(k1=2e-3)),
     "lens2": (Intrinsics(f_mm=8.0, cx_mm=0.5, cy_mm=-0.7), Distortion(k1=1e-2, k2=3e-5)),

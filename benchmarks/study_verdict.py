@@ -1,0 +1,171 @@
+#!/usr/bin/env python3
+"""False-alarm and detection rates of the calibration verdict (``psdcal.calibration.verdict``).
+
+Correct fits: random irregular-template cases (``psdcal.study.faults.random_case``),
+Lens 1 or 2, 6-15 views, 0.2-10 um noise, fitted with a model that contains
+the truth (switches drawn from :data:`CORRECT_MODELS`); a false alarm is a
+verdict other than ``good`` (per check: a failed check).
+
+Faults (each ``--faults`` cases): ``gains`` (raw amplitudes through the
+paper's chain with R 1 %, C 15 % tolerances, SNR 40-60 dB, fitted without
+``--fit-gains``), ``wrong_min`` (a single-start fit that stopped in a wrong
+minimum, :func:`psdcal.study.faults.wrong_minimum`), ``swap`` (two template
+LEDs swapped), ``mislabel`` (one view's labels shifted by one), ``metres``
+(points and template in metres), ``no_k2`` (Lens 2 fitted with radial 1).
+Detected: verdict not ``good``, or the calibration refused with an error.
+
+Usage::
+
+    .venv/bin/python benchmarks/study_verdict.py [--correct 500] [--faults 100] [--jobs 2] [--markdown]
+"""
+from __future__ import annotations
+
+import os
+
+for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
+
+import argparse  # noqa: E402
+import time  # noqa: E402
+from collections import Counter  # noqa: E402
+
+import numpy as np  # noqa: E402
+
+CORRECT_MODELS = {
+    "lens1": ({"radial": 1, "tangential": False}, {"radial": 2, "tangential": False}, {"radial": 2, "tangential": True}),
+    "lens2": ({"radial": 2, "tangential": False}, {"radial": 3, "tangential": False}, {"radial": 2, "tangential": True}),
+}
+FAULT_KINDS = ("gains", "wrong_min", "swap", "mislabel", "metres", "no_k2")
+
+
+def correct(seed: int) -> dict:
+    from psdcal.calibration.core import calibrate
+    from psdcal.calibration.verdict import assess
+    from psdcal.study.faults import random_case
+
+    lens = ("lens1", "lens2")[seed % 2]
+    model = CORRECT_MODELS[lens][(seed // 2) % 3]
+    c = random_case(50_000 + seed, lens=lens, model=model)
+    t0 = time.perf_counter()
+    r = calibrate(c.template_mm, c.points_mm, **model, verdict=False)
+    t1 = time.perf_counter()
+    v = assess(r, diagnose=False)
+    t2 = time.perf_counter()
+    vk = assess(r, noise_mm=c.noise_mm, diagnose=False)  # with the true noise stated
+    return {"seed": seed, "verdict": v.verdict, "verdict_noise": vk.verdict,
+            "failed": [x.name for x in vk.failed], "t_fit": t1 - t0, "t_verdict": t2 - t1}
+
+
+def faulty(args) -> dict:
+    kind, seed = args
+    from psdcal.calibration.core import calibrate
+    from psdcal.calibration.verdict import assess
+    from psdcal.errors import PsdcalError
+    from psdcal.study.faults import random_case, wrong_minimum
+
+    if kind == "wrong_min":
+        c, r = wrong_minimum(seed)
+    else:
+        c = random_case(90_000 + seed, fault=kind)
+        try:
+            r = calibrate(c.template_mm, c.points_mm, **c.model, verdict=False)
+        except PsdcalError as exc:
+            r = getattr(exc, "result", None)
+            if r is None:
+                return {"kind": kind, "seed": seed, "verdict": "refused", "failed": [str(exc)[:60]]}
+    v = assess(r, diagnose=False, points_kind="amplitudes" if kind == "gains" else "points")
+    out = {"kind": kind, "seed": seed, "verdict": v.verdict, "failed": [x.name for x in v.failed]}
+    if kind == "no_k2":  # how many standard errors k2 is from 0 in the fit of the true model (its detectability)
+        t = calibrate(c.template_mm, c.points_mm, radial=2, tangential=False, verdict=False)
+        out["k2_z"] = float(t.distortion.k2 / t.std["k2"])
+        out["noise_um"] = c.noise_mm * 1e3
+    return out
+
+
+def advice(args) -> dict:
+    """Whether the diagnosis (advice of the failed checks, or the refusal's message) names the planted cause."""
+    kind, seed = args
+    from psdcal.calibration.core import calibrate
+    from psdcal.calibration.verdict import assess
+    from psdcal.errors import PsdcalError
+    from psdcal.study.faults import random_case, wrong_minimum
+
+    text = ""
+    if kind == "wrong_min":
+        c, r = wrong_minimum(seed)
+    else:
+        c = random_case(90_000 + seed, fault=kind)
+        try:
+            r = calibrate(c.template_mm, c.points_mm, **c.model, verdict=False)
+        except PsdcalError as exc:
+            text = str(exc)
+            r = getattr(exc, "result", None)
+    if r is not None:
+        v = assess(r, points_kind="amplitudes" if kind == "gains" else "points")
+        text += " " + " ".join(ch.advice for ch in v.failed)
+    want = {"gains": ["--fit-gains"], "wrong_min": ["local minimum"], "metres": ["metres"], "no_k2": ["--radial 2"],
+            "mislabel": [f"view {c.bad_image} "]}.get(kind)
+    if kind == "swap":
+        a, b = np.nonzero(np.any(c.template_mm != c.set.template_mm, axis=1))[0]
+        want = [f"LEDs {a} and {b}", f"LEDs {b} and {a}"]
+    return {"kind": kind, "seed": seed, "named": any(w in text for w in want), "text": text[:200]}
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--correct", type=int, default=500)
+    ap.add_argument("--faults", type=int, default=100)
+    ap.add_argument("--jobs", type=int, default=1)
+    ap.add_argument("--markdown", action="store_true")
+    ap.add_argument("--advice", type=int, default=0, help="cases per fault whose diagnosis is checked (slower: refits)")
+    a = ap.parse_args(argv)
+    from concurrent.futures import ProcessPoolExecutor
+
+    ex = ProcessPoolExecutor(a.jobs) if a.jobs > 1 else None
+    mp = ex.map if ex else map
+    rows = list(mp(correct, range(a.correct)))
+    frows = list(mp(faulty, [(k, s) for k in FAULT_KINDS for s in range(a.faults)]))
+    arows = list(mp(advice, [(k, s) for k in FAULT_KINDS for s in range(a.advice)])) if a.advice else []
+    if ex:
+        ex.shutdown()
+    n = max(len(rows), 1)
+    fa = sum(r["verdict"] != "good" for r in rows)
+    fan = sum(r["verdict_noise"] != "good" for r in rows)
+    per = Counter(name for r in rows for name in r["failed"])
+    print(f"correct fits: {n}; verdict not good: {fa} ({100 * fa / n:.2f} %) without a stated noise, "
+          f"{fan} ({100 * fan / n:.2f} %) with the true noise stated")
+    print("  failed checks (noise stated): " + (", ".join(f"{k} {v}" for k, v in per.most_common()) or "none"))
+    if rows:
+        print(f"  median fit {np.median([r['t_fit'] for r in rows]) * 1e3:.1f} ms, "
+              f"verdict {np.median([r['t_verdict'] for r in rows]) * 1e3:.1f} ms")
+    print("| fault | cases | detected (verdict not good or refused) | rate | wrong | suspect | refused | checks failing most |")
+    print("|---|---|---|---|---|---|---|---|")
+    for k in FAULT_KINDS:
+        rs = [r for r in frows if r["kind"] == k]
+        det = sum(r["verdict"] != "good" for r in rs)
+        cnt = Counter(r["verdict"] for r in rs)
+        top = Counter(name for r in rs for name in r["failed"] if r["verdict"] != "refused").most_common(3)
+        print(f"| {k} | {len(rs)} | {det} | {100 * det / max(len(rs), 1):.1f} % | {cnt['wrong']} | {cnt['suspect']} | {cnt['refused']} | "
+              + ", ".join(f"{a_} {b_}" for a_, b_ in top) + " |")
+        if k == "no_k2":
+            for zmin in (3.0, 5.0):
+                sub = [r for r in rs if abs(r["k2_z"]) >= zmin]
+                d = sum(r["verdict"] != "good" for r in sub)
+                print(f"| no_k2, k2 >= {zmin:g} std errors from 0 in the true model's fit | {len(sub)} | {d} | "
+                      f"{100 * d / max(len(sub), 1):.1f} % | | | | |")
+        for r in rs:
+            if r["verdict"] == "good":
+                print(f"    missed: {r}")
+    if arows:
+        print("| fault | cases | advice names the planted cause |")
+        print("|---|---|---|")
+        for k in FAULT_KINDS:
+            rs = [r for r in arows if r["kind"] == k]
+            print(f"| {k} | {len(rs)} | {sum(r['named'] for r in rs)} |")
+        for r in arows:
+            if not r["named"]:
+                print(f"    not named: {r}")
+
+
+if __name__ == "__main__":
+    main()

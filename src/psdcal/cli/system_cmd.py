@@ -1,0 +1,837 @@
+"""System-level commands: ``simulate-recording``, ``pose``, ``track``.
+
+A thin layer over :mod:`psdcal.study.recordings`, :mod:`psdcal.measure.pose`
+and :mod:`psdcal.measure.tracking` (no numerics here).
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+from psdcal.cli import cli
+
+_FORMATS = ("npy", "csv", "hdf5", "tdms")
+
+
+def _lens_model(lens, psd_l1=0.0):
+    from dataclasses import replace
+
+    from psdcal.measure.sensor_model import SensorModel
+    from psdcal.study.simulate import LENSES
+
+    intr, dist = LENSES[lens]
+    return SensorModel(intrinsics=intr, distortion=replace(dist, l1=dist.l1 + psd_l1))
+
+
+def _write_schedule(path, sched):
+    from psdcal._atomic import write_text_atomic
+
+    lines = ["emitter,t_start_s,t_end_s"] + [f"{e},{a:.9g},{b:.9g}" for e, a, b in sched]
+    write_text_atomic(path, "\n".join(lines) + "\n")
+
+
+@cli.group("simulate-recording")
+def simulate_recording_group():
+    """Simulate four-channel recordings with known truth (template views, or a room).
+
+    \b
+    psdcal simulate-recording template -o cal/      # recordings for amplitudes + calibrate
+    psdcal simulate-recording room -o room/         # recordings for pose + locate
+    Run each with --help for the files it writes.
+    """
+
+
+@simulate_recording_group.command("template")
+@click.option("--lens", type=click.Choice(["lens1", "lens2"]), default="lens2", show_default=True,
+              help="The truth: one of the paper's lens presets.")
+@click.option("--psd-l1", type=float, default=0.0, show_default=True, help="PSD radial distortion l1 added, mm^-2.")
+@click.option("--views", type=click.IntRange(3, 1000), default=12, show_default=True, help="Template views.")
+@click.option("--mux", type=click.Choice(["tdm", "fdm"]), default="tdm", show_default=True,
+              help="tdm: one LED on at a time (a schedule is written); fdm: all LEDs at once on their own carriers.")
+@click.option("--format", "fmt", type=click.Choice(_FORMATS), default="npy", show_default=True,
+              help="Recording file format.")
+@click.option("--rate-hz", type=float, default=50_000.0, show_default=True, help="Sampling rate.")
+@click.option("--carrier-hz", type=float, default=1000.0, show_default=True,
+              help="Carrier (tdm), or the first LED's carrier (fdm).")
+@click.option("--carrier-step-hz", type=float, default=100.0, show_default=True,
+              help="fdm: carrier spacing between consecutive LEDs.")
+@click.option("--on-s", type=float, default=0.02, show_default=True,
+              help="tdm: time each LED is on; fdm: length of each recording (one window).")
+@click.option("--gap-s", type=float, default=0.004, show_default=True, help="tdm: dark time between LEDs.")
+@click.option("--snr-db", type=float, default=60.0, show_default=True,
+              help="SNR against the mean channel signal power (same noise sigma on every channel).")
+@click.option("--no-noise", is_flag=True, help="Noiseless recordings (overrides --snr-db).")
+@click.option("--gain-imbalance", type=click.FloatRange(0.0, 0.5), default=0.0, show_default=True,
+              help="Channel gains drawn in 1 +- this (calibrate with --fit-gains to estimate them).")
+@click.option("--seed", type=int, default=0, show_default=True, help="Random seed (same seed, same files).")
+@click.option("-o", "--out-dir", type=click.Path(file_okay=False, path_type=Path), required=True,
+              help="Folder for the recordings, template.csv, schedule.csv (tdm) and truth.json.")
+def simulate_template_command(lens, psd_l1, views, mux, fmt, rate_hz, carrier_hz, carrier_step_hz, on_s, gap_s,
+                              snr_db, no_noise, gain_imbalance, seed, out_dir):
+    """Recordings of the calibration template's LEDs in several poses.
+
+    \b
+    Writes OUT_DIR/view_00.npy ... (one recording per view, channels vx1,vx2,vy1,vy2),
+    OUT_DIR/template.csv (point_id,X_mm,Y_mm), OUT_DIR/schedule.csv (tdm: emitter,t_start_s,t_end_s,
+    the LED = the template's point_id), OUT_DIR/truth.json (intrinsics, distortion, gains, poses,
+    the demodulation settings) and OUT_DIR/amplitudes.sh (the amplitudes commands for every view).
+    \b
+    Example (tdm):
+      psdcal simulate-recording template --views 8 -o cal
+      psdcal amplitudes cal/view_00.npy --rate-hz 50000 --carrier-hz 1000 --window-s 0.005 \\
+          --schedule cal/schedule.csv --image-id 0 -o cal/amp_00.csv
+    """
+    from psdcal.io import write_json, write_template
+    from psdcal.study.recordings import FORMATS, simulate_template_views, write_recording
+    from psdcal.study.simulate import LENSES
+
+    intr, dist = LENSES[lens]
+    tv = simulate_template_views((intr, dist), n_views=views, mux=mux, rate_hz=rate_hz, carrier_hz=carrier_hz,
+                                 carrier_step_hz=carrier_step_hz, on_s=on_s, gap_s=gap_s,
+                                 snr_db=None if no_noise else snr_db, gain_imbalance=gain_imbalance,
+                                 psd_l1=psd_l1, seed=seed)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    write_template(out_dir / "template.csv", tv.point_ids, tv.template_mm)
+    files = []
+    for v, x in enumerate(tv.x):
+        p = out_dir / f"view_{v:02d}{FORMATS[fmt]}"
+        write_recording(p, x, tv.rate_hz)
+        files.append(p.name)
+    if tv.schedule is not None:
+        _write_schedule(out_dir / "schedule.csv", tv.schedule)
+        demod = f"--carrier-hz {tv.carriers_hz[0]:g} --window-s {tv.window_s:g} --schedule {out_dir / 'schedule.csv'}"
+    else:
+        demod = " ".join(f"--carrier-hz {f:g} --emitter {pid}" for f, pid in zip(tv.carriers_hz, tv.point_ids))
+        demod += f" --window-s {tv.window_s:g}"
+    rate_opt = "" if fmt in ("csv", "hdf5", "tdms") else f" --rate-hz {tv.rate_hz:g}"
+    cmds = [f"psdcal amplitudes {out_dir / f}{rate_opt} {demod} --image-id {v} -o {out_dir / f'amp_{v:02d}.csv'}"
+            for v, f in enumerate(files)]
+    from psdcal._atomic import write_text_atomic
+
+    write_text_atomic(out_dir / "amplitudes.sh", "\n".join(cmds) + "\n")
+    truth = dict(tv.truth, lens=lens, recordings=files, format=fmt,
+                 amplitudes_options=f"{rate_opt.strip()} {demod}".strip())
+    write_json(out_dir / "truth.json", truth)
+    click.echo(f"wrote {len(files)} {fmt} recordings ({mux}, {len(tv.point_ids)} LEDs, "
+               f"{tv.x[0].shape[1] / tv.rate_hz:.4g} s each), template.csv, truth.json, amplitudes.sh to {out_dir}")
+
+
+@simulate_recording_group.command("room")
+@click.option("--lens", type=click.Choice(["lens1", "lens2"]), default="lens2", show_default=True,
+              help="The sensors' true intrinsics: one of the paper's lens presets.")
+@click.option("--psd-l1", type=float, default=0.0, show_default=True, help="PSD radial distortion l1 added, mm^-2.")
+@click.option("--calib", type=click.Path(dir_okay=False, path_type=Path),
+              help="Calibration JSON the sensors file refers to (default: write calib_truth.json, the exact truth).")
+@click.option("--room-m", type=(float, float, float), default=(6.0, 4.0, 3.0), show_default=True,
+              help="Room size X Y Z in metres (the world frame: floor corner at the origin, Z up).")
+@click.option("--sensors", "n_sensors", type=click.IntRange(1, 16), default=2, show_default=True,
+              help="Sensors near the ceiling around the room, looking at its centre.")
+@click.option("--anchors", type=click.IntRange(0, 40), default=5, show_default=True,
+              help="Fixed emitters at known positions (written to emitters.csv, for psdcal pose).")
+@click.option("--sensors-in", type=click.Path(dir_okay=False, path_type=Path),
+              help="Use these sensor poses (a sensors file; names, rvec, tvec_mm) instead of the default ring "
+                   "(their calibrations are ignored: the truth is --lens).")
+@click.option("--emitters-in", type=click.Path(dir_okay=False, path_type=Path),
+              help="Fixed emitters at these positions (CSV emitter,X_m,Y_m,Z_m) instead of random --anchors.")
+@click.option("--moving", type=click.Choice(["circle", "line", "none"]), default="circle", show_default=True,
+              help="A moving emitter 'tag' and its trajectory.")
+@click.option("--speed-mm-s", type=float, default=500.0, show_default=True, help="Speed of the moving emitter.")
+@click.option("--radius-mm", type=float, default=600.0, show_default=True, help="Radius of the circle.")
+@click.option("--duration-s", type=float, default=1.0, show_default=True, help="Recording length.")
+@click.option("--survey-s", type=float, default=0.0, show_default=True,
+              help="Light the fixed emitters during the first SURVEY_S seconds only and the moving one after "
+                   "(a survey for `pose`, then the tracking); 0: all lit all the time.")
+@click.option("--mux", type=click.Choice(["fdm", "tdm"]), default="fdm", show_default=True,
+              help="fdm: every emitter on its own carrier; tdm: the emitters take turns (schedule.csv).")
+@click.option("--slot-s", type=float, default=0.02, show_default=True, help="tdm: time each emitter is on.")
+@click.option("--format", "fmt", type=click.Choice(_FORMATS), default="npy", show_default=True,
+              help="Recording file format.")
+@click.option("--rate-hz", type=float, default=20_000.0, show_default=True, help="Sampling rate.")
+@click.option("--carrier-hz", type=float, default=1000.0, show_default=True, help="First emitter's carrier.")
+@click.option("--carrier-step-hz", type=float, default=150.0, show_default=True,
+              help="fdm: carrier spacing between emitters.")
+@click.option("--snr-db", type=float, default=60.0, show_default=True,
+              help="SNR against the mean channel signal power (docs/model.md#snr-definition).")
+@click.option("--gain-imbalance", type=click.FloatRange(0.0, 0.5), default=0.0, show_default=True,
+              help="Each sensor's channel gains drawn in 1 +- this.")
+@click.option("--seed", type=int, default=0, show_default=True, help="Random seed.")
+@click.option("-o", "--out-dir", type=click.Path(file_okay=False, path_type=Path), required=True,
+              help="Output folder.")
+def simulate_room_command(lens, psd_l1, calib, room_m, n_sensors, anchors, sensors_in, emitters_in, moving, speed_mm_s, radius_mm, duration_s,
+                          survey_s, mux, slot_s, fmt, rate_hz, carrier_hz, carrier_step_hz, snr_db, gain_imbalance, seed,
+                          out_dir):
+    """Recordings of emitters (fixed and moving) seen by sensors placed in a room.
+
+    \b
+    Writes to OUT_DIR:
+      s1.npy, s2.npy ...   one recording per sensor
+      sensors.json         the sensors file of `locate --sensors` with the TRUE poses
+      emitters.csv         emitter,X_m,Y_m,Z_m,carrier_hz of the fixed emitters (for `pose`)
+      truth.json           emitters, sensors, signal settings
+      truth_track.csv      t_s,emitter,X_mm,Y_mm,Z_mm of every emitter every millisecond
+      schedule.csv         (tdm) emitter,t_start_s,t_end_s
+      calib_truth.json     (without --calib) the sensors' exact calibration
+    Example:
+      psdcal simulate-recording room --sensors 2 --anchors 5 -o room
+    """
+    import numpy as np
+
+    from psdcal._atomic import write_text_atomic
+    from psdcal.errors import InputError
+    from psdcal.io import write_json
+    from psdcal.study.recordings import FORMATS, room_layout, simulate_room, write_recording
+
+    truth_model = _lens_model(lens, psd_l1)
+    given_sensors = anchors_mm = anchor_names = None
+    if sensors_in is not None:
+        import json
+
+        from psdcal.study.recordings import RoomSensor
+
+        try:
+            data = json.loads(Path(sensors_in).read_text(encoding="utf-8"))
+        except FileNotFoundError:
+            raise InputError("sensors file not found", path=sensors_in) from None
+        except json.JSONDecodeError as exc:
+            raise InputError(f"not valid JSON: {exc.msg}", path=sensors_in, line=exc.lineno) from None
+        items = data.get("sensors") if isinstance(data, dict) else data
+        if not isinstance(items, list) or not items:
+            raise InputError("expected a list of sensors", path=sensors_in, field="sensors")
+        given_sensors = []
+        for i, it in enumerate(items):
+            try:
+                rv = np.asarray(it["rvec"], dtype=float)
+                tv = np.asarray(it["tvec_mm"], dtype=float)
+                assert rv.shape == (3,) and tv.shape == (3,) and np.all(np.isfinite(rv)) and np.all(np.isfinite(tv))
+            except (KeyError, TypeError, ValueError, AssertionError):
+                raise InputError("each sensor needs 'rvec' and 'tvec_mm' (3 numbers each)", path=sensors_in,
+                                 field=f"sensors[{i}]") from None
+            given_sensors.append(RoomSensor(str(it.get("name", f"s{i + 1}")), truth_model, rv, tv))
+    if emitters_in is not None:
+        from psdcal.measure.pose import read_emitters
+
+        anchor_names, anchors_mm, _ = read_emitters(emitters_in)
+    sensors, emitters = room_layout(truth_model, room_mm=np.array(room_m) * 1000.0, n_sensors=n_sensors,
+                                    sensors=given_sensors, anchors_mm=anchors_mm, anchor_names=anchor_names,
+                                    n_anchors=anchors, moving=None if moving == "none" else moving,
+                                    speed_mm_s=speed_mm_s, radius_mm=radius_mm, carrier_hz=carrier_hz,
+                                    carrier_step_hz=carrier_step_hz, seed=seed, survey_s=survey_s)
+    if not emitters:
+        raise InputError("no emitters: give --anchors > 0 or a --moving trajectory", field="anchors")
+    rr = simulate_room(sensors, emitters, duration_s=duration_s, rate_hz=rate_hz, snr_db=snr_db, mux=mux,
+                       slot_s=slot_s, gain_imbalance=gain_imbalance, seed=seed)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    if calib is None:
+        calib_name = "calib_truth.json"
+        d = truth_model.to_dict()
+        d.pop("covariance")  # the exact truth: no parameter uncertainty
+        write_json(out_dir / calib_name, d)
+    else:
+        import os
+
+        calib_name = os.path.relpath(Path(calib).resolve(), out_dir.resolve())
+    entries = []
+    for s, x in zip(sensors, rr.x):
+        name = f"{s.name}{FORMATS[fmt]}"
+        write_recording(out_dir / name, x, rr.rate_hz)
+        entries.append({"name": s.name, "calib": calib_name, "rvec": np.asarray(s.rvec).tolist(),
+                        "tvec_mm": np.asarray(s.tvec_mm).tolist(), "recording": name})
+    write_json(out_dir / "sensors.json", {"sensors": entries})
+    lines = ["emitter,X_m,Y_m,Z_m,carrier_hz"]
+    for e in emitters:
+        if e.kind == "static":
+            p = np.asarray(e.p0_mm) / 1000.0
+            lines.append(f"{e.name},{p[0]:.9g},{p[1]:.9g},{p[2]:.9g},{e.carrier_hz:g}")
+    write_text_atomic(out_dir / "emitters.csv", "\n".join(lines) + "\n")
+    tg = np.arange(0.0, duration_s + 1e-12, 1e-3)
+    rows = ["t_s,emitter,X_mm,Y_mm,Z_mm"]
+    for e in emitters:
+        P = e.position(tg)
+        rows += [f"{t:.6f},{e.name},{p[0]:.6f},{p[1]:.6f},{p[2]:.6f}" for t, p in zip(tg, P)]
+    write_text_atomic(out_dir / "truth_track.csv", "\n".join(rows) + "\n")
+    if rr.schedule is not None:
+        _write_schedule(out_dir / "schedule.csv", rr.schedule)
+    write_json(out_dir / "truth.json", dict(rr.truth, lens=lens, format=fmt, room_m=list(room_m)))
+    hidden = [(s.name, e.name) for i, s in enumerate(sensors) for j, e in enumerate(emitters) if not rr.visible[i, j]]
+    click.echo(f"wrote {len(sensors)} {fmt} recordings of {len(emitters)} emitters ({mux}, {duration_s:g} s), "
+               f"sensors.json, emitters.csv, truth.json, truth_track.csv to {out_dir}")
+    if hidden:
+        click.echo(f"warning: not always in view: {', '.join(f'{e} from {s}' for s, e in hidden)}", err=True)
+
+
+# --------------------------------------------------------------------------- pose
+def _merge_sensors_file(path: Path, entry: dict) -> None:
+    """Add ``entry`` to the sensors file ``path`` (replacing one of the same name); create it if missing."""
+    import json
+
+    from psdcal.errors import InputError
+    from psdcal.io import write_json
+
+    sensors = []
+    if path.exists():
+        try:
+            data = json.loads(path.read_text(encoding="utf-8"))
+        except json.JSONDecodeError as exc:
+            raise InputError(f"not valid JSON: {exc.msg}", path=path, line=exc.lineno) from None
+        sensors = data.get("sensors") if isinstance(data, dict) else data
+        if not isinstance(sensors, list):
+            raise InputError("expected a list of sensors", path=path, field="sensors")
+    sensors = [s for s in sensors if not (isinstance(s, dict) and s.get("name") == entry["name"])] + [entry]
+    write_json(path, {"sensors": sensors})
+
+
+def _read_table(path):
+    """(header, rows) of a CSV whose header names 'emitter' (a locate or amplitudes output), else None."""
+    import csv
+
+    with open(path, newline="", encoding="utf-8") as fh:
+        rows = list(csv.reader(fh))
+    if not rows or "emitter" not in [h.strip() for h in rows[0]]:
+        return None
+    return [h.strip() for h in rows[0]], [r for r in rows[1:] if r and any(c.strip() for c in r)]
+
+
+def _table_means(path, header, rows, model):
+    import numpy as np
+
+    from psdcal.errors import InputError
+    from psdcal.measure.pose import mean_amplitudes, mean_points
+
+    def column(name):
+        i = header.index(name)
+        out = []
+        for lineno, r in enumerate(rows, start=2):
+            try:
+                out.append(float(r[i]))
+            except (ValueError, IndexError):
+                raise InputError(f"not a number: {r[i] if i < len(r) else ''!r}", path=path, line=lineno,
+                                 field=name) from None
+        return np.array(out)
+
+    names = [r[header.index("emitter")].strip() for r in rows]
+    amp = ("vx1", "vx2", "vy1", "vy2")
+    if all(c in header for c in amp):
+        a = np.stack([column(c) for c in amp], -1)
+        if all(f"sigma_{c}" in header for c in amp):
+            v = np.stack([column(f"sigma_{c}") for c in amp], -1) ** 2
+        else:
+            v = np.ones_like(a)
+        return mean_amplitudes(names, a, v, model)
+    if all(c in header for c in ("x_mm", "y_mm")):
+        d = np.stack([column("x_mm"), column("y_mm")], -1)
+        if all(c in header for c in ("sigma_x_mm", "sigma_y_mm")):
+            s = np.stack([column("sigma_x_mm"), column("sigma_y_mm")], -1)
+        else:
+            s = np.full_like(d, 1e-3)
+        return mean_points(names, d, s)
+    raise InputError("the table must have x_mm,y_mm (a locate output) or vx1,vx2,vy1,vy2 (amplitudes)",
+                     path=path, line=1)
+
+
+def _table_angles(path, header, rows):
+    """(names, alpha_deg (N, 2), sigma_alpha_deg (N, 2)) of an angles table."""
+    import numpy as np
+
+    from psdcal.errors import InputError
+
+    cols = ["alpha_x_deg", "alpha_y_deg", "sigma_alpha_x_deg", "sigma_alpha_y_deg"]
+    missing = [c for c in cols[2:] if c not in header]
+    if missing:
+        raise InputError(f"an angles table needs the sigma columns too (missing {missing})", path=path, line=1,
+                         field=missing[0])
+    vals = np.empty((len(rows), 4))
+    for lineno, r in enumerate(rows, start=2):
+        for k, c in enumerate(cols):
+            try:
+                vals[lineno - 2, k] = float(r[header.index(c)])
+            except (ValueError, IndexError):
+                raise InputError("not a number", path=path, line=lineno, field=c) from None
+    names = [r[header.index("emitter")].strip() for r in rows]
+    return names, vals[:, :2], vals[:, 2:]
+
+
+@cli.command("pose")
+@click.argument("source", type=click.Path(dir_okay=False, path_type=Path))
+@click.option("--calib", required=True, type=click.Path(dir_okay=False, path_type=Path),
+              help="Calibration JSON of the sensor (its covariance enters the pose's).")
+@click.option("--emitters", "emitters_csv", required=True, type=click.Path(dir_okay=False, path_type=Path),
+              help="CSV emitter,X_m,Y_m,Z_m[,carrier_hz]: the known emitters in the room frame (metres).")
+@click.option("--rate-hz", type=float, help="Sampling rate (when the recording does not carry one).")
+@click.option("--carrier-hz", "carriers", type=float, multiple=True,
+              help="Carrier of an emitter, repeat (default: the emitters file's carrier_hz column).")
+@click.option("--emitter", "emitter_names", multiple=True, help="Name of each --carrier-hz's emitter.")
+@click.option("--also-carrier-hz", "also", type=float, multiple=True,
+              help="Other carriers in the recording (emitters not in the file, e.g. a moving tag): fitted "
+                   "jointly so they do not leak into the known emitters' amplitudes; repeat.")
+@click.option("--window-s", type=float, default=0.01, show_default=True, help="Demodulation window.")
+@click.option("--schedule", type=click.Path(dir_okay=False), help="TDM schedule CSV (implies --tdm).")
+@click.option("--tdm", is_flag=True, help="Time multiplexing (one carrier; names from --schedule).")
+@click.option("--min-snr", type=float, default=10.0, show_default=True, help="Drop windows below this many sigma.")
+@click.option("--known-rvec", type=(float, float, float), default=None,
+              help="Known orientation (rotation vector world -> camera, rad): only the position is estimated.")
+@click.option("--known-height-m", type=float, default=None, help="Known height of the sensor's centre, m.")
+@click.option("--name", default="s1", show_default=True, help="Sensor name in the sensors file.")
+@click.option("--recording", "rec_key", type=click.Path(dir_okay=False, path_type=Path),
+              help="Recording the sensors-file entry names (default: SOURCE when it is a recording).")
+@click.option("--into", type=click.Path(dir_okay=False, path_type=Path),
+              help="Add (or replace, by name) the entry in this sensors file (created if missing).")
+@click.option("-o", "--output", type=click.Path(dir_okay=False, path_type=Path),
+              help="Write the entry alone as JSON.")
+def pose_command(source, calib, emitters_csv, rate_hz, carriers, emitter_names, also, window_s, schedule, tdm, min_snr,
+                 known_rvec, known_height_m, name, rec_key, into, output):
+    """Estimate a calibrated sensor's rotation and position in the room (PnP + maximum likelihood).
+
+    SOURCE is the sensor's recording of >= 3 emitters at known positions
+    (2 with --known-rvec, 1 with --known-rvec and --known-height-m), or a table
+    with an 'emitter' column: a `locate` output (x_mm,y_mm,sigma_x_mm,sigma_y_mm),
+    an `amplitudes` output, or angles (alpha_x_deg,alpha_y_deg and their sigma_
+    columns: taken as independent, so the calibration's correlated part is not
+    separated).  The windows of each emitter are averaged.
+
+    \b
+    Writes the sensors-file entry `locate --sensors` reads: name, calib, rvec, tvec_mm,
+    recording, plus pose_covariance (6x6 over omega_x,y,z rad and tx,ty,tz mm, the angle
+    noise and the calibration covariance), pose_calibration (the pose's derivative by the
+    calibration parameters and its noise-only covariance: `locate --sensors` then propagates
+    the rays' and the pose's calibration error together) and pose (centre, 1-sigma, chi2,
+    warnings).
+    \b
+    Example:
+      psdcal pose room/s1.npy --rate-hz 20000 --calib calib.json --emitters room/emitters.csv \\
+          --name s1 --into sensors.json
+    Collinear or too few emitters: an error; a poor layout or angles that do not fit
+    the coordinates (chi2, 0.1 % false alarms): a warning on stderr and in the entry.
+    """
+    import os
+    import tempfile
+
+    import numpy as np
+
+    from psdcal.errors import InputError
+    from psdcal.io import write_json
+    from psdcal.measure.pose import pose_from_means, read_emitters
+    from psdcal.measure.sensor_model import SensorModel
+
+    if into is None and output is None:
+        raise InputError("give --into SENSORS.json and/or -o ENTRY.json", field="output")
+    model = SensorModel.load(calib)
+    names_w, P, carriers_w = read_emitters(emitters_csv)
+    table = _read_table(source) if source.suffix.lower() == ".csv" and source.exists() else None
+    angles = None
+    if table is not None:
+        header, rows = table
+        has = set(header)
+        if not ({"x_mm", "y_mm"} <= has or {"vx1", "vx2", "vy1", "vy2"} <= has) and \
+                {"alpha_x_deg", "alpha_y_deg"} <= has:
+            angles = _table_angles(source, header, rows)
+        else:
+            means = _table_means(source, *table, model)
+        recording = rec_key
+    else:
+        from psdcal.measure.locate import LocateConfig, amplitudes_to_csv
+        from psdcal.signal.recording import open_recording
+        from psdcal.signal.stream import load_schedule
+
+        sched = load_schedule(schedule) if schedule else None
+        is_tdm = bool(tdm or sched is not None)
+        if carriers:
+            cs, ems = tuple(carriers), tuple(emitter_names) or None
+        elif is_tdm:
+            raise InputError("time multiplexing: give the --carrier-hz", field="carrier_hz")
+        elif carriers_w is None:
+            raise InputError("give --carrier-hz (or a carrier_hz column in the emitters file)", path=emitters_csv,
+                             field="carrier_hz")
+        else:
+            cs, ems = tuple(float(f) for f in carriers_w), tuple(names_w)
+        if also:
+            if is_tdm:
+                raise InputError("--also-carrier-hz is for frequency multiplexing", field="also_carrier_hz")
+            ems = (ems or tuple(f"{f:g}Hz" for f in cs)) + tuple(f"other{j + 1}" for j in range(len(also)))
+            cs = cs + tuple(also)
+        config = LocateConfig(carriers_hz=cs, window_s=window_s, emitters=ems, min_snr=min_snr, tdm=is_tdm,
+                              schedule=sched)
+        rec = open_recording(source, rate_hz)
+        with tempfile.TemporaryDirectory() as tmp:
+            amp = Path(tmp) / "amp.csv"
+            amplitudes_to_csv(rec, amp, config)
+            header, rows = _read_table(amp)
+            means = _table_means(amp, header, rows, model)
+        recording = rec_key or source
+    kw = dict(known_rvec=known_rvec, known_height_mm=None if known_height_m is None else known_height_m * 1000.0)
+    if angles is not None:
+        from psdcal.measure.pose import pose_from_angles
+
+        moved = []
+        res = pose_from_angles(*angles, names_w, P, **kw)
+    else:
+        moved = [nm for nm, p in zip(means.names, means.scatter_p) if nm in names_w and np.isfinite(p) and p < 1e-6]
+        res = pose_from_means(means, model, names_w, P, **kw)
+    base = (into or output).resolve().parent
+
+    def rel(p):
+        return None if p is None else os.path.relpath(Path(p).resolve(), base)
+
+    entry = res.sensors_entry(name, rel(calib), rel(recording), calib_names=model.names if angles is None else None)
+    if moved:
+        entry["pose"]["warnings"].append(f"emitter(s) {moved} scatter more than their noise between windows "
+                                         "(moving, or a changing signal)")
+    if output is not None:
+        write_json(output, entry)
+    if into is not None:
+        _merge_sensors_file(into, entry)
+    c = res.center_w_mm / 1000.0
+    sc = res.sigma_center_mm
+    click.echo(f"{name}: centre ({c[0]:.4f}, {c[1]:.4f}, {c[2]:.4f}) m +- ({sc[0]:.3g}, {sc[1]:.3g}, {sc[2]:.3g}) mm, "
+               f"rotation +- {res.sigma_rotation_deg.max():.3g} deg, {res.n_emitters} emitters, chi2 {res.chi2:.3g} "
+               f"for {res.dof} dof; wrote {', '.join(str(p) for p in (output, into) if p is not None)}")
+    for w in entry["pose"]["warnings"]:
+        click.echo(f"warning: {w}", err=True)
+
+
+# --------------------------------------------------------------------------- track
+@cli.command("track")
+@click.argument("located", type=click.Path(dir_okay=False, path_type=Path))
+@click.option("--q", "q", type=float, default=None,
+              help="Process noise: spectral density of the white acceleration, mm^2/s^3 (deg^2/s^3 for angles) "
+                   "[default: 1e6 mm^2/s^3, 10 deg^2/s^3].")
+@click.option("--gate-p", type=click.FloatRange(0.5, 1.0, max_open=True), default=0.999, show_default=True,
+              help="Chi2 gate probability: a measurement whose NIS exceeds this quantile is not used.")
+@click.option("--max-gated", type=click.IntRange(1, 1000), default=5, show_default=True,
+              help="Consecutive gated measurements after which a track restarts.")
+@click.option("-o", "--output", required=True, type=click.Path(dir_okay=False, path_type=Path), help="Output CSV.")
+def track_command(located, q, gate_p, max_gated, output):
+    """Filter a `locate` output (LOCATED.csv) per emitter with a constant-velocity Kalman filter.
+
+    \b
+    Tracks X_mm,Y_mm,Z_mm (several sensors), else X_mm,Y_mm (--distance-mm), else the angles,
+    with the measurement covariance from their sigma_ columns; each emitter has its own
+    track, updated at its own times (time multiplexing needs nothing special).
+    Columns: t_s,emitter,<pos>,v<pos>_s,sigma_<pos>,sigma_v<pos>_s,nis,gated
+    (e.g. X_mm, vX_mm_s, sigma_X_mm, sigma_vX_mm_s).  NIS should average the number of
+    tracked coordinates; much more means q (or the sigmas) too small.
+    Example: psdcal track xyz.csv -o track.csv     (same as: psdcal locate ... --track track.csv)
+    """
+    from psdcal.measure.tracking import track_csv
+
+    info = track_csv(located, output, q=q, gate_p=gate_p, max_gated=max_gated)
+    click.echo(f"wrote {info['n_rows']} tracked rows to {output} ({info['n_gated']} gated, mean NIS "
+               f"{info['mean_nis']:.3g} for {info['dims']} dimensions)")
+
+
+# --------------------------------------------------------------------------- bundle
+def _name_value(items, what):
+    from psdcal.errors import InputError
+
+    out = {}
+    for it in items:
+        if "=" not in it:
+            raise InputError(f"{what} must be NAME=PATH, got {it!r}", field=what)
+        k, v = it.split("=", 1)
+        if not k or not v:
+            raise InputError(f"{what} must be NAME=PATH, got {it!r}", field=what)
+        if k in out:
+            raise InputError(f"sensor {k!r} given twice", field=what)
+        out[k] = v
+    return out
+
+
+def _calib_blocks(dns, cal_covs, keep):
+    """``(dn_dcalib (N, 2, m), cov_calib (S, m, m))`` zero-padded to the largest calibration, or None."""
+    import numpy as np
+
+    m = max((c.shape[0] for c in cal_covs), default=0)
+    if m == 0:
+        return None
+    D = np.zeros((len(dns), 2, m))
+    for o, d in enumerate(dns):
+        D[o, :, : d.shape[-1]] = d
+    Sc = np.zeros((len(cal_covs), m, m))
+    for j, c in enumerate(cal_covs):
+        Sc[j, : c.shape[0], : c.shape[0]] = c
+    return D[keep], Sc
+
+
+@cli.command("bundle")
+@click.argument("located", nargs=-1, required=True)
+@click.option("--calib", "calibs", multiple=True, required=True,
+              help="Calibration JSON: one for every sensor, or NAME=CALIB.json per sensor (repeat).")
+@click.option("--known", "known_csv", required=True, type=click.Path(dir_okay=False, path_type=Path),
+              help="CSV emitter,X_m,Y_m,Z_m of the emitters at known positions (>= 3, not collinear): they fix "
+                   "the world frame.")
+@click.option("--wand", "wands", multiple=True,
+              help="An emitter moved through the room: every window is a new point (repeat for several).")
+@click.option("--points-out", type=click.Path(dir_okay=False, path_type=Path),
+              help="Also write the estimated emitter positions: emitter,X_m,Y_m,Z_m,sigma_X_mm,sigma_Y_mm,sigma_Z_mm.")
+@click.option("-o", "--output", required=True, type=click.Path(dir_okay=False, path_type=Path),
+              help="Sensors file (JSON) with every pose and its pose_covariance.")
+def bundle_command(located, calibs, known_csv, wands, points_out, output):
+    """Calibrate several sensors together: all poses and emitter positions in one bundle adjustment.
+
+    LOCATED are NAME=FILE.csv, one per sensor: `psdcal locate REC --calib ...` outputs (columns
+    t_s,emitter,x_mm,y_mm,sigma_x_mm,sigma_y_mm) of recordings made together (the same
+    windows).  Fixed emitters (known or not) are averaged over their windows; a --wand
+    emitter gives a point per window, matched between sensors by t_s.  Each sensor
+    must see >= 3 known emitters (its starting pose); every unknown point >= 2 sensors.
+
+    \b
+    Example:
+      psdcal bundle s1=s1.csv s2=s2.csv s3=s3.csv --calib calib.json --known known.csv \\
+          --wand tag -o sensors.json --points-out emitters_est.csv
+    The observations are weighted by their angle noise; each sensor's calibration
+    covariance, common to all its observations, is propagated through the solution
+    and added to the pose and point covariances (inverse Schur complement + that).
+    """
+    import os
+
+    import numpy as np
+
+    from psdcal._atomic import write_text_atomic
+    from psdcal.errors import InputError
+    from psdcal.io import write_json
+    from psdcal.measure.aoa import angles_from_points
+    from psdcal.measure.bundle import bundle_adjust
+    from psdcal.measure.pose import estimate_pose, mean_points, read_emitters
+    from psdcal.measure.sensor_model import SensorModel
+
+    files = _name_value(located, "LOCATED")
+    if len(files) < 2:
+        raise InputError("give at least two sensors NAME=LOCATED.csv", field="LOCATED")
+    if len(calibs) == 1 and "=" not in calibs[0]:
+        calib_paths = {k: calibs[0] for k in files}
+    else:
+        calib_paths = _name_value(calibs, "calib")
+        missing = [k for k in files if k not in calib_paths]
+        if missing:
+            raise InputError(f"no --calib for sensor(s) {missing}", field="calib")
+    known_names, known_P, _ = read_emitters(known_csv)
+    known = dict(zip(known_names, known_P))
+    sensors = sorted(files)  # the answer does not depend on the order; keep the file's stable
+    points: list = []
+    pidx: dict = {}
+    js, ii, ns, covs, dns, cal_covs = [], [], [], [], [], []
+    starts_r, starts_c = [], []
+    for j, name in enumerate(sensors):
+        path = Path(files[name])
+        model = SensorModel.load(calib_paths[name])
+        cal_covs.append(model.covariance)
+        table = _read_table(path)
+        if table is None:
+            raise InputError("expected a locate output with an 'emitter' column", path=path, line=1)
+        header, rows = table
+        for c in ("t_s", "x_mm", "y_mm", "sigma_x_mm", "sigma_y_mm"):
+            if c not in header:
+                raise InputError(f"missing column '{c}' (a `locate --calib` output)", path=path, line=1, field=c)
+        col = {c: header.index(c) for c in ("t_s", "emitter", "x_mm", "y_mm", "sigma_x_mm", "sigma_y_mm")}
+        try:
+            data = np.array([[float(r[col[c]]) for c in ("t_s", "x_mm", "y_mm", "sigma_x_mm", "sigma_y_mm")]
+                             for r in rows])
+        except (ValueError, IndexError):
+            raise InputError("a row is not numbers", path=path) from None
+        em = np.array([r[col["emitter"]] for r in rows], dtype=object)
+        wand = np.isin(em, list(wands))
+        fixed = mean_points(em[~wand], data[~wand, 1:3], data[~wand, 3:5]) if (~wand).any() else None
+        obs_names, d, cov_d = [], [], []
+        if fixed is not None:
+            obs_names += list(fixed.names)
+            d.append(fixed.d_mm)
+            cov_d.append(fixed.cov_d_mm2)
+        if wand.any():
+            obs_names += [f"{e}@{t:.6f}" for e, t in zip(em[wand], data[wand, 0])]
+            d.append(data[wand, 1:3])
+            cov_d.append(np.einsum("ni,ij->nij", data[wand, 3:5] ** 2, np.eye(2)))
+        res = angles_from_points(np.concatenate(d), model, np.concatenate(cov_d))
+        kn = [k for k, nm in enumerate(obs_names) if nm in known]
+        if len(kn) < 3:
+            raise InputError(f"sensor {name!r} sees {len(kn)} known emitter(s); its start needs 3", path=path)
+        st = estimate_pose(res.n[kn], res.cov_n_noise[kn] + res.cov_n_calib[kn],
+                           np.array([known[obs_names[k]] for k in kn]))
+        starts_r.append(st.rvec)
+        starts_c.append(st.center_w_mm)
+        for k, nm in enumerate(obs_names):
+            if nm not in pidx:
+                pidx[nm] = len(points)
+                points.append(nm)
+            js.append(j)
+            ii.append(pidx[nm])
+            ns.append(res.n[k])
+            covs.append(res.cov_n_noise[k])
+            dns.append(res.dn_dp[k])
+    # points seen by one sensor only (a wand window another sensor missed) carry no information: drop them
+    ii_a, js_a = np.array(ii), np.array(js)
+    counts = np.bincount(ii_a, minlength=len(points))
+    keep_pt = np.array([counts[k] >= 2 or points[k] in known for k in range(len(points))])
+    keep_obs = keep_pt[ii_a]
+    remap = -np.ones(len(points), int)
+    remap[keep_pt] = np.arange(keep_pt.sum())
+    points = [p for p, k in zip(points, keep_pt) if k]
+    br = bundle_adjust(sensors, points, js_a[keep_obs], remap[ii_a[keep_obs]], np.array(ns)[keep_obs],
+                       np.array(covs)[keep_obs], known, init_rvecs=np.array(starts_r),
+                       init_centers_mm=np.array(starts_c), calib=_calib_blocks(dns, cal_covs, keep_obs))
+    base = output.resolve().parent
+    entries = []
+    for j, name in enumerate(sensors):
+        c = br.centers_mm[j]
+        sig_c = np.sqrt(np.clip(np.diag(br.cov_poses[j])[3:], 0, None))
+        sig_r = np.degrees(np.sqrt(np.clip(np.diag(br.cov_poses[j])[:3], 0, None)))
+        entries.append({
+            "name": name, "calib": os.path.relpath(Path(calib_paths[name]).resolve(), base),
+            "rvec": br.rvecs[j].tolist(), "tvec_mm": br.tvecs_mm[j].tolist(),
+            "pose_covariance": {"names": ["omega_x_rad", "omega_y_rad", "omega_z_rad", "tx_mm", "ty_mm", "tz_mm"],
+                                "matrix": br.cov_omega_t(j).tolist()},
+            "pose": {"center_w_mm": c.tolist(), "sigma_center_mm": sig_c.tolist(),
+                     "sigma_rotation_deg": sig_r.tolist(), "method": "bundle", "chi2": br.chi2, "dof": br.dof},
+        })
+    write_json(output, {"sensors": entries})
+    if points_out is not None:
+        lines = ["emitter,X_m,Y_m,Z_m,sigma_X_mm,sigma_Y_mm,sigma_Z_mm"]
+        for k, p in enumerate(br.points):
+            s = np.sqrt(np.clip(np.diag(br.cov_points[k]), 0, None))
+            X = br.points_mm[k] / 1000.0
+            lines.append(f"{p},{X[0]:.9g},{X[1]:.9g},{X[2]:.9g},{s[0]:.6g},{s[1]:.6g},{s[2]:.6g}")
+        write_text_atomic(points_out, "\n".join(lines) + "\n")
+    n_unknown = int((~br.known).sum())
+    click.echo(f"bundle: {len(sensors)} sensors, {len(br.points)} points ({n_unknown} unknown), chi2 {br.chi2:.4g} "
+               f"for {br.dof} dof, {br.iterations} iterations; wrote {output}"
+               + (f" and {points_out}" if points_out else ""))
+    for e in entries:
+        p = e["pose"]
+        click.echo(f"  {e['name']}: centre +- {max(p['sigma_center_mm']):.3g} mm, rotation +- "
+                   f"{max(p['sigma_rotation_deg']):.3g} deg")
+    from scipy.stats import chi2 as chi2_dist
+
+    if br.dof > 0 and chi2_dist.sf(br.chi2, br.dof) < 1e-3:
+        click.echo(f"warning: the observations do not fit (chi2 {br.chi2:.4g} for {br.dof} dof): a wrong known "
+                   "position, a wand window seen differently by the sensors, or a wrong start (3 known emitters "
+                   "can give a mirrored pose: use 4 or more)", err=True)
+
+
+# --------------------------------------------------------------------------- plan
+def _read_candidates(path, calib):
+    """Sensors from a CSV ``name,X_m,Y_m,Z_m,aim_X_m,aim_Y_m,aim_Z_m`` (centre and aim point) and one calibration."""
+    import csv
+    import math
+
+    import numpy as np
+
+    from psdcal.errors import InputError
+    from psdcal.measure.positioning import SensorPose
+    from psdcal.measure.sensor_model import SensorModel
+    from psdcal.study.recordings import look_at
+
+    if calib is None:
+        raise InputError("--candidates needs --calib (the sensors' calibration)", field="calib")
+    model = SensorModel.load(calib)
+    cols = ["X_m", "Y_m", "Z_m", "aim_X_m", "aim_Y_m", "aim_Z_m"]
+    try:
+        fh = open(path, newline="", encoding="utf-8")
+    except FileNotFoundError:
+        raise InputError("candidates file not found", path=path) from None
+    with fh:
+        rows = list(csv.reader(fh))
+    header = [h.strip() for h in rows[0]] if rows else []
+    for c in ["name"] + cols:
+        if c not in header:
+            raise InputError(f"missing column '{c}' (header name,{','.join(cols)})", path=path, line=1, field=c)
+    out = []
+    for lineno, r in enumerate(rows[1:], start=2):
+        if not r or not any(x.strip() for x in r):
+            continue
+        try:
+            v = np.array([float(r[header.index(c)]) for c in cols]) * 1000.0
+        except (ValueError, IndexError):
+            raise InputError("not a number", path=path, line=lineno) from None
+        if not all(math.isfinite(x) for x in v) or np.linalg.norm(v[3:] - v[:3]) == 0:
+            raise InputError("the aim point must differ from the centre (finite numbers)", path=path, line=lineno)
+        rvec, tvec = look_at(v[:3], v[3:])
+        out.append(SensorPose(r[header.index("name")].strip(), model, rvec, tvec))
+    if len(out) < 2:
+        raise InputError("give at least two candidate sensors", path=path)
+    return out
+
+
+@cli.command("plan")
+@click.option("--sensors", "sensors_json", type=click.Path(dir_okay=False, path_type=Path),
+              help="Sensors file with the candidate poses (the format of `locate --sensors`; recordings not needed).")
+@click.option("--candidates", type=click.Path(dir_okay=False, path_type=Path),
+              help="Or a CSV name,X_m,Y_m,Z_m,aim_X_m,aim_Y_m,aim_Z_m: each sensor's centre and the point it "
+                   "looks at (with --calib).")
+@click.option("--calib", type=click.Path(dir_okay=False, path_type=Path),
+              help="With --candidates: the calibration JSON of the sensors.")
+@click.option("--room-m", type=(float, float, float), required=True, help="Room size X Y Z in metres.")
+@click.option("--height-m", type=float, default=1.0, show_default=True, help="Height of the mapped plane, m.")
+@click.option("--grid-mm", type=float, default=100.0, show_default=True, help="Grid spacing, mm.")
+@click.option("--sigma-d-mm", type=click.FloatRange(0.0), default=1e-3, show_default=True,
+              help="Impact-point noise, mm (added to each sensor's calibration covariance).")
+@click.option("--csv", "csv_path", type=click.Path(dir_okay=False, path_type=Path),
+              help="Also write the maps: X_m,Y_m,Z_m,n_sensors,sigma_mm,sigma_X_mm,sigma_Y_mm,sigma_Z_mm.")
+@click.option("-o", "--output", default="plan.png", show_default=True, type=click.Path(dir_okay=False, path_type=Path),
+              help="Output PNG.")
+def plan_command(sensors_json, candidates, calib, room_m, height_m, grid_mm, sigma_d_mm, csv_path, output):
+    """Plan an installation: coverage and position uncertainty over a plane of the room.
+
+    \b
+    For the candidate sensor poses in SENSORS.json, at every grid point of the plane
+    Z = --height-m: how many sensors see it, and the 1-sigma of the triangulated position
+    (dilution of precision from each sensor's calibrated angle covariance, the impact-point
+    noise and, when present, its pose_covariance).
+    Example: psdcal plan --sensors sensors.json --room-m 6 4 3 --height-m 1 -o plan.png --csv plan.csv
+    \b
+    Candidate positions without poses yet: a CSV name,X_m,Y_m,Z_m,aim_X_m,aim_Y_m,aim_Z_m
+    (centre and aim point) and the calibration:
+      psdcal plan --candidates layout.csv --calib calib.json --room-m 6 4 3 -o plan.png
+    """
+    import numpy as np
+
+    from psdcal.measure.planning import plan_map, plot_plan, write_plan_csv
+    from psdcal.measure.positioning import load_sensors
+
+    from psdcal.errors import InputError
+
+    if (sensors_json is None) == (candidates is None):
+        raise InputError("give exactly one of --sensors or --candidates", field="sensors")
+    sensors = load_sensors(sensors_json) if sensors_json is not None else _read_candidates(candidates, calib)
+    name = (sensors_json or candidates).name
+    pm = plan_map(sensors, np.array(room_m) * 1000.0, z_mm=height_m * 1000.0, grid_mm=grid_mm, sigma_d_mm=sigma_d_mm)
+    plot_plan(pm, output, title=f"{name}: {len(sensors)} sensors, plane Z = {height_m:g} m")
+    if csv_path:
+        write_plan_csv(pm, csv_path)
+    cov2 = np.mean(pm.count >= 2) * 100
+    s = pm.sigma_mm[np.isfinite(pm.sigma_mm)]
+    rng = f"{s.min():.3g}..{s.max():.3g} mm (median {np.median(s):.3g})" if s.size else "none (no point seen twice)"
+    click.echo(f"wrote {output}" + (f" and {csv_path}" if csv_path else "")
+               + f": {cov2:.1f} % of the plane seen by >= 2 sensors; position 1-sigma {rng}")
+
+
+# --------------------------------------------------------------------------- live locate (called by `locate`)
+def live_locate(recordings, calib, rate_hz, carriers, emitters, distance_mm, window_s, tdm, schedule, n_emitters,
+                min_snr, output, raw_dtype, raw_scale, track_path=None, track_q=None):
+    """`psdcal locate` on a live source ('-', tcp://127.0.0.1:PORT, nidaqmx://...): one sensor, rows as they come."""
+    from psdcal.errors import InputError
+    from psdcal.measure.live import locate_stream
+    from psdcal.measure.locate import LocateConfig
+    from psdcal.measure.sensor_model import SensorModel
+    from psdcal.signal.live import open_stream
+    from psdcal.signal.stream import load_schedule
+
+    if calib is None or len(recordings) != 1:
+        raise InputError("live input works with one sensor: one source and --calib", field="calib")
+    if distance_mm is not None and not distance_mm > 0:
+        raise InputError(f"--distance-mm must be positive, got {distance_mm}", field="distance_mm")
+    sched = load_schedule(schedule) if schedule else None
+    config = LocateConfig(carriers_hz=tuple(carriers), window_s=window_s, distance_mm=distance_mm,
+                          emitters=tuple(emitters) or None, min_snr=min_snr, tdm=bool(tdm or sched is not None),
+                          schedule=sched, n_emitters=n_emitters)
+    model = SensorModel.load(calib)
+    stream = open_stream(str(recordings[0]), rate_hz, dtype=raw_dtype, scale=raw_scale)
+    summary = locate_stream(stream, model, output, config)
+    msg = (f"wrote {summary.n_rows} rows to {output} ({summary.n_samples / stream.rate_hz:.6g} s of live signal, "
+           f"{summary.n_windows} windows, {summary.n_skipped} below --min-snr); {summary.latency_text()}")
+    click.echo(msg, err=str(output) == "-")
+    if track_path:
+        from psdcal.measure.tracking import track_csv
+
+        if str(output) == "-":
+            raise InputError("--track needs -o FILE (not stdout) with live input", field="track")
+        info = track_csv(output, track_path, q=track_q)
+        click.echo(f"wrote {info['n_rows']} tracked rows to {track_path} ({info['n_gated']} gated)")

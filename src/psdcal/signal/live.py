@@ -1,0 +1,183 @@
+"""Live four-channel input: raw interleaved samples from stdin or a localhost TCP socket, or a NI DAQ.
+
+A raw stream is a sequence of frames, one per sample time, each holding the
+four channels ``vx1, vx2, vy1, vy2`` in that order, little-endian, as
+``float32``, ``float64`` or ``int16`` (multiplied by ``scale``, e.g. volts per
+count).  No header: the sampling rate is given.  A stream source behaves like
+:class:`psdcal.signal.recording.Recording` for the demodulation: its
+:meth:`RawStream.chunks` yields ``(t0_s, block)`` with ``block`` float64
+``(4, m)`` as soon as whole frames arrive (``m`` varies), so windows complete
+while the data come in.
+
+Sources (``open_stream``):
+
+``-``
+    standard input (binary).
+``tcp://127.0.0.1:PORT`` (or ``tcp://localhost:PORT``, ``tcp://[::1]:PORT``)
+    connects to a local server that sends the frames; other hosts are refused
+    (this is not a network service).
+``nidaqmx://DEVICE/ai0:3``
+    a National Instruments DAQ (optional extra ``psdcal[daq]``: the
+    ``nidaqmx`` package and NI's driver): four analog inputs read continuously.
+"""
+from __future__ import annotations
+
+import math
+import sys
+import time
+from dataclasses import dataclass, field
+from typing import Iterator
+
+import numpy as np
+
+from psdcal.errors import InputError
+
+#: Accepted sample types of a raw stream.
+DTYPES = {"float32": "<f4", "float64": "<f8", "int16": "<i2"}
+_LOCAL = ("127.0.0.1", "localhost", "::1", "[::1]")
+
+
+def is_stream_source(name: str) -> bool:
+    """Whether ``name`` names a live source rather than a file."""
+    return name == "-" or name.startswith("tcp://") or name.startswith("nidaqmx://")
+
+
+@dataclass
+class RawStream:
+    """A live stream of four-channel frames.
+
+    Attributes
+    ----------
+    path : str
+        The source as given.
+    rate_hz : float
+    dtype : str
+        ``"float32"``, ``"float64"`` or ``"int16"``.
+    scale : float
+        Factor applied to every sample.
+    n_samples : None
+        Unknown in advance.
+    arrivals : list of (samples_received, perf_counter_s)
+        When each block of frames arrived (for the latency measurement).
+    """
+
+    path: str
+    rate_hz: float
+    dtype: str = "float64"
+    scale: float = 1.0
+    read_bytes: int = 1 << 14
+    _reader: object = field(default=None, repr=False)
+    _close: object = field(default=None, repr=False)
+    n_samples: None = None
+    t0_s: float = 0.0
+    arrivals: list = field(default_factory=list, repr=False)
+
+    def chunks(self, chunk_samples: int = 0) -> Iterator[tuple[float, np.ndarray]]:
+        """Yield ``(t0_s, block)`` as frames arrive (``chunk_samples`` is ignored: blocks are what came)."""
+        dt = np.dtype(DTYPES[self.dtype])
+        frame = 4 * dt.itemsize
+        buf = b""
+        n = 0
+        try:
+            while True:
+                data = self._reader(self.read_bytes)
+                if not data:
+                    break
+                now = time.perf_counter()
+                buf += data
+                m = len(buf) // frame
+                if m == 0:
+                    continue
+                raw = np.frombuffer(buf[: m * frame], dtype=dt).reshape(m, 4)
+                buf = buf[m * frame :]
+                block = raw.T.astype(np.float64)
+                if self.scale != 1.0:
+                    block *= self.scale
+                if not np.all(np.isfinite(block)):
+                    ch, i = np.argwhere(~np.isfinite(block))[0]
+                    raise InputError(f"sample {n + int(i)} of channel {ch + 1} is not a finite number", path=self.path)
+                self.arrivals.append((n + m, now))
+                yield self.t0_s + n / self.rate_hz, block
+                n += m
+        finally:
+            if self._close is not None:
+                self._close()
+        if buf:
+            print(f"psdcal: warning: {self.path}: the stream ended inside a frame ({len(buf)} bytes dropped)",
+                  file=sys.stderr)
+
+
+def open_stream(source: str, rate_hz: float | None, *, dtype: str = "float64", scale: float = 1.0,
+                timeout_s: float = 10.0, stdin=None) -> RawStream:
+    """Open a live source (see the module docstring).
+
+    Raises
+    ------
+    InputError
+        No rate, an unknown sample type, a non-local host, a refused
+        connection, or (``nidaqmx://``) the NI package or driver missing.
+    """
+    if rate_hz is None or not (rate_hz > 0 and math.isfinite(rate_hz)):
+        raise InputError("a live stream needs --rate-hz", path=source, field="rate_hz")
+    if dtype not in DTYPES:
+        raise InputError(f"unknown sample type {dtype!r}; use one of {sorted(DTYPES)}", field="raw_dtype")
+    if not (math.isfinite(scale) and scale != 0):
+        raise InputError(f"the scale must be a finite non-zero number, got {scale}", field="raw_scale")
+    if source == "-":
+        fh = stdin if stdin is not None else sys.stdin.buffer
+        reader = getattr(fh, "read1", None) or fh.read
+        return RawStream(source, float(rate_hz), dtype, float(scale), _reader=reader)
+    if source.startswith("tcp://"):
+        import socket
+
+        hostport = source[len("tcp://") :]
+        host, _, port = hostport.rpartition(":")
+        if host not in _LOCAL:
+            raise InputError(f"only localhost streams are read (127.0.0.1, localhost, [::1]), not {host!r}",
+                             path=source)
+        try:
+            port_n = int(port)
+        except ValueError:
+            raise InputError(f"not a port number: {port!r}", path=source) from None
+        host = host.strip("[]")
+        try:
+            sock = socket.create_connection((host, port_n), timeout=timeout_s)
+        except OSError as exc:
+            raise InputError(f"cannot connect: {exc.strerror or exc}", path=source) from None
+        sock.settimeout(None)
+        return RawStream(source, float(rate_hz), dtype, float(scale), _reader=sock.recv, _close=sock.close)
+    if source.startswith("nidaqmx://"):
+        return _open_nidaqmx(source, float(rate_hz), scale)
+    raise InputError("not a live source ('-', tcp://127.0.0.1:PORT or nidaqmx://DEVICE/ai0:3)", path=source)
+
+
+def _open_nidaqmx(source: str, rate_hz: float, scale: float) -> RawStream:
+    """Continuous four-channel acquisition from a NI DAQ (``nidaqmx://Dev1/ai0:3``)."""
+    try:
+        import nidaqmx
+        from nidaqmx.constants import AcquisitionType
+    except ImportError:
+        raise InputError("reading a NI DAQ needs the nidaqmx package: pip install 'psdcal[daq]' (and NI-DAQmx)",
+                         path=source) from None
+    channels = source[len("nidaqmx://") :]
+    try:
+        task = nidaqmx.Task()
+        task.ai_channels.add_ai_voltage_chan(channels)
+        task.timing.cfg_samp_clk_timing(rate_hz, sample_mode=AcquisitionType.CONTINUOUS)
+        task.start()
+    except Exception as exc:  # the driver raises its own types (DaqNotFoundError, DaqError, OSError...)
+        msg = " ".join(str(exc).split())[:200]
+        raise InputError(f"the NI-DAQmx driver or device is not available: {msg}", path=source) from None
+    per_read = max(1, int(rate_hz * 0.005))  # 5 ms of samples per read
+
+    def reader(_n):
+        data = np.asarray(task.read(number_of_samples_per_channel=per_read), dtype="<f8")
+        if data.ndim != 2 or data.shape[0] != 4:
+            raise InputError(f"expected 4 channels, got data of shape {data.shape}", path=source)
+        return np.ascontiguousarray(data.T).tobytes()
+
+    def close():
+        task.stop()
+        task.close()
+
+    return RawStream(source, rate_hz, "float64", scale, _reader=reader, _close=close)

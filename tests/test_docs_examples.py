@@ -1,0 +1,173 @@
+"""Runnable documentation: the ``<!-- run -->`` code blocks of README.md and docs/**/*.md.
+
+Convention: a fenced code block immediately preceded by the line
+``<!-- run -->`` is executed. All such blocks of one file run in order, in one
+fresh temporary directory (so later blocks see the files earlier ones wrote):
+``bash``/``sh``/``shell`` blocks with ``bash -euo pipefail`` and this
+environment's ``psdcal`` first on PATH, ``python`` blocks with this
+environment's interpreter. One test per file that has run blocks; a failing
+block fails its file's test with the block's line and output. A marker that is
+not followed by a fence, or a run block in a language the runner does not know,
+is an error, never skipped.
+"""
+from __future__ import annotations
+
+import os
+import re
+import subprocess
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+MARKER = "<!-- run -->"
+FENCE = re.compile(r"^(?P<indent> {0,3})(?P<fence>`{3,}|~{3,})\s*(?P<info>[^`\s]*)")
+LANGUAGES = {"bash": "bash", "sh": "bash", "shell": "bash", "python": "python", "py": "python"}
+TIMEOUT_S = 120
+
+
+@dataclass(frozen=True)
+class Block:
+    line: int  # 1-based line of the opening fence
+    language: str  # "bash" or "python"
+    code: str
+
+
+class RunBlockError(ValueError):
+    """A ``<!-- run -->`` marker the runner cannot honour."""
+
+
+def run_blocks(text: str, source: str = "<text>") -> list[Block]:
+    """The run blocks of a Markdown text, in order.
+
+    Raises
+    ------
+    RunBlockError
+        A marker not immediately followed by a fence, an unclosed fence, or a
+        language the runner does not run.
+    """
+    lines = text.splitlines()
+    blocks = []
+    i = 0
+    in_fence = None
+    while i < len(lines):
+        m = FENCE.match(lines[i])
+        if in_fence is not None:  # inside a fence, a marker is just text
+            if m and m.group("fence")[0] == in_fence[0] and len(m.group("fence")) >= len(in_fence) and not m.group("info"):
+                in_fence = None
+            i += 1
+            continue
+        if m:
+            in_fence = m.group("fence")
+            i += 1
+            continue
+        if lines[i].strip() != MARKER:
+            i += 1
+            continue
+        if i + 1 >= len(lines) or not (f := FENCE.match(lines[i + 1])):
+            raise RunBlockError(f"{source}:{i + 1}: '{MARKER}' must be followed immediately by a fenced code block")
+        info = f.group("info").lower()
+        if info not in LANGUAGES:
+            raise RunBlockError(f"{source}:{i + 2}: run block in language {info!r}; the runner runs {sorted(LANGUAGES)}")
+        fence = f.group("fence")
+        body = []
+        j = i + 2
+        while j < len(lines):
+            c = FENCE.match(lines[j])
+            if c and c.group("fence")[0] == fence[0] and len(c.group("fence")) >= len(fence) and not c.group("info"):
+                break
+            body.append(lines[j])
+            j += 1
+        else:
+            raise RunBlockError(f"{source}:{i + 2}: the run block's fence is never closed")
+        blocks.append(Block(line=i + 2, language=LANGUAGES[info], code="\n".join(body) + "\n"))
+        i = j + 1
+    if in_fence is not None:
+        raise RunBlockError(f"{source}: a code fence is never closed")
+    return blocks
+
+
+def documentation_files() -> list[Path]:
+    files = [ROOT / "README.md", *sorted((ROOT / "docs").rglob("*.md"))]
+    return [p for p in files if p.is_file()]
+
+
+def files_with_run_blocks() -> list[Path]:
+    return [p for p in documentation_files() if MARKER in p.read_text(encoding="utf-8")]
+
+
+def run_file(path: Path, workdir: Path) -> None:
+    """Run every block of ``path`` in ``workdir``; fail with the block's line and output."""
+    source = path.relative_to(ROOT).as_posix()
+    blocks = run_blocks(path.read_text(encoding="utf-8"), source)
+    assert blocks, f"{source}: has '{MARKER}' but no run block"
+    bindir = str(Path(sys.executable).parent)
+    env = {**os.environ, "PATH": bindir + os.pathsep + os.environ.get("PATH", ""), "MPLBACKEND": "Agg",
+           "NO_COLOR": "1", "PSDCAL_REPO": str(ROOT)}
+    for b in blocks:
+        cmd = ["bash", "-euo", "pipefail", "-c", b.code] if b.language == "bash" else [sys.executable, "-c", b.code]
+        try:
+            proc = subprocess.run(cmd, cwd=workdir, env=env, capture_output=True, text=True, timeout=TIMEOUT_S,
+                                  stdin=subprocess.DEVNULL)
+        except subprocess.TimeoutExpired:
+            pytest.fail(f"{source}:{b.line}: {b.language} block ran over {TIMEOUT_S} s")
+        if proc.returncode != 0:
+            out = (proc.stdout + proc.stderr)[-3000:]
+            pytest.fail(f"{source}:{b.line}: {b.language} block exited {proc.returncode}:\n{b.code}\n--- output ---\n{out}")
+
+
+@pytest.mark.parametrize("path", files_with_run_blocks(), ids=lambda p: p.relative_to(ROOT).as_posix())
+def test_doc_examples_run(path, tmp_path):
+    run_file(path, tmp_path)
+
+
+def test_readme_has_a_runnable_example():
+    assert run_blocks((ROOT / "README.md").read_text(encoding="utf-8"), "README.md")
+
+
+def test_every_marker_is_well_formed():
+    """Parsing every documentation file: a malformed marker is an error even in a file not run here."""
+    for p in documentation_files():
+        run_blocks(p.read_text(encoding="utf-8"), p.relative_to(ROOT).as_posix())
+
+
+# The runner itself: it must run what it should, fail what fails, and refuse what it cannot run.
+
+def test_parser_finds_blocks_in_order_and_ignores_unmarked_and_fenced_markers():
+    text = "\n".join([
+        "intro", MARKER, "```bash", "echo one", "```", "", "```bash", "echo not run", "```",
+        "````markdown", MARKER, "```bash", "echo inside an example", "```", "````",
+        MARKER, "```python", "print(2)", "```",
+    ])
+    blocks = run_blocks(text)
+    assert [(b.language, b.code) for b in blocks] == [("bash", "echo one\n"), ("python", "print(2)\n")]
+    assert blocks[0].line == 3
+
+
+@pytest.mark.parametrize("text", [
+    MARKER + "\n\n```bash\necho x\n```\n",  # not immediately followed
+    MARKER + "\n```console\n$ psdcal\n```\n",  # language not run
+    MARKER + "\n```\necho x\n```\n",  # no language
+    MARKER + "\n```bash\necho x\n",  # never closed
+])
+def test_parser_refuses_what_it_cannot_run(text):
+    with pytest.raises(RunBlockError):
+        run_blocks(text)
+
+
+def test_runner_shares_one_directory_and_fails_on_error(tmp_path, monkeypatch):
+    monkeypatch.setattr(sys.modules[__name__], "ROOT", tmp_path)
+    good = tmp_path / "good.md"
+    good.write_text("\n".join([MARKER, "```bash", "echo 41 > n.txt", "```", MARKER, "```python",
+                               "assert int(open('n.txt').read()) + 1 == 42", "```"]) + "\n")
+    work = tmp_path / "w1"
+    work.mkdir()
+    run_file(good, work)
+    bad = tmp_path / "bad.md"
+    bad.write_text("\n".join([MARKER, "```bash", "false | cat", "echo after", "```"]) + "\n")  # pipefail
+    work2 = tmp_path / "w2"
+    work2.mkdir()
+    with pytest.raises(pytest.fail.Exception, match=r"bad.md:2: bash block exited 1"):
+        run_file(bad, work2)

@@ -1,0 +1,151 @@
+"""Live input to `locate`: a simulated recording streamed through stdin and a localhost socket gives the
+rows of the file-based locate (to 1e-9), written as the windows complete."""
+from __future__ import annotations
+
+import json
+import os
+import socket
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from psdcal.cli import main
+from psdcal.study.recordings import amplitudes, calib_dict, model, signals, spot_for_angles, write_recording
+
+RATE = 20_000.0
+CARRIERS = (1000.0, 1300.0)
+
+
+def _setup(tmp_path, n=12_000, seed=0):
+    m = model()
+    (tmp_path / "calib.json").write_text(json.dumps(calib_dict()))
+    rng = np.random.default_rng(seed)
+    d1 = spot_for_angles(m, np.radians([3.0, -2.0]))
+    d2 = spot_for_angles(m, np.radians([-5.0, 4.0]))
+    x = signals(RATE, n, [(amplitudes(m, d1), CARRIERS[0], 0.3), (amplitudes(m, d2), CARRIERS[1], 1.1)],
+                noise=1e-3, rng=rng)
+    return x
+
+
+def _args(src, out, extra=()):
+    a = ["locate", str(src), "--calib", "calib.json", "--rate-hz", str(RATE), "--distance-mm", "3000",
+         "-o", str(out), *extra]
+    for f in CARRIERS:
+        a += ["--carrier-hz", str(f)]
+    return a
+
+
+def _rows(path):
+    lines = Path(path).read_text().splitlines()
+    head = lines[0]
+    body = [ln.split(",") for ln in lines[1:]]
+    return head, body
+
+
+def _assert_same(a, b):
+    ha, ra = _rows(a)
+    hb, rb = _rows(b)
+    assert ha == hb and len(ra) == len(rb) > 0
+    for x, y in zip(ra, rb):
+        assert x[1] == y[1]
+        np.testing.assert_allclose(np.array([x[0], *x[2:]], float), np.array([y[0], *y[2:]], float),
+                                   rtol=1e-9, atol=1e-12)
+
+
+@pytest.fixture
+def cwd(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    return tmp_path
+
+
+def test_stdin_equals_file(cwd):
+    x = _setup(cwd)
+    write_recording(cwd / "rec.npy", x, RATE)
+    assert main(_args("rec.npy", "file.csv")) == 0
+    exe = Path(sys.executable).with_name("psdcal")
+    p = subprocess.run([str(exe), *_args("-", "live.csv")], input=np.ascontiguousarray(x.T).astype("<f8").tobytes(),
+                       capture_output=True, cwd=cwd, timeout=120)
+    assert p.returncode == 0, p.stderr.decode()
+    assert b"latency per window" in p.stdout
+    _assert_same("file.csv", "live.csv")
+
+
+def test_int16_stdin_with_scale_equals_file(cwd):
+    x = _setup(cwd, seed=1)
+    scale = 1e-4
+    q = np.clip(np.round(x / scale), -32768, 32767).astype("<i2")
+    write_recording(cwd / "rec.npy", q.astype(float) * scale, RATE)
+    assert main(_args("rec.npy", "file.csv")) == 0
+    exe = Path(sys.executable).with_name("psdcal")
+    p = subprocess.run([str(exe), *_args("-", "live.csv", ["--raw-dtype", "int16", "--raw-scale", str(scale)])],
+                       input=np.ascontiguousarray(q.T).tobytes(), capture_output=True, cwd=cwd, timeout=120)
+    assert p.returncode == 0, p.stderr.decode()
+    _assert_same("file.csv", "live.csv")
+
+
+def test_tcp_equals_file_and_rows_come_while_streaming(cwd):
+    x = _setup(cwd, seed=2)
+    write_recording(cwd / "rec.npy", x.astype("<f4").astype(float), RATE)
+    assert main(_args("rec.npy", "file.csv")) == 0
+    payload = np.ascontiguousarray(x.T).astype("<f4").tobytes()
+    srv = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+    srv.bind(("127.0.0.1", 0))
+    srv.listen(1)
+    port = srv.getsockname()[1]
+    seen_early = []
+
+    def serve():
+        conn, _ = srv.accept()
+        half = len(payload) // 2 // 16 * 16
+        for k in range(0, half, 4000):  # odd-sized pieces: frames split across reads
+            conn.sendall(payload[k : min(k + 4000, half)])
+        deadline = time.time() + 20
+        while time.time() < deadline:  # rows of the first half appear before the second half is sent
+            if (cwd / "live.csv").exists() and len((cwd / "live.csv").read_text().splitlines()) > 5:
+                seen_early.append(True)
+                break
+            time.sleep(0.01)
+        conn.sendall(payload[half:])
+        conn.close()
+
+    th = threading.Thread(target=serve, daemon=True)
+    th.start()
+    assert main(_args(f"tcp://127.0.0.1:{port}", "live.csv", ["--raw-dtype", "float32"])) == 0
+    th.join(5)
+    srv.close()
+    assert seen_early
+    _assert_same("file.csv", "live.csv")
+
+
+def test_refuses_remote_hosts_and_missing_daq(cwd, capsys):
+    _setup(cwd)
+    assert main(_args("tcp://192.0.2.1:9000", "o.csv")) == 2
+    assert "localhost" in capsys.readouterr().err
+    try:
+        import nidaqmx  # noqa: F401
+    except ImportError:
+        assert main(_args("nidaqmx://Dev1/ai0:3", "o.csv")) == 2
+        err = capsys.readouterr().err.strip()
+        assert "nidaqmx" in err and len(err.splitlines()) == 1
+    assert not os.path.exists(cwd / "o.csv")
+
+
+def test_bench_live_runs(capsys):
+    import importlib.util
+
+    bench = Path(__file__).resolve().parents[1] / "benchmarks"
+    sys.path.insert(0, str(bench))
+    try:
+        spec = importlib.util.spec_from_file_location("_bench_live", bench / "bench_live.py")
+        mod = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(mod)
+        ms = mod.run(seconds=0.2, rate_hz=20_000.0)
+    finally:
+        sys.path.remove(str(bench))
+    assert len(ms) >= 10 and np.all(ms > 0)
+    assert "median (ms)" in capsys.readouterr().out
