@@ -15,7 +15,7 @@ from psdcal.measure.sensor_model import SensorModel
 from psdcal.report.compare import sensor_grid_mm
 from psdcal.report.export import fit_opencv, opencv_distort, opencv_undistort, sensor_to_pixels
 from psdcal.schema import calibration_schema
-from psdcal.study.simulate import PAPER_L1, simulate_set
+from psdcal.study.simulate import LENSES, PAPER_L1, simulate_set
 
 cv2 = pytest.importorskip("cv2")
 jsonschema = pytest.importorskip("jsonschema")
@@ -167,6 +167,7 @@ def _files_written_by_the_tool(tmp_path):
         "psd_k3_skew": ["--psd-radial", "1", "--radial", "3", "--skew", "--no-tangential"],
         "aspect": ["--aspect", "--radial", "1"],
         "reject": ["--reject", "5"],
+        "fix_prior_guess": ["--fix", "k2=0", "--prior", "f_mm=25,0.5", "--f-guess", "25", "--noise-um", "3"],
     }
     lines = (d / "points.csv").read_text().splitlines()
     f = lines[5].split(",")
@@ -185,6 +186,16 @@ def _files_written_by_the_tool(tmp_path):
     out = tmp_path / "gains.json"
     assert main(["calibrate", str(a / "points.csv"), "-t", str(a / "template.csv"), "-o", str(out), "-q",
                  "--fit-gains"]) == 0
+    files.append(out)
+    from psdcal.calibration.directions import simulate_sweep, sweep_grid, write_directions
+
+    intr, dist = LENSES["lens2"]
+    az, el = sweep_grid()
+    write_directions(tmp_path / "sweep.csv", az, el,
+                     simulate_sweep(intr, dist, [0.01, -0.02, 0.005], az, el, noise_mm=0.002, rng=1))
+    out = tmp_path / "directions.json"
+    assert main(["calibrate-directions", str(tmp_path / "sweep.csv"), "--distance-mm", "2000", "--fix", "k2=3e-5",
+                 "-o", str(out), "-q"]) == 0
     files.append(out)
     demo = tmp_path / "demo.json"
     assert main(["demo", "-o", str(demo)]) == 0

@@ -16,6 +16,7 @@ _NUM = {"type": "number"}
 _NUM_OR_NULL = {"type": ["number", "null"]}
 _ID = {"type": ["integer", "string"]}
 _VEC3 = {"type": "array", "items": _NUM, "minItems": 3, "maxItems": 3}
+_NUMS = {"type": "array", "items": _NUM}
 _DIST_NAMES = ("k1", "k2", "k3", "p1", "p2", "l1", "l2")
 _DIST_UNITS = {"k1": "mm^-2", "k2": "mm^-4", "k3": "mm^-6", "p1": "mm^-1", "p2": "mm^-1", "l1": "mm^-2",
                "l2": "mm^-4"}
@@ -37,6 +38,13 @@ def calibration_schema() -> dict:
         Serialise it with ``json.dumps``; validate a file with e.g.
         ``jsonschema.Draft202012Validator(calibration_schema()).validate(d)``.
     """
+    _prior = _obj(
+        {"names": {"type": "array", "items": {"type": "string"}}, "mean": _NUMS,
+         "covariance": {"type": "array", "items": {"type": "array", "items": _NUM_OR_NULL}},
+         "source": {"type": "string"}},
+        ("names", "mean", "covariance"),
+        description="a Gaussian prior (--prior): mean and covariance of the named parameters (null: infinite)",
+    )
     intrinsics = _obj(
         {
             "f_mm": {"type": "number", "exclusiveMinimum": 0, "description": "focal length, mm"},
@@ -117,13 +125,22 @@ def calibration_schema() -> dict:
             "fit_gains": {"type": "boolean"},
             "preliminary": {"type": "boolean"},
             "normalize": {"type": "boolean"},
-            "gains": {"type": "array", "items": {"type": "number", "exclusiveMinimum": 0}, "minItems": 4, "maxItems": 4},
+            "gains": {"type": ["array", "null"], "items": {"type": "number", "exclusiveMinimum": 0}, "minItems": 4,
+                      "maxItems": 4, "description": "known relative channel gains (null: not given)"},
+            "fix": {"type": "object", "additionalProperties": _NUM,
+                    "description": "parameters held at a value (--fix NAME=VALUE), name -> value"},
+            "priors": {"type": "array", "items": _prior},
+            "fix_gains_applied": {"type": "object", "additionalProperties": _NUM},
+            "f_guess_mm": {"type": ["number", "null"], "exclusiveMinimum": 0,
+                           "description": "nominal focal length given with --f-guess, mm"},
+            "distance_mm": {"type": ["number", "null"], "exclusiveMinimum": 0,
+                            "description": "direction calibration: source distance from the stage axes, mm"},
             "sensor_mm": {"type": "array", "items": {"type": "number", "exclusiveMinimum": 0}, "minItems": 2,
                           "maxItems": 2},
             "solver": _obj({"ftol": _NUM, "xtol": _NUM, "gtol": _NUM,
                             "max_iterations": {"type": "integer", "minimum": 1}}, extra=True),
         },
-        ("cost", "radial", "tangential", "psd_radial", "skew", "preliminary", "normalize"),
+        ("radial", "tangential", "psd_radial", "skew"),
         extra=True,
     )
     xy = {"type": "array", "items": {"type": "array", "items": _NUM, "minItems": 2, "maxItems": 2}}
@@ -131,6 +148,14 @@ def calibration_schema() -> dict:
         "type": "array", "items": _NUM_OR_NULL, "minItems": 2, "maxItems": 2}}}
     problem = _obj(
         {
+            "kind": {"enum": ["directions"], "description": "absent for template views; 'directions': a stage sweep"},
+            "directions": _obj({"az_deg": _NUMS, "el_deg": _NUMS, "point_ids": {"type": "array", "items": _ID}},
+                               ("az_deg", "el_deg")),
+            "stage": {"type": "object", "description": "direction calibration: the stage fit (rotation, offsets)"},
+            "fit": {"type": "object", "description": "direction calibration: the full state, its covariance, sigma2"},
+            "prior_fit": _obj({"sigma2": _NUM, "dof": _NUM, "prior_dof": _NUM,
+                               "rounds": {"type": "integer", "minimum": 0}},
+                              description="the refit with --fix/--prior: noise variance and degrees of freedom"),
             "template": _obj({"point_ids": {"type": "array", "items": _ID}, "xy_mm": xy}, ("point_ids", "xy_mm")),
             "points": _obj({"image_ids": {"type": "array", "items": _ID}, "xy_mm": xy_or_null}, ("image_ids", "xy_mm"),
                            extra=True),
@@ -156,7 +181,7 @@ def calibration_schema() -> dict:
                 {"path": {"type": "string"}, "sha256": {"type": "string", "pattern": "^[0-9a-f]{64}$"}},
                 ("path", "sha256"))},
         },
-        ("template", "points", "options"),
+        ("points", "options"),
         extra=True,
         description="the inputs and options: enough to re-run the calibration exactly (psdcal.recalibrate)",
     )
@@ -167,6 +192,15 @@ def calibration_schema() -> dict:
             "closed_form": {"type": "object"},
             "initial_extrinsics": {"type": "array", "items": _obj(
                 {"image_id": _ID, "rvec": _VEC3, "tvec_mm": _VEC3}, ("image_id", "rvec", "tvec_mm"))},
+            "multistart": _obj(
+                {"starts": {"type": "array", "items": _obj(
+                    {"start": {"type": "string"}, "cost_rms": _NUM_OR_NULL, "converged": {"type": "boolean"},
+                     "f_mm": _NUM_OR_NULL, "cx_mm": _NUM_OR_NULL, "cy_mm": _NUM_OR_NULL}, ("start", "converged"))},
+                 "chosen": {"type": "string"}},
+                ("starts", "chosen"),
+                description="the refinement's starts and the lowest-cost one chosen",
+            ),
+            "linear": {"type": "object", "description": "direction calibration: the linear start"},
         },
         extra=True,
         description="starting values each linear step produced (the paper's Tables 1-2)",
@@ -208,6 +242,15 @@ def calibration_schema() -> dict:
             "created": {"type": "string", "description": "UTC time of the calibration, ISO 8601"},
             "warnings": {"type": "array", "items": {"type": "string"},
                          "description": "what looks wrong although the solver converged"},
+            "verdict": {"enum": ["good", "suspect", "wrong"],
+                        "description": "the statistical self-check of the fit (psdcal.calibration.verdict)"},
+            "checks": {"type": "array", "items": _obj(
+                {"name": {"type": "string"}, "statistic": _NUM_OR_NULL, "threshold": _NUM_OR_NULL,
+                 "p_value": {"type": ["number", "null"], "minimum": 0, "maximum": 1},
+                 "false_alarm": {"type": "number", "minimum": 0, "maximum": 1},
+                 "passed": {"type": ["boolean", "null"], "description": "null: not applicable"},
+                 "message": {"type": "string"}, "advice": {"type": "string"}, "severe": {"type": "boolean"}},
+                ("name", "passed", "message"))},
         },
         "required": ["intrinsics", "distortion", "std", "extrinsics", "residuals", "cost", "iterations", "converged",
                      "model", "software"],
