@@ -33,8 +33,11 @@ def next_view_command(views, template, noise_um, min_gain, target_deg, top, grid
     instructions and whether more views still help (--min-gain, --target-deg).
 
     Tilt: the template plane is rotated by the angle about the stated axis in
-    the sensor plane (right-hand rule, sensor x/y as in the points files);
-    distance: from the sensor to the template's centre along the optical axis.
+    the sensor plane (right-hand rule, sensor x/y as in the points files): a
+    positive tilt about +x moves the template edge imaged at +y away from the
+    lens; about +y, the edge imaged at -x. Centre: where the centroid of the
+    template's LEDs is imaged on the PSD. Distance: from the lens to the
+    template's centre along the optical axis.
 
     Example: psdcal next-view calib.json --target-deg 0.05
     """
