@@ -18,7 +18,7 @@ import numpy as np
 
 from psdcal.model.params import ModelSpec
 from psdcal.report.compare import sensor_grid_mm
-from psdcal.study.capture import (aoa_jacobian, candidate_views, guided_sequence, view_information,
+from psdcal.study.capture import (aoa_jacobian, candidate_views, grid_capture, guided_sequence, view_information,
                                   worst_sigma_deg)
 from psdcal.study.simulate import LENSES, default_template, random_poses
 
@@ -38,18 +38,6 @@ def curve(S_views, Ja):
 def needed(c, target):
     k = np.nonzero(np.asarray(c) <= target)[0]
     return int(k[0]) + 1 if k.size else None
-
-
-def grid_sequence(cands, n):
-    """A fixed 'grid' capture: 35 deg tilt, the axis turning by 90 deg each view, the template's centre stepping
-    over a 3 x 3 grid of the sensor (+-1.6 mm), each view as near as the whole template stays on the sensor."""
-    pos = [(x, y) for y in (-1.575, 0.0, 1.575) for x in (-1.575, 0.0, 1.575)]
-    out = []
-    for k in range(n):
-        tilt, axis, at = 35.0, float((90 * k) % 360), pos[k % 9]
-        pool = [c for c in cands if c.tilt_deg == tilt and c.axis_deg == axis and np.allclose(c.centre_mm, at, atol=0.01)]
-        out.append(min(pool, key=lambda c: c.distance_mm))
-    return out
 
 
 def guided_refitted(lens, target, seed, n_max=N_MAX):
@@ -103,7 +91,7 @@ def main():
         rand = np.array(rand)
         target = TARGET_FRACTION * float(np.median(rand[:, 8]))
         cands = candidate_views(P, intr, dist)
-        gseq = grid_sequence(cands, N_MAX)
+        gseq = grid_capture(cands, N_MAX)
         g_curve = curve(info([c.rvec for c in gseq], [c.tvec_mm for c in gseq]), Ja)
         S3 = info([c.rvec for c in gseq[:3]], [c.tvec_mm for c in gseq[:3]]).sum(0)
         _, guided = guided_sequence(P, intr, dist, SPEC, S3, NOISE_MM, N_MAX - 3, candidates=cands)

@@ -8,7 +8,7 @@ from psdcal import calibrate
 from psdcal.cli import main
 from psdcal.model.params import ModelSpec
 from psdcal.report.compare import fov_uncertainty, sensor_grid_mm
-from psdcal.study.capture import (aoa_jacobian, candidate_views, guided_sequence, information_of_calibration,
+from psdcal.study.capture import (aoa_jacobian, candidate_views, grid_capture, guided_sequence, information_of_calibration,
                                   next_view, view_information, worst_sigma_deg)
 from psdcal.study.simulate import LENSES, default_template, measured_points, random_poses, simulate_set
 
@@ -60,7 +60,7 @@ def test_adding_the_suggested_view_really_improves_the_calibration():
 
 
 @pytest.mark.parametrize("lens", ["lens1", "lens2"])
-def test_guided_reaches_the_target_with_fewer_views_than_random(lens):
+def test_guided_reaches_the_target_with_fewer_views_than_random_or_grid(lens):
     intr, dist = LENSES[lens]
     P = default_template()
     spec = ModelSpec()
@@ -80,6 +80,12 @@ def test_guided_reaches_the_target_with_fewer_views_than_random(lens):
     need_g = 3 + int(np.nonzero(np.array(guided) <= target)[0][0]) + 1
     need_r = [int(np.nonzero(c <= target)[0][0]) + 1 if np.any(c <= target) else n + 1 for c in rand]
     assert need_g < min(need_r)
+    # and than the fixed grid protocol
+    gq = grid_capture(candidate_views(P, intr, dist), n)
+    g = worst_sigma_deg(np.cumsum(view_information(P, intr, dist, spec, [c.rvec for c in gq],
+                                                   [c.tvec_mm for c in gq]), 0), Ja, noise)
+    need_grid = int(np.nonzero(g <= target)[0][0]) + 1 if np.any(g <= target) else n + 1
+    assert need_g < need_grid
     assert np.all(np.diff(guided) <= 1e-12)  # information only adds
 
 

@@ -272,6 +272,27 @@ def guided_sequence(template_mm, intr, dist, spec, S_start, noise_mm, n_views: i
     return views, worst
 
 
+def grid_capture(candidates, n_views: int, *, tilt_deg: float = 35.0, step_mm: float | None = None) -> list:
+    """A fixed capture protocol to compare with: tilt ``tilt_deg``, the axis turning by 90 deg each view, the
+    template's centre stepping over a 3 x 3 grid of the sensor, each view as near as the template stays on it.
+
+    ``candidates`` come from :func:`candidate_views` (its positions: the 3 x 3 grid takes the inner ones,
+    ``+-step_mm``, by default the nearest to the middle but the middle itself).
+    """
+    xs = sorted({round(c.centre_mm[0], 6) for c in candidates})
+    step = step_mm if step_mm is not None else min(abs(x) for x in xs if abs(x) > 1e-9)
+    pos = [(x, y) for y in (-step, 0.0, step) for x in (-step, 0.0, step)]
+    out = []
+    for k in range(n_views):
+        axis, at = float((90 * k) % 360), pos[k % 9]
+        pool = [c for c in candidates if c.tilt_deg == tilt_deg and c.axis_deg == axis
+                and np.allclose(c.centre_mm, at, atol=0.01)]
+        if not pool:
+            raise InputError(f"no candidate view at tilt {tilt_deg:g} deg about {axis:g} deg centred at {at} mm")
+        out.append(min(pool, key=lambda c: c.distance_mm))
+    return out
+
+
 def information_of_calibration(result, *, margin_mm: float = 0.0) -> np.ndarray:
     """Summed information ``S`` (n, n) of the views of a calibration, at its solution (unit noise)."""
     P = np.asarray(result.problem["template"]["xy_mm"], dtype=float)
@@ -284,5 +305,5 @@ def information_of_calibration(result, *, margin_mm: float = 0.0) -> np.ndarray:
     return S.sum(axis=0)
 
 
-__all__ = ["CandidateView", "NextView", "aoa_jacobian", "candidate_views", "guided_sequence",
+__all__ = ["CandidateView", "NextView", "aoa_jacobian", "candidate_views", "grid_capture", "guided_sequence",
            "information_of_calibration", "next_view", "view_information", "worst_sigma_deg"]
