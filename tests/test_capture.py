@@ -24,6 +24,20 @@ def test_information_reproduces_the_calibration_covariance():
                                                                rel=1e-9)
 
 
+def test_fixed_parameters_are_left_out_of_the_prediction():
+    """With f held fixed the prediction is over the free parameters: it equals the calibration's own covariance."""
+    s = simulate_set("lens1", n_images=5, noise_mm=0.003, seed=4)
+    r = calibrate(s.template_mm, s.points_mm, fix={"f_mm": 25.0})
+    assert "f_mm" not in r.param_names
+    free = tuple(n for n in r.model.global_names if n in r.param_names)
+    S = information_of_calibration(r)
+    keep = [r.model.global_names.index(n) for n in free]
+    Sf = S[keep][:, keep]
+    assert np.allclose(np.linalg.inv(Sf) * r.sigma_mm**2, r.covariance, rtol=1e-4)
+    nv = next_view(s.template_mm, r.intrinsics, r.distortion, r.model, S, r.sigma_mm, free=free)
+    assert nv.current_deg == pytest.approx(np.nanmax(fov_uncertainty(r, n=11).sigma_total_deg), rel=1e-4)
+
+
 def test_candidates_are_on_the_sensor_and_instructions_true():
     intr, dist = LENSES["lens1"]
     P = default_template()
@@ -99,3 +113,12 @@ def test_cli_next_view(tmp_path, capsys):
     assert main(["next-view", str(d / "points.csv"), "-t", str(d / "template.csv"), "--target-deg", "10"]) == 0
     assert "meets the target" in capsys.readouterr().out
     assert main(["next-view", str(d / "points.csv")]) == 2
+    js = tmp_path / "nv.json"
+    assert main(["next-view", str(d / "points.csv"), "-t", str(d / "template.csv"), "--max-tilt-deg", "30",
+                 "--json", str(js)]) == 0
+    import json
+
+    doc = json.loads(js.read_text())
+    assert doc["stop"] is False and 0 < doc["gain"] < 1 and len(doc["candidates"]) == 5
+    assert all(c["tilt_deg"] <= 30 for c in doc["candidates"])
+    assert doc["candidates"][0]["worst_sigma_deg"] == pytest.approx(doc["current_deg"] * (1 - doc["gain"]))

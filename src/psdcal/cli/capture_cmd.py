@@ -21,7 +21,11 @@ from psdcal.cli import cli
 @click.option("--top", type=click.IntRange(1, 100), default=5, show_default=True, help="How many candidates to list.")
 @click.option("--grid", type=click.IntRange(3, 41), default=11, show_default=True,
               help="Sensor grid points per side where the worst AoA uncertainty is taken.")
-def next_view_command(views, template, noise_um, min_gain, target_deg, top, grid):
+@click.option("--max-tilt-deg", type=click.FloatRange(0.0, 89.0), default=50.0, show_default=True,
+              help="Largest tilt your set-up can make; candidates use the tilts 0, 20, 35, 50 deg up to it.")
+@click.option("--json", "json_out", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="Also write the ranking as JSON (current_deg, gain, stop, candidates with pose and instruction).")
+def next_view_command(views, template, noise_um, min_gain, target_deg, top, grid, max_tilt_deg=50.0, json_out=None):
     """Suggest the next calibration view: the template pose that lowers the worst AoA uncertainty most.
 
     VIEWS is a calibration JSON, or a points CSV of the views taken so far
@@ -67,13 +71,36 @@ def next_view_command(views, template, noise_um, min_gain, target_deg, top, grid
 
     S = information_of_calibration(res)
     P = np.asarray(res.problem["template"]["xy_mm"], dtype=float)
-    nv = next_view(P, res.intrinsics, res.distortion, res.model, S, noise_mm, grid=grid,
-                   sensor_mm=tuple(res.sensor_mm), min_gain=min_gain)
+    from psdcal.study.capture import candidate_views
+
+    tilts = tuple(t for t in (0.0, 20.0, 35.0, 50.0) if t <= max_tilt_deg)
+    cands = candidate_views(P, res.intrinsics, res.distortion, tilts_deg=tilts, sensor_mm=tuple(res.sensor_mm))
+    # parameters held fixed (calibrate --fix) are not in the covariance: predict over the free ones only
+    free = tuple(n for n in res.model.global_names if n in res.param_names) if res.param_names else None
+    nv = next_view(P, res.intrinsics, res.distortion, res.model, S, noise_mm, candidates=cands, grid=grid,
+                   sensor_mm=tuple(res.sensor_mm), min_gain=min_gain, free=free)
     click.echo(f"{len(res.image_ids)} views taken; noise {noise_mm * 1e3:.3g} um per coordinate; worst AoA 1-sigma over "
                f"the sensor now {nv.current_deg:.3g} deg")
     for k, (c, w) in enumerate(nv.ranked[:top], start=1):
         click.echo(f"{k}. {c.instruction()}  ->  worst 1-sigma {w:.3g} deg")
-    if target_deg is not None and nv.current_deg <= target_deg:
-        click.echo(f"verdict: stop: the worst AoA 1-sigma ({nv.current_deg:.3g} deg) meets the target ({target_deg:g} deg)")
+    met = target_deg is not None and nv.current_deg <= target_deg
+    if met:
+        verdict = f"stop: the worst AoA 1-sigma ({nv.current_deg:.3g} deg) meets the target ({target_deg:g} deg)"
     else:
-        click.echo("verdict: " + nv.verdict())
+        verdict = nv.verdict()
+    click.echo("verdict: " + verdict)
+    if json_out is not None:
+        from psdcal.io import write_json
+
+        rows = [{"rank": k, "instruction": c.instruction(), "tilt_deg": c.tilt_deg, "axis_deg": c.axis_deg,
+                 "centre_mm": list(c.centre_mm), "distance_mm": c.distance_mm, "rvec": c.rvec.tolist(),
+                 "tvec_mm": c.tvec_mm.tolist(), "worst_sigma_deg": w}
+                for k, (c, w) in enumerate(nv.ranked[:top], start=1)]
+        doc = {"views": len(res.image_ids), "noise_mm": noise_mm, "current_deg": nv.current_deg, "gain": nv.gain,
+               "min_gain": min_gain, "target_deg": target_deg, "stop": bool(nv.stop or met), "verdict": verdict,
+               "candidates": rows}
+        try:
+            write_json(json_out, doc)
+        except OSError as exc:
+            raise InputError(f"cannot write: {exc.strerror or exc}", path=json_out, field="--json") from None
+        click.echo(f"wrote {json_out}")

@@ -223,7 +223,8 @@ class NextView:
 
 
 def next_view(template_mm, intr, dist, spec, S_current, noise_mm: float, *, candidates=None, grid: int = 11,
-              sensor_mm=(LX_MM, LY_MM), min_gain: float = 0.05, J_alpha=None, S_candidates=None) -> NextView:
+              sensor_mm=(LX_MM, LY_MM), min_gain: float = 0.05, J_alpha=None, S_candidates=None,
+              free=None) -> NextView:
     """Rank candidate views by the worst AoA uncertainty over the sensor after adding each.
 
     Parameters
@@ -233,6 +234,9 @@ def next_view(template_mm, intr, dist, spec, S_current, noise_mm: float, *, cand
     candidates : list of CandidateView (default :func:`candidate_views`).
     grid : sensor grid points per side where the worst uncertainty is taken.
     min_gain : relative improvement below which :attr:`NextView.stop` is True.
+    free : names of the free parameters, optional
+        A subset of ``spec.global_names`` when some were held fixed (``calibrate --fix``): the information
+        is then restricted to them (``S_current`` may be over either set of names).
     """
     from psdcal.report.compare import sensor_grid_mm
 
@@ -240,11 +244,18 @@ def next_view(template_mm, intr, dist, spec, S_current, noise_mm: float, *, cand
         candidates = candidate_views(template_mm, intr, dist, sensor_mm=sensor_mm)
     if not candidates:
         raise InputError("no candidate view puts the whole template on the sensor; check the template and f")
+    names = tuple(spec.global_names)
+    keep = np.arange(len(names)) if free is None else np.array([names.index(n) for n in free], dtype=int)
     if J_alpha is None:
-        J_alpha = aoa_jacobian(intr, dist, spec.global_names, sensor_grid_mm(sensor_mm, grid).reshape(-1, 2))
+        J_alpha = aoa_jacobian(intr, dist, [names[k] for k in keep], sensor_grid_mm(sensor_mm, grid).reshape(-1, 2))
     if S_candidates is None:
         S_candidates = view_information(template_mm, intr, dist, spec, [c.rvec for c in candidates],
                                         [c.tvec_mm for c in candidates], sensor_mm=sensor_mm)
+    if S_candidates.shape[-1] != len(keep):
+        S_candidates = S_candidates[:, keep][:, :, keep]
+    S_current = np.asarray(S_current, dtype=float)
+    if S_current.shape[-1] != len(keep):
+        S_current = S_current[keep][:, keep]
     cur = float(worst_sigma_deg(S_current, J_alpha, noise_mm))
     after = worst_sigma_deg(S_current[None] + S_candidates, J_alpha, noise_mm)
     order = np.argsort(after, kind="stable")
