@@ -61,6 +61,9 @@ def next_view_command(views, template, noise_um, min_gain, target_deg, top, grid
         tids, txy = read_template(template)
         pf = read_points(views, tids)
         res = calibrate(txy, pf.points_mm, image_ids=pf.image_ids, point_ids=tids)
+    if res.problem and res.problem.get("kind") == "directions":
+        raise InputError("a direction (rotation-stage) calibration has no template views: next-view plans "
+                         "template views only", path=views)
     if not res.problem or "template" not in res.problem:
         raise InputError("the calibration has no problem record (template and points): cannot add views to it",
                          path=views)
