@@ -120,7 +120,7 @@ def _tdm_signal(m, spots, on_s=0.1, off_s=0.03, lead_s=0.021, noise=1e-3):
 
 def test_tdm_segments_found_from_signal():
     m = model()
-    spots = spot_for_angles(m, np.radians([[5.0, 5.0], [-10.0, 3.0], [15.0, -12.0]]))
+    spots = spot_for_angles(m, np.radians([[5.0, 5.0], [-10.0, 3.0], [15.0, -12.0], [-4.0, 8.0]]))
     x, truth = _tdm_signal(m, spots)
     lk = MultiCarrierLockin(RATE, [1000.0], 0.01)
     seg = TdmSegmenter(lk.window_s, n_emitters=2)
@@ -128,7 +128,8 @@ def test_tdm_segments_found_from_signal():
     for i in range(0, x.shape[1], 4096):
         segs += seg.feed(lk.process(i / RATE, x[:, i : i + 4096]))
     segs += seg.finish()
-    assert [s.emitter for s in segs] == ["1", "2", "1"]
+    assert [s.emitter for s in segs] == ["1", "2", "1", "2"]
+    assert seg.warnings == []
     for s, (t0, t1), d in zip(segs, truth, spots):
         assert t0 <= s.t_start_s and s.t_end_s <= t1 + 1e-9
         assert s.n_windows >= 7

@@ -34,6 +34,9 @@ _COMMANDS = (
     "report_cmd",
     "reproduce_cmd",
     "directions_cmd",
+    "inspect_cmd",
+    "module_cmd",
+    "gains_cmd",
     "export_cmd",
     "capture_cmd",
 )

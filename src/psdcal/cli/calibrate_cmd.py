@@ -67,11 +67,14 @@ def model_options(f):
                    "errors against the predicted uncertainty (adds the check 'cross_validation').")
 @click.option("--strict", is_flag=True, default=False,
               help="Exit 2 (and write no --output) unless the verdict is good.")
+@click.option("--gains", "gains_file", type=click.Path(dir_okay=False),
+              help="Gains JSON from 'psdcal gains' (bench): the channel gains, held fixed (the start with "
+                   "--fit-gains); kept in the calibration JSON.")
 @click.option("--quiet", "-q", is_flag=True, help="Print nothing but errors.")
 def calibrate_command(points, template, output, cost, radial, tangential, psd_radial, skew, aspect, preliminary,
                       normalize, sensor_mm, max_iterations, fit_gains, quiet, reject_k=None, f_guess_mm=None,
                       noise_um=None, strict=False, model_choice="manual", cv_k=None, fix_items=(),
-                      prior_items=(), prior_files=()):
+                      prior_items=(), prior_files=(), gains_file=None):
     """Calibrate a PSD + lens sensor from views of a planar LED template.
 
     POINTS is a CSV of impact points, `image_id,point_id,x_mm,y_mm` (a missing
@@ -98,8 +101,14 @@ def calibrate_command(points, template, output, cost, radial, tangential, psd_ra
         raise InputError("--fit-gains needs raw amplitudes (header image_id,point_id,vx1,vx2,vy1,vy2)", path=points, line=1)
     from psdcal.calibration._refine import SolverOptions
 
+    bench_gains = None
+    if gains_file is not None:
+        from psdcal.calibration.bench import load_gains
+
+        bench_gains = load_gains(gains_file)[0]
     noise_mm = None if noise_um is None else noise_um * 1e-3
     common = dict(cost=cost, preliminary=preliminary, normalize=normalize, aspect=aspect, fit_gains=fit_gains,
+                  gains=bench_gains,
                   image_ids=pf.image_ids, point_ids=tids, sensor_mm=tuple(sensor_mm),
                   solver=SolverOptions(max_iterations=max_iterations), f_guess_mm=f_guess_mm)
     try:
@@ -148,7 +157,7 @@ def calibrate_command(points, template, output, cost, radial, tangential, psd_ra
                                   problem={**res.problem, "cross_validation": cv.to_dict()})
         if not quiet:
             click.echo(cv.line())
-    res = _with_inputs(res, template, points)
+    res = _with_inputs(res, template, points, gains_file)
     if strict and res.verdict["verdict"] != "good":
         from psdcal.calibration.verdict import Verdict, VerdictError
 
@@ -179,13 +188,14 @@ def _diagnosis(result, noise_mm, points_kind) -> str:
     return f"; diagnosis: {tips[0]}" if tips else ""
 
 
-def _with_inputs(res, template, points):
+def _with_inputs(res, template, points, gains_file=None):
     """Record the input files and their checksums in the result's problem record."""
     import dataclasses
     import hashlib
 
     files = {}
-    for role, p in (("template", template), ("points", points)):
+    roles = (("template", template), ("points", points)) + ((("gains", gains_file),) if gains_file else ())
+    for role, p in roles:
         files[role] = {"path": str(p), "sha256": hashlib.sha256(Path(p).read_bytes()).hexdigest()}
     return dataclasses.replace(res, problem={**res.problem, "files": files})
 

@@ -13,6 +13,11 @@ def _channels(value):
     if value is None:
         return None
     names = [v.strip() for v in value.split(",")]
+    from psdcal.signal.module import is_module_spec
+
+    if is_module_spec(value):
+        raise click.BadParameter("x, y, sum recordings of a position module are read by 'psdcal module REC "
+                                 f"--channels {value}' (LEDs found, positions, angles with --calib)")
     if len(names) != 4 or not all(names):
         raise click.BadParameter("give 4 comma-separated names (for vx1,vx2,vy1,vy2)")
     return tuple(names)
@@ -25,12 +30,17 @@ def _demod_options(f):
         click.option("--carrier-hz", "carriers", type=float, multiple=True, required=True,
                      help="Carrier of an emitter; repeat for several emitters at once (frequency multiplexing)."),
         click.option("--emitter", "emitters", multiple=True, help="Name of each carrier's emitter (default '<f>Hz')."),
-        click.option("--window-s", type=float, default=0.01, show_default=True,
-                     help="Demodulation window: one output per window."),
+        click.option("--window-s", type=float, default=None,
+                     help="Demodulation window, s: one output per window [default: 0.01; with --tdm chosen from "
+                          "the on-times measured on the recording]."),
         click.option("--tdm", is_flag=True, help="Time multiplexing: one row per segment where one LED is on."),
         click.option("--schedule", type=click.Path(dir_okay=False),
                      help="TDM schedule CSV emitter,t_start_s,t_end_s (implies --tdm)."),
-        click.option("--n-emitters", type=int, help="TDM without schedule: emitters per cycle (names repeat)."),
+        click.option("--n-emitters", type=int,
+                     help="TDM without schedule: emitters per cycle (names repeat); a segment count that is not "
+                          "a multiple of it is refused."),
+        click.option("--check-carriers/--no-check-carriers", default=True, show_default=True,
+                     help="Measure the carriers on the start of the recording; warn when one asked is off."),
         click.option("--min-snr", type=float, default=10.0, show_default=True,
                      help="Drop a window/segment whose total amplitude is below this many sigma."),
         click.option("--channels",
@@ -63,10 +73,13 @@ def _demod_options(f):
                                       "interleaved vx1,vx2,vy1,vy2 frames (little-endian).")
 @click.option("--raw-scale", type=float, default=1.0, show_default=True,
               help="Live input: factor applied to every sample (e.g. volts per int16 count).")
+@click.option("--gains", "gains_file", type=click.Path(dir_okay=False),
+              help="Gains JSON from 'psdcal gains': channel gains (per carrier when it has them) replace the "
+                   "calibration's, their covariance enters the sigmas.")
 @_demod_options
-def locate_command(recordings, calib, sensors, rate_hz, carriers, emitters, distance_mm, window_s, tdm, schedule,
-                   n_emitters, min_snr, channels, dataset, group, chunk_samples, progress, output, track_path=None,
-                   track_q=None, raw_dtype="float64", raw_scale=1.0):
+def locate_command(recordings, calib, sensors, gains_file, rate_hz, carriers, emitters, distance_mm, window_s, tdm,
+                   schedule, n_emitters, check_carriers, min_snr, channels, dataset, group, chunk_samples, progress,
+                   output, track_path=None, track_q=None, raw_dtype="float64", raw_scale=1.0):
     """Demodulate RECORDING(s) and write angles of arrival and positions.
 
     \b
@@ -116,6 +129,7 @@ def locate_command(recordings, calib, sensors, rate_hz, carriers, emitters, dist
         schedule=sched,
         n_emitters=n_emitters,
         chunk_samples=chunk_samples,
+        check_carriers=check_carriers,
     )
     opts = dict(channels=_channels(channels), dataset=dataset, group=group)
     if calib is not None:
@@ -124,10 +138,20 @@ def locate_command(recordings, calib, sensors, rate_hz, carriers, emitters, dist
         if len(recordings) != 1:
             raise InputError(f"give one RECORDING with --calib, got {len(recordings)}", field="RECORDING")
         model = SensorModel.load(calib)
+        models = None
+        if gains_file is not None:
+            from psdcal.calibration.bench import load_gains, with_gains
+
+            per = [with_gains(model, *load_gains(gains_file, f)) for f in carriers]
+            model = per[0]
+            models = dict(zip(config.emitter_names(), per)) if len(per) > 1 else None
         recs = [open_recording(recordings[0], rate_hz, **opts)]
     else:
         from psdcal.measure.positioning import load_sensors
 
+        if gains_file is not None:
+            raise InputError("--gains applies to one sensor (--calib); put the gains in each sensor's calibration",
+                             field="gains")
         poses = load_sensors(sensors)
         paths = list(recordings) or [p.recording for p in poses]
         if len(paths) != len(poses) or any(p is None for p in paths):
@@ -142,22 +166,30 @@ def locate_command(recordings, calib, sensors, rate_hz, carriers, emitters, dist
     try:
         cb = bar.update if bar else None
         if calib is not None:
-            summary = locate_to_csv(recs[0], model, output, config, progress=cb)
+            summary = locate_to_csv(recs[0], model, output, config, progress=cb, models=models)
         else:
             summary = locate_multi_to_csv(recs, poses, output, config, progress=cb)
     finally:
         if bar:
             bar.close()
-    click.echo(
-        f"wrote {summary.n_rows} rows to {output} ({summary.duration_s:.6g} s of signal, "
-        f"{summary.n_windows} windows of {config.window_s:g} s, {summary.n_skipped} below --min-snr)"
-    )
+    _report(summary, output)
     if track_path:
         from psdcal.measure.tracking import track_csv
 
         info = track_csv(output, track_path, q=track_q)
         click.echo(f"wrote {info['n_rows']} tracked rows to {track_path} ({info['n_gated']} gated, "
                    f"mean NIS {info['mean_nis']:.3g} for {info['dims']} dimensions)")
+
+
+def _report(summary, output) -> None:
+    """The one-line summary (stdout) and the self-check warnings (stderr)."""
+    for w in summary.warnings:
+        click.echo(f"psdcal: warning: {w}", err=True)
+    segs = "" if summary.n_segments is None else f", {summary.n_segments} TDM segments"
+    click.echo(
+        f"wrote {summary.n_rows} rows to {output} ({summary.duration_s:.6g} s of signal, "
+        f"{summary.n_windows} windows of {summary.window_s:g} s{segs}, {summary.n_skipped} below --min-snr)"
+    )
 
 
 class _Bar:
@@ -184,7 +216,8 @@ class _Bar:
 @click.argument("recording", type=click.Path(dir_okay=False))
 @click.option("--image-id", help="Write a calibration points CSV image_id,point_id,vx1,vx2,vy1,vy2 for this view.")
 @_demod_options
-def amplitudes_command(recording, rate_hz, carriers, emitters, window_s, tdm, schedule, n_emitters, min_snr,
+def amplitudes_command(recording, rate_hz, carriers, emitters, window_s, tdm, schedule, n_emitters, check_carriers,
+                       min_snr,
                        image_id, channels, dataset, group, chunk_samples, progress, output):
     """Demodulate RECORDING to carrier amplitudes (no calibration needed).
 
@@ -200,7 +233,7 @@ def amplitudes_command(recording, rate_hz, carriers, emitters, window_s, tdm, sc
     sched = load_schedule(schedule) if schedule else None
     config = LocateConfig(carriers_hz=tuple(carriers), window_s=window_s, emitters=tuple(emitters) or None,
                           min_snr=min_snr, tdm=bool(tdm or sched is not None), schedule=sched,
-                          n_emitters=n_emitters, chunk_samples=chunk_samples)
+                          n_emitters=n_emitters, chunk_samples=chunk_samples, check_carriers=check_carriers)
     rec = open_recording(recording, rate_hz, channels=_channels(channels), dataset=dataset, group=group)
     show = progress if progress is not None else (rec.n_samples is not None and rec.n_samples >= _PROGRESS_MIN_SAMPLES)
     bar = _Bar(rec.n_samples, rec.path) if show else None
@@ -209,8 +242,7 @@ def amplitudes_command(recording, rate_hz, carriers, emitters, window_s, tdm, sc
     finally:
         if bar:
             bar.close()
-    click.echo(f"wrote {summary.n_rows} rows to {output} ({summary.duration_s:.6g} s of signal, "
-               f"{summary.n_windows} windows of {config.window_s:g} s, {summary.n_skipped} below --min-snr)")
+    _report(summary, output)
 
 
 @cli.command("aoa")
@@ -219,8 +251,11 @@ def amplitudes_command(recording, rate_hz, carriers, emitters, window_s, tdm, sc
 @click.option("--distance-mm", type=float, help="Plane distance S: also write X_mm, Y_mm.")
 @click.option("--sigma-d-mm", type=float, default=0.0, show_default=True,
               help="1-sigma noise of the impact points, mm (added to the calibration covariance).")
+@click.option("--gains", "gains_file", type=click.Path(dir_okay=False),
+              help="Gains JSON from 'psdcal gains' (amplitude input): applied to the channels, covariance "
+                   "in the sigmas.")
 @click.option("-o", "--output", required=True, type=click.Path(dir_okay=False), help="Output CSV.")
-def aoa_command(points, calib, distance_mm, sigma_d_mm, output):
+def aoa_command(points, calib, distance_mm, sigma_d_mm, gains_file, output):
     """Convert impact points (x_mm,y_mm) or amplitudes (vx1..vy2) in POINTS.csv to angles.
 
     Other columns (image_id, point_id, ...) are copied.  Output adds
@@ -234,6 +269,10 @@ def aoa_command(points, calib, distance_mm, sigma_d_mm, output):
     from psdcal.measure.sensor_model import SensorModel
 
     model = SensorModel.load(calib)
+    if gains_file is not None:
+        from psdcal.calibration.bench import load_gains, with_gains
+
+        model = with_gains(model, *load_gains(gains_file))
     n = aoa_csv(points, model, output, distance_mm=distance_mm, sigma_d_mm=sigma_d_mm)
     click.echo(f"wrote {n} rows to {output}")
 

@@ -819,9 +819,10 @@ def live_locate(recordings, calib, rate_hz, carriers, emitters, distance_mm, win
     if distance_mm is not None and not distance_mm > 0:
         raise InputError(f"--distance-mm must be positive, got {distance_mm}", field="distance_mm")
     sched = load_schedule(schedule) if schedule else None
-    config = LocateConfig(carriers_hz=tuple(carriers), window_s=window_s, distance_mm=distance_mm,
-                          emitters=tuple(emitters) or None, min_snr=min_snr, tdm=bool(tdm or sched is not None),
-                          schedule=sched, n_emitters=n_emitters)
+    # a live stream cannot be pre-scanned for the on-times: the window is --window-s or 10 ms
+    config = LocateConfig(carriers_hz=tuple(carriers), window_s=0.01 if window_s is None else window_s,
+                          distance_mm=distance_mm, emitters=tuple(emitters) or None, min_snr=min_snr,
+                          tdm=bool(tdm or sched is not None), schedule=sched, n_emitters=n_emitters)
     model = SensorModel.load(calib)
     stream = open_stream(str(recordings[0]), rate_hz, dtype=raw_dtype, scale=raw_scale)
     summary = locate_stream(stream, model, output, config)

@@ -49,8 +49,11 @@ class LocateConfig:
     carriers_hz : tuple of float
         One carrier per emitter (frequency multiplexing); one carrier for
         time multiplexing.
-    window_s : float
+    window_s : float or None
         Demodulation window, s: one output per window (default 0.01 s).
+        None: 0.01 s, or for time multiplexing a window chosen from the
+        on-times measured on the start of the recording
+        (:func:`psdcal.signal.inspect.choose_tdm_window`).
     distance_mm : float or None
         Plane distance ``S`` for ``X_mm, Y_mm`` (single sensor).
     emitters : tuple of str or None
@@ -66,10 +69,13 @@ class LocateConfig:
         TDM without schedule: emitters per cycle (segment names repeat).
     chunk_samples : int
         Samples per channel read at once (bounds the memory).
+    check_carriers : bool
+        Measure the carriers on the start of the recording and warn when an
+        asked one is off (:func:`psdcal.signal.inspect.check_carrier`).
     """
 
     carriers_hz: tuple
-    window_s: float = 0.01
+    window_s: float | None = 0.01
     distance_mm: float | None = None
     emitters: tuple | None = None
     min_snr: float = 10.0
@@ -77,6 +83,7 @@ class LocateConfig:
     schedule: tuple | None = None
     n_emitters: int | None = None
     chunk_samples: int = DEFAULT_CHUNK
+    check_carriers: bool = True
 
     def emitter_names(self) -> tuple[str, ...]:
         if self.emitters is None:
@@ -105,6 +112,13 @@ class LocateSummary:
     duration_s : float
         Signal duration processed.
     columns : tuple of str
+    warnings : tuple of str
+        What the self-checks found (carrier off its measured frequency, TDM
+        segments suspicious, schedule entries without a window).
+    window_s : float or None
+        The window used (chosen from the recording when not given).
+    n_segments : int or None
+        Time multiplexing: segments found.
     """
 
     n_samples: int
@@ -113,6 +127,42 @@ class LocateSummary:
     n_skipped: int
     duration_s: float
     columns: tuple
+    warnings: tuple = ()
+    window_s: float | None = None
+    n_segments: int | None = None
+
+
+def prescan(recording: Recording, config: LocateConfig) -> tuple[float, list[str]]:
+    """The demodulation window and the self-check warnings, from the start of a recording.
+
+    Returns ``(window_s, warnings)``: ``config.window_s`` when given, else a
+    window chosen from the measured TDM on-times (0.01 s without TDM); a
+    warning per asked carrier that is not where it was asked (carrier
+    finder of :mod:`psdcal.signal.inspect`).  Only recordings in files
+    (kinds npy, csv, hdf5, tdms) are scanned: a live stream is not read twice.
+    """
+    from psdcal.signal.inspect import carrier_near, check_carrier, choose_tdm_window, read_prefix, scan_tdm
+
+    warnings: list[str] = []
+    window_s = config.window_s
+    # only files can be read twice (a live stream must not lose its first chunk to the scan)
+    rereadable = getattr(recording, "kind", None) in ("npy", "csv", "hdf5", "tdms")
+    need_scan = rereadable and (config.check_carriers or (window_s is None and config.tdm))
+    # one chunk's worth (the memory the user allowed), at least 4096 samples
+    n_scan = min(max(int(config.chunk_samples), 4096), 1 << 18)
+    x = read_prefix(recording, n_scan) if need_scan else None
+    if window_s is None:
+        if config.tdm and x is not None and x.shape[1] >= 64:
+            window_s = choose_tdm_window(scan_tdm(x, recording.rate_hz, config.carriers_hz[0],
+                                                  min_snr=config.min_snr), config.carriers_hz[0])
+        else:
+            window_s = 0.01
+    if config.check_carriers and x is not None and x.shape[1] >= 64:
+        for f in config.carriers_hz:
+            chk = check_carrier(f, carrier_near(x, recording.rate_hz, f), window_s, tdm=config.tdm)
+            if not chk.ok:
+                warnings.append(f"{recording.path}: {chk.message}")
+    return window_s, warnings
 
 
 def single_columns(with_plane: bool) -> tuple[str, ...]:
@@ -192,7 +242,8 @@ def _stream_single(recording: Recording, config: LocateConfig, out_path, order, 
     if config.tdm and len(config.carriers_hz) != 1:
         raise InputError("time multiplexing uses a single carrier", field="carrier_hz")
     names = config.emitter_names()
-    lockin = MultiCarrierLockin(recording.rate_hz, config.carriers_hz, config.window_s)
+    window_s, warnings = prescan(recording, config)
+    lockin = MultiCarrierLockin(recording.rate_hz, config.carriers_hz, window_s)
     if config.distance_mm is not None and not (config.distance_mm > 0):
         raise InputError(f"--distance-mm must be positive, got {config.distance_mm}", field="distance_mm")
     seg = None
@@ -237,6 +288,7 @@ def _stream_single(recording: Recording, config: LocateConfig, out_path, order, 
                 n_skipped += skipped
                 if cols is not None:
                     n_rows += _write_rows(fh, cols, order)
+                warnings.extend(seg.warnings)
         if n_windows == 0:
             raise InputError(
                 f"the recording is shorter than one {lockin.window_s:g} s window ({n_samples} samples)",
@@ -247,11 +299,13 @@ def _stream_single(recording: Recording, config: LocateConfig, out_path, order, 
                 f"{recording.path}: no window has a carrier of {list(config.carriers_hz)} Hz above "
                 f"--min-snr {config.min_snr:g} (emitter off, wrong carrier, or dead channels)"
             )
-    return LocateSummary(n_samples, n_windows, n_rows, n_skipped, n_samples / recording.rate_hz, tuple(order))
+    return LocateSummary(n_samples, n_windows, n_rows, n_skipped, n_samples / recording.rate_hz, tuple(order),
+                         warnings=tuple(warnings), window_s=lockin.window_s,
+                         n_segments=None if seg is None else len(seg.segments))
 
 
 def locate_to_csv(recording: Recording, model: SensorModel, out_path, config: LocateConfig,
-                  progress: Callable[[int], None] | None = None) -> LocateSummary:
+                  progress: Callable[[int], None] | None = None, models: dict | None = None) -> LocateSummary:
     """Demodulate a recording of one sensor and write angles (and positions) to CSV.
 
     Parameters
@@ -264,6 +318,9 @@ def locate_to_csv(recording: Recording, model: SensorModel, out_path, config: Lo
     config : LocateConfig
     progress : callable, optional
         Called with the number of samples (per channel) read after each chunk.
+    models : dict, optional
+        ``{emitter name: SensorModel}``: a model per emitter (e.g. channel
+        gains per carrier); emitters not in it use ``model``.
 
     Returns
     -------
@@ -271,7 +328,23 @@ def locate_to_csv(recording: Recording, model: SensorModel, out_path, config: Lo
     """
 
     def make_cols(t, nm, a, v):
-        return _rows_single(t, nm, a, v, model, config.distance_mm, config.min_snr)
+        if not models:
+            return _rows_single(t, nm, a, v, model, config.distance_mm, config.min_snr)
+        parts, skipped = [], 0
+        order = np.argsort(t, kind="stable")
+        t, nm, a, v = t[order], nm[order], a[order], v[order]
+        groups = {}
+        for i, name in enumerate(nm):
+            groups.setdefault(name, []).append(i)
+        for name, idx in groups.items():
+            idx = np.array(idx)
+            cols, sk = _rows_single(t[idx], nm[idx], a[idx], v[idx], models.get(name, model), config.distance_mm,
+                                    config.min_snr)
+            parts.append(cols)
+            skipped += sk
+        merged = {c: np.concatenate([p[c] for p in parts]) for c in parts[0]}
+        back = np.argsort(merged["t_s"], kind="stable")
+        return {c: merged[c][back] for c in merged}, skipped
 
     return _stream_single(recording, config, out_path, single_columns(config.distance_mm is not None), make_cols,
                           progress)
@@ -344,7 +417,11 @@ def locate_multi_to_csv(recordings, sensors, out_path, config: LocateConfig,
     rate = rates.pop()
     names = config.emitter_names()
     k = len(names)
-    lockins = [MultiCarrierLockin(rate, config.carriers_hz, config.window_s) for _ in sensors]
+    warnings: list[str] = []
+    window_s = 0.01 if config.window_s is None else config.window_s
+    for r in recordings:
+        warnings += prescan(r, LocateConfig(config.carriers_hz, window_s, check_carriers=config.check_carriers))[1]
+    lockins = [MultiCarrierLockin(rate, config.carriers_hz, window_s) for _ in sensors]
     nwin = lockins[0].n_window
     chunk = max(1, int(config.chunk_samples) // nwin) * nwin
     R = np.stack([s.R for s in sensors])
@@ -401,7 +478,8 @@ def locate_multi_to_csv(recordings, sensors, out_path, config: LocateConfig,
                 f"no window has a carrier of {list(config.carriers_hz)} Hz seen by two sensors above "
                 f"--min-snr {config.min_snr:g}"
             )
-    return LocateSummary(n_samples, n_windows, n_rows, n_skipped, n_samples / rate, MULTI_COLUMNS)
+    return LocateSummary(n_samples, n_windows, n_rows, n_skipped, n_samples / rate, MULTI_COLUMNS,
+                         warnings=tuple(warnings), window_s=window_s)
 
 
 # --------------------------------------------------------------------------- impact points -> angles

@@ -37,6 +37,9 @@ from psdcal.errors import InputError
 #: A window must hold at least this many periods of the lowest carrier.
 MIN_PERIODS = 3.0
 
+#: Relative floor of the fitted noise (of the window's RMS): double rounding is ~1e-16.
+NOISE_FLOOR_REL = 1e-12
+
 
 @dataclass(frozen=True)
 class WindowBlock:
@@ -205,6 +208,9 @@ class MultiCarrierLockin:
         xx = np.einsum("cwn,cwn->cw", xw, xw)
         fit = np.einsum("cwi,ij,cwj->cw", coef, self._gram, coef)
         var = np.clip(xx - fit, 0.0, None) / max(self._dof, 1)  # (4, nw)
+        # Floor: rounding leaves a residual of ~1e-16 of the signal; a constant or
+        # noiseless record must not give amplitudes of 1e-17 with sigma 0.
+        var = np.maximum(var, (NOISE_FLOOR_REL**2) * xx / n)
         iq = coef[..., : 2 * k].reshape(4, nw, k, 2)  # (i, q) per carrier
         z = iq[..., 0] + 1j * iq[..., 1]  # x ~ i sin + q cos on the window's own time
         zsum = z.sum(axis=0)  # (nw, k): common phase of the four channels
@@ -331,6 +337,17 @@ class _Acc:
         return Segment(name, self.t0, self.t1, self.n, self.sa / self.n, self.sv / self.n**2)
 
 
+def _check_schedule(sched) -> None:
+    """Refuse overlapping schedule entries (two LEDs would share the same windows)."""
+    order = sorted(sched, key=lambda e: e.t_start_s)
+    for a, b in zip(order, order[1:]):
+        if b.t_start_s < a.t_end_s:
+            raise InputError(
+                f"schedule entries '{a.emitter}' ({a.t_start_s:g}-{a.t_end_s:g} s) and '{b.emitter}' "
+                f"({b.t_start_s:g}-{b.t_end_s:g} s) overlap: two LEDs cannot be on together in time "
+                "multiplexing", field="t_start_s")
+
+
 class TdmSegmenter:
     """Time multiplexing: one emitter on at a time on one carrier.
 
@@ -339,12 +356,27 @@ class TdmSegmenter:
     segment.  A run is also split where the spot jumps: where the channel
     ratios ``a_i / sum(a)`` of consecutive windows differ by more than
     ``split_sigma`` times their noise and by more than ``split_floor`` (LEDs
-    switched back to back, without a dark gap).  The first and last windows of
+    switched back to back, without a dark gap), and where the total amplitude
+    of consecutive windows differs by more than ``split_sigma`` times its noise
+    and by more than ``level_floor`` of its value (a window straddling a dark
+    gap shorter than the window holds less light than its neighbours: the two
+    LEDs around the gap are not merged).  The first and last windows of
     a run (which may straddle the switching) are dropped when the run is
-    longer than two windows; a lone window between two jumps (a transition)
-    is discarded.  Segments are named ``1, 2, ...`` (modulo ``n_emitters``
+    longer than two windows; a run of one or two windows next to a jump (a
+    transition across a short gap, or the partly lit edge of a run) is
+    discarded.  Segments are named ``1, 2, ...`` (modulo ``n_emitters``
     when the emitters repeat in cycles).  With a schedule, the windows lying
     entirely inside an entry's interval are that entry's segment.
+
+    Self-checks (never a relabelling):
+
+    * ``n_emitters`` given: at :meth:`finish`, a number of segments that is not
+      a multiple of ``n_emitters`` raises :class:`InputError` (a merged or
+      split LED would shift every later label).
+    * a schedule whose entries overlap raises :class:`InputError` at
+      construction (two LEDs would share windows).
+    * :attr:`warnings` collects what a user should see: schedule entries that
+      received no window, segments much shorter than the others.
 
     Parameters
     ----------
@@ -360,11 +392,24 @@ class TdmSegmenter:
     split_sigma, split_floor : float
         Jump detection between consecutive windows (see above); the floor
         1e-3 of the ratio is about 0.01 mm on a 9 mm PSD.
+    level_floor : float
+        Relative change of the total amplitude between consecutive windows
+        that counts as a switch (with ``split_sigma``).
     """
 
     def __init__(self, window_s: float, *, carrier_index: int = 0, min_snr: float = 20.0, schedule=None,
-                 n_emitters: int | None = None, split_sigma: float = 8.0, split_floor: float = 1e-3):
+                 n_emitters: int | None = None, split_sigma: float = 8.0, split_floor: float = 1e-3,
+                 level_floor: float = 0.1):
         self.window_s = float(window_s)
+        if n_emitters is not None and int(n_emitters) < 1:
+            raise InputError(f"--n-emitters must be at least 1, got {n_emitters}", field="n_emitters")
+        if schedule is not None:
+            _check_schedule(tuple(schedule))
+        self.level_floor = float(level_floor)
+        self.warnings: list[str] = []
+        self.segments: list[Segment] = []  # every segment returned so far
+        self.n_transitions = 0  # windows between two spots, discarded
+        self.n_dropped_runs = 0  # runs of such windows
         self.k = int(carrier_index)
         self.min_snr = float(min_snr)
         self.schedule = None if schedule is None else tuple(schedule)
@@ -401,13 +446,13 @@ class TdmSegmenter:
         safe = np.where(on, total, 1.0)
         ratio = a / safe[:, None]
         ratio_sd = np.sqrt(v) / np.abs(safe)[:, None]
-        out = []
+        out = self._record([])
         for i in range(len(on)):  # a few windows per chunk: a Python loop is cheap here
             w = (t0[i], t1[i], a[i : i + 1], v[i : i + 1])
             if on[i]:
                 if self._run is None:
                     self._start(w, after_jump=False)
-                elif self._jumped(ratio[i], ratio_sd[i]):
+                elif self._jumped(ratio[i], ratio_sd[i], total[i], sd[i]):
                     out.extend(self._close_run(jump=True))
                     self._start(w, after_jump=True)
                 else:
@@ -415,25 +460,35 @@ class TdmSegmenter:
                     if self._pending is not None:
                         self._run.add(*self._pending)
                     self._pending = w
-                self._last_ratio = (ratio[i], ratio_sd[i])
+                self._last_ratio = (ratio[i], ratio_sd[i], total[i], sd[i])
             elif self._run is not None:
                 out.extend(self._close_run(jump=False))
-        return out
+        return self._record(out)
+
+    def _record(self, segs: list[Segment]) -> list[Segment]:
+        self.segments.extend(segs)
+        return segs
 
     def _start(self, w, *, after_jump: bool) -> None:
         self._run, self._run_len, self._first, self._pending = _Acc(), 1, w, None
         self._run_after_jump = after_jump
 
-    def _jumped(self, r, r_sd) -> bool:
-        r0, sd0 = self._last_ratio
+    def _jumped(self, r, r_sd, total, total_sd) -> bool:
+        r0, sd0, total0, total_sd0 = self._last_ratio
         diff = np.abs(r - r0)
-        return bool(np.any((diff > self.split_sigma * np.hypot(r_sd, sd0)) & (diff > self.split_floor)))
+        if np.any((diff > self.split_sigma * np.hypot(r_sd, sd0)) & (diff > self.split_floor)):
+            return True
+        dl = abs(total - total0)
+        return bool(dl > self.split_sigma * math.hypot(total_sd, total_sd0)
+                    and dl > self.level_floor * max(abs(total), abs(total0)))
 
     def _close_run(self, *, jump: bool = False) -> list[Segment]:
         run, n = self._run, self._run_len
         self._run = None
-        if n == 1 and jump and self._run_after_jump:
-            return []  # a lone transition window between two spots
+        if n <= 2 and (jump or self._run_after_jump):
+            self.n_transitions += n
+            self.n_dropped_runs += 1
+            return []  # transition window(s) between two spots, or the partly lit edge of a run
         if n <= 2:  # too short to drop edges: keep what there is
             for w in (self._first, self._pending):
                 if w is not None:
@@ -460,17 +515,56 @@ class TdmSegmenter:
             acc = self._sched_acc.pop(j, None)
             if acc is not None:
                 out.append(acc.segment(sched[j].emitter))
+            else:
+                self._no_window(sched[j])
             self._sched_next += 1
-        return out
+        return self._record(out)
+
+    def _no_window(self, e: ScheduleEntry) -> None:
+        self.warnings.append(
+            f"schedule entry '{e.emitter}' ({e.t_start_s:g}-{e.t_end_s:g} s) holds no whole "
+            f"{self.window_s:g} s window: no row for it (shorten --window-s)")
 
     def finish(self) -> list[Segment]:
         """Segments still open at the end of the recording."""
         out = []
         if self.schedule is not None:
-            for j in sorted(self._sched_acc):
-                out.append(self._sched_acc[j].segment(self.schedule[j].emitter))
+            for j in range(self._sched_next, len(self.schedule)):
+                if j in self._sched_acc:
+                    out.append(self._sched_acc[j].segment(self.schedule[j].emitter))
+                elif self.schedule[j].t_start_s >= 0:
+                    self._no_window(self.schedule[j])
             self._sched_acc.clear()
             self._sched_next = len(self.schedule)
         elif self._run is not None:
             out.extend(self._close_run())
+        self._record(out)
+        if self.schedule is None:
+            self._check_count()
         return out
+
+    def _check_count(self) -> None:
+        """The self-checks of a segmentation from the signal (see the class docstring)."""
+        segs = self.segments
+        n = len(segs)
+        if self.n_emitters and n % self.n_emitters:
+            durs = ", ".join(f"{s.t_end_s - s.t_start_s:.3g}" for s in segs[:12])
+            raise InputError(
+                f"time multiplexing: found {n} segments, not a multiple of --n-emitters {self.n_emitters} "
+                f"(segment lengths {durs}{' ...' if n > 12 else ''} s): two LEDs merged or one split; "
+                "refusing to label them (give a --schedule, or check with 'psdcal inspect')",
+                field="n_emitters")
+        if self.n_dropped_runs > 2 * n + 2:  # a segment has at most two partly lit edges
+            self.warnings.append(
+                f"time multiplexing: {self.n_dropped_runs} runs of 1-2 windows were discarded as transitions "
+                f"against {n} segments kept: the {self.window_s:g} s window may be too long for the LEDs' "
+                "on-times (leave --window-s out to choose it from the recording, or see 'psdcal inspect')")
+        if n >= 3:
+            d = np.array([s.t_end_s - s.t_start_s for s in segs])
+            med = float(np.median(d))
+            short = np.flatnonzero(d < 0.5 * med - 1e-12)
+            if short.size:
+                self.warnings.append(
+                    f"time multiplexing: {short.size} of {n} segments are shorter than half the median "
+                    f"({med:.3g} s): segment(s) {', '.join(segs[i].emitter for i in short[:10])} may be a split "
+                    "LED or a transition")

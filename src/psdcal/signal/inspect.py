@@ -1,0 +1,340 @@
+"""What a recording holds, measured before demodulating it (``psdcal inspect``).
+
+* :func:`find_carriers`: the carriers present in a four-channel record, with
+  their frequency (Hann-windowed spectrum, peak refined by parabolic
+  interpolation of the log power) and their SNR per channel.
+* :func:`check_carrier`: compares an asked carrier with the measured one.  A
+  carrier off by ``df`` leaves, in a window of ``T`` seconds, a phase drift
+  whose residual has mean square ``A^2 (pi df T)^2 / 6`` (linear phase error
+  ``2 pi df (t - T/2)`` over the window); the fitted noise, hence every sigma,
+  grows by ``sqrt(1 + A^2 (pi df T)^2 / (6 sigma^2))`` and the amplitude drops
+  by ``sinc(df T)``.  The check warns when that inflation exceeds
+  :data:`MAX_SIGMA_INFLATION` or the amplitude loss exceeds
+  :data:`MAX_AMPLITUDE_LOSS`.
+* :func:`scan_tdm`: the on-times and dark gaps of a time-multiplexed record
+  (segments found with a short window), and :func:`choose_tdm_window`, a
+  demodulation window from them.
+
+All functions read a bounded prefix of the recording
+(:data:`DEFAULT_SCAN_SAMPLES` samples per channel).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from psdcal.errors import InputError
+
+#: Samples per channel read for a scan (bounds memory and time).
+DEFAULT_SCAN_SAMPLES = 1 << 18
+#: A carrier mismatch that inflates the sigmas by more than this is reported.
+MAX_SIGMA_INFLATION = 1.2
+#: ... or that loses more than this fraction of the amplitude.
+MAX_AMPLITUDE_LOSS = 0.01
+#: Minimum SNR of a spectral peak to count as a carrier, dB (power over the median floor).
+MIN_CARRIER_SNR_DB = 20.0
+#: A peak this far (dB) below a stronger carrier close to it is a side-band, not a carrier.
+SIDEBAND_DB = 20.0
+#: A peak this far (dB) below the strongest carrier is not listed (use carrier_near for a weak one).
+WEAK_DB = 30.0
+
+
+@dataclass(frozen=True)
+class Carrier:
+    """A carrier found in a record.
+
+    Attributes
+    ----------
+    freq_hz : float
+        Measured frequency (peak of the spectrum, interpolated).
+    resolution_hz : float
+        Bin width of the spectrum (rate / samples), Hz.
+    snr_db : (4,) ndarray
+        The carrier's power in its spectral bin over the noise power in one
+        bin (``(A sum(w) / 2)^2 / (sigma^2 sum(w^2))``), dB, per channel.
+    amplitude : (4,) ndarray
+        Peak amplitude per channel (signal unit; averaged over the record, so
+        a time-multiplexed LED's amplitude times its duty cycle).
+    noise_sigma : (4,) ndarray
+        White-noise sigma per sample of each channel (from the median floor).
+    """
+
+    freq_hz: float
+    resolution_hz: float
+    snr_db: np.ndarray
+    amplitude: np.ndarray
+    noise_sigma: np.ndarray
+
+
+def read_prefix(recording, max_samples: int = DEFAULT_SCAN_SAMPLES) -> np.ndarray:
+    """The first ``max_samples`` samples (4, n) of a :class:`~psdcal.signal.recording.Recording`."""
+    parts, n = [], 0
+    for _, block in recording.chunks(min(int(max_samples), 1 << 16)):
+        parts.append(block[:, : max_samples - n])
+        n += parts[-1].shape[1]
+        if n >= max_samples:
+            break
+    if not parts:
+        return np.zeros((4, 0))
+    return np.concatenate(parts, axis=1)
+
+
+def spectrum(x, rate_hz: float):
+    """Hann-windowed amplitude spectrum of each channel.
+
+    Parameters
+    ----------
+    x : (4, n) ndarray
+    rate_hz : float
+
+    Returns
+    -------
+    freq_hz : (n // 2 + 1,) ndarray
+    power : (4, n // 2 + 1) ndarray
+        ``|X_k|^2`` of the mean-removed, Hann-windowed channels.
+    wsum, w2sum : float
+        Sum of the window and of its square (to convert to amplitudes and noise).
+    """
+    x = np.asarray(x, dtype=float)
+    n = x.shape[1]
+    w = np.hanning(n)
+    p = np.empty((x.shape[0], n // 2 + 1))
+    for c in range(x.shape[0]):  # one channel at a time: bounded memory
+        p[c] = np.abs(np.fft.rfft((x[c] - x[c].mean()) * w)) ** 2
+    return np.fft.rfftfreq(n, 1.0 / rate_hz), p, float(w.sum()), float((w * w).sum())
+
+
+def find_carriers(x, rate_hz: float, *, min_snr_db: float = MIN_CARRIER_SNR_DB, max_carriers: int = 8,
+                  min_hz: float = 1.0) -> list[Carrier]:
+    """Carriers in a record, strongest first.
+
+    A carrier is a peak of the summed power spectrum that exceeds the median
+    noise floor by ``min_snr_db``, dominates its neighbourhood of +-2 % of
+    its frequency, is not more than :data:`SIDEBAND_DB` below a stronger
+    carrier within 50 % of it nor :data:`WEAK_DB` below the strongest one (so the side-bands of on/off keying are not
+    counted as carriers).
+
+    Parameters
+    ----------
+    x : (4, n) ndarray
+    rate_hz : float
+    min_snr_db : float
+    max_carriers : int
+    min_hz : float
+        Lowest frequency considered (DC and drift are not carriers).
+
+    Returns
+    -------
+    list of Carrier
+    """
+    x = np.asarray(x, dtype=float)
+    n = x.shape[1]
+    if n < 64:
+        raise InputError(f"too few samples to find carriers ({n}; at least 64)", field="samples")
+    freq, p, wsum, w2sum = spectrum(x, rate_hz)
+    df = rate_hz / n
+    floor = np.median(p[:, 1:], axis=1)  # (4,)
+    floor = np.where(floor > 0, floor, np.finfo(float).tiny)
+    ptot = p.sum(axis=0)
+    ftot = floor.sum()
+    lo = max(2, int(math.ceil(min_hz / df)))
+    cand = np.flatnonzero((ptot[lo:-1] > ftot * 10 ** (min_snr_db / 10))
+                          & (ptot[lo:-1] >= ptot[lo - 1:-2]) & (ptot[lo:-1] >= ptot[lo + 1:])) + lo
+    cand = cand[np.argsort(ptot[cand])[::-1]]
+    out: list[Carrier] = []
+    peaks: list[float] = []
+    for k in cand:
+        half = max(2, int(0.02 * freq[k] / df))
+        if ptot[k] < ptot[max(1, k - half): k + half + 1].max():
+            continue
+        if any(abs(c.freq_hz - freq[k]) < 0.02 * freq[k] + 2 * df for c in out):
+            continue
+        if out and ptot[k] < peaks[0] * 10 ** (-WEAK_DB / 10):
+            continue  # far below the strongest carrier: keying side-bands, harmonics
+        # side-band of on/off keying: > SIDEBAND_DB below a carrier within 50 % of it
+        if any(abs(c.freq_hz - freq[k]) < 0.5 * c.freq_hz and ptot[k] < pk * 10 ** (-SIDEBAND_DB / 10)
+               for c, pk in zip(out, peaks)):
+            continue
+        peaks.append(ptot[k])
+        out.append(_carrier_at(k, p, ptot, floor, df, wsum, w2sum))
+        if len(out) >= max_carriers:
+            break
+    return out
+
+
+def _carrier_at(k, p, ptot, floor, df, wsum, w2sum) -> Carrier:
+    # parabolic interpolation of the log power around the peak bin k
+    a, b, c = np.log(ptot[k - 1: k + 2] + 1e-300)
+    den = a - 2 * b + c
+    delta = 0.5 * (a - c) / den if den < 0 else 0.0
+    delta = float(np.clip(delta, -0.5, 0.5))
+    # Hann scalloping: the response at delta bins off the peak is sinc(delta) / (1 - delta^2)
+    amp = 2 * np.sqrt(p[:, k]) / wsum / (np.sinc(delta) / (1.0 - delta * delta))
+    sigma = np.sqrt(floor / (math.log(2) * w2sum))  # white noise: median of |X|^2 = ln2 sigma^2 sum w^2
+    return Carrier(
+        freq_hz=float((k + delta) * df),
+        resolution_hz=float(df),
+        # the carrier's power in its bin over the noise power in one bin
+        snr_db=20 * np.log10(np.maximum(amp * wsum / 2, 1e-300) / (sigma * math.sqrt(w2sum))),
+        amplitude=amp,
+        noise_sigma=sigma,
+    )
+
+
+def carrier_near(x, rate_hz: float, asked_hz: float, *, rel: float = 0.05,
+                 min_snr_db: float = MIN_CARRIER_SNR_DB) -> Carrier | None:
+    """The strongest spectral peak within ``+-rel`` of ``asked_hz`` (None when below ``min_snr_db``).
+
+    Unlike :func:`find_carriers` no side-band rule applies: a weak emitter
+    near a strong one is still measured.
+    """
+    x = np.asarray(x, dtype=float)
+    n = x.shape[1]
+    if n < 64:
+        raise InputError(f"too few samples to find carriers ({n}; at least 64)", field="samples")
+    freq, p, wsum, w2sum = spectrum(x, rate_hz)
+    df = rate_hz / n
+    floor = np.median(p[:, 1:], axis=1)
+    floor = np.where(floor > 0, floor, np.finfo(float).tiny)
+    ptot = p.sum(axis=0)
+    lo = max(1, int(math.floor(asked_hz * (1 - rel) / df)))
+    hi = min(len(freq) - 2, int(math.ceil(asked_hz * (1 + rel) / df)))
+    if hi < lo:
+        return None
+    k = lo + int(np.argmax(ptot[lo: hi + 1]))
+    if ptot[k] <= floor.sum() * 10 ** (min_snr_db / 10):
+        return None
+    return _carrier_at(max(k, 1), p, ptot, floor, df, wsum, w2sum)
+
+
+@dataclass(frozen=True)
+class CarrierCheck:
+    """An asked carrier against the measured one.
+
+    Attributes
+    ----------
+    asked_hz : float
+    measured : Carrier or None
+        The strongest peak within +-5 % of the asked one (None: none found).
+    offset_hz : float
+        ``measured - asked`` (nan when none found).
+    sigma_inflation : float
+        Predicted factor on the demodulated sigmas (see the module docstring).
+    amplitude_loss : float
+        Predicted relative loss of amplitude, ``1 - sinc(df T)``.
+    ok : bool
+    message : str
+        Empty when ``ok``.
+    """
+
+    asked_hz: float
+    measured: Carrier | None
+    offset_hz: float
+    sigma_inflation: float
+    amplitude_loss: float
+    ok: bool
+    message: str
+
+
+def check_carrier(asked_hz: float, measured: Carrier | None, window_s: float, *, tdm: bool = False) -> CarrierCheck:
+    """Compare ``asked_hz`` with the carrier measured near it (:func:`carrier_near`).
+
+    Parameters
+    ----------
+    asked_hz : float
+    measured : Carrier or None
+    window_s : float
+        Demodulation window, s.
+    tdm : bool
+        Time multiplexing (a missing carrier may just be an LED that is off
+        in the scanned part; the amplitude is then not the duty-cycle average).
+    """
+    if measured is None:
+        return CarrierCheck(asked_hz, None, math.nan, math.nan, math.nan, False,
+                            f"no carrier found within 5 % of {asked_hz:g} Hz; "
+                            "check --carrier-hz and --rate-hz with 'psdcal inspect'")
+    c = measured
+    off = c.freq_hz - asked_hz
+    # the measurement's own precision: a tenth of a bin (Hann + parabolic interpolation)
+    eff = max(abs(off) - 0.1 * c.resolution_hz, 0.0)
+    x = math.pi * eff * window_s
+    a = float(np.max(c.amplitude))
+    s = float(np.max(c.noise_sigma[np.argmax(c.amplitude)]))
+    if tdm:
+        pass  # the record-averaged amplitude underestimates an LED's: the inflation is a lower bound
+    infl = math.sqrt(1.0 + (a * x) ** 2 / (6.0 * max(s, 1e-300) ** 2))
+    loss = 1.0 - (math.sin(x) / x if x > 0 else 1.0)
+    ok = infl <= MAX_SIGMA_INFLATION and loss <= MAX_AMPLITUDE_LOSS
+    msg = "" if ok else (
+        f"carrier asked at {asked_hz:g} Hz is measured at {c.freq_hz:.6g} Hz ({off:+.3g} Hz, resolution "
+        f"{c.resolution_hz:.2g} Hz): in a {window_s:g} s window this inflates the sigmas about "
+        f"{infl:.3g}x and loses {100 * loss:.2g} % of the amplitude (check --carrier-hz and --rate-hz)")
+    return CarrierCheck(asked_hz, c, off, infl, loss, ok, msg)
+
+
+@dataclass(frozen=True)
+class TdmScan:
+    """On-times and gaps of a time-multiplexed record.
+
+    Attributes
+    ----------
+    window_s : float
+        Short window used for the scan, s.
+    segments : list of Segment
+        Segments found with that window (names 1, 2, ...).
+    on_s : (n,) ndarray
+        Estimated on-time of each segment (span plus the two edge windows), s.
+    gap_s : (n - 1,) ndarray
+        Time between consecutive segments, s (0 for LEDs back to back).
+    """
+
+    window_s: float
+    segments: list
+    on_s: np.ndarray
+    gap_s: np.ndarray
+
+
+def scan_tdm(x, rate_hz: float, carrier_hz: float, *, min_snr: float = 10.0) -> TdmScan:
+    """Segments of a time-multiplexed record found with a short window.
+
+    The window holds :data:`psdcal.signal.stream.MIN_PERIODS` periods of the
+    carrier (at least 32 samples).
+    """
+    from psdcal.signal.stream import MIN_PERIODS, MultiCarrierLockin, TdmSegmenter
+
+    periods = max(MIN_PERIODS, math.ceil(32 * carrier_hz / rate_hz))
+    w0 = math.ceil(periods / carrier_hz * rate_hz) / rate_hz
+    lk = MultiCarrierLockin(rate_hz, [carrier_hz], w0)
+    seg = TdmSegmenter(lk.window_s, min_snr=min_snr)
+    segs = seg.feed(lk.process(0.0, x)) + seg.finish()
+    w = lk.window_s
+    # an edge window on each side was dropped (runs longer than two windows)
+    on = np.array([s.t_end_s - s.t_start_s + (2 * w if s.n_windows > 2 else 0.0) for s in segs])
+    st = np.array([s.t_start_s - (w if s.n_windows > 2 else 0.0) for s in segs])
+    gaps = np.clip(st[1:] - (st[:-1] + on[:-1]), 0.0, None) if len(segs) > 1 else np.zeros(0)
+    return TdmScan(w, segs, on, gaps)
+
+
+def choose_tdm_window(scan: TdmScan, carrier_hz: float, *, max_window_s: float = 0.01) -> float:
+    """A demodulation window for time multiplexing from the measured on-times.
+
+    An eighth of the shortest on-time (a segment keeps about six clean
+    windows after its two edge windows are dropped), rounded down to a whole
+    number of carrier periods, at least :data:`~psdcal.signal.stream.MIN_PERIODS`
+    periods (the scan's window) and at most ``max_window_s``.
+
+    Raises
+    ------
+    InputError
+        No segment found in the scanned part.
+    """
+    if len(scan.on_s) == 0:
+        raise InputError(f"no time-multiplexed segment of the {carrier_hz:g} Hz carrier found in the scanned part "
+                         "(check --carrier-hz, --min-snr, or give --window-s)", field="window_s")
+    # the median of the on-times: a lone short edge segment must not shrink the window
+    on = float(np.median(scan.on_s))
+    w = min(on / 8.0, max_window_s)
+    w = math.floor(w * carrier_hz) / carrier_hz
+    return max(w, scan.window_s + 0.1 / carrier_hz)
