@@ -34,6 +34,8 @@ def ensure_venv() -> None:
         return
     subprocess.check_call([str(PY), "-m", "pip", "install", "-q", "--upgrade", "pip"])
     subprocess.check_call([str(PY), "-m", "pip", "install", "-q", "-e", f"{ROOT}[test]"])
+    # compile the numerical kernels now (once per machine), so that no later run stalls on it
+    subprocess.call([str(PY), "-c", "from psdcal._jit import warm_up; warm_up()"])
     STAMP.write_bytes(pyproject)
 
 

@@ -1,7 +1,7 @@
 """Recordings of a position-processing module (X, Y, SUM), issue 13.1.
 
 Real recordings (one, two, three LEDs, with and without dark gaps) are read
-from ``<repo>/../shared/data/psd-module-tdm`` and the tests skip when it is
+from the ``shared/data/psd-module-tdm`` folder beside the repository and the tests skip when it is
 absent.  The "clean plateau" of an LED is worked out here by another rule
 than the code's (a fixed-radius neighbourhood of the 2D-histogram modes and a
 SUM band), so the tests are not the code checking itself.

@@ -80,7 +80,7 @@ def intrinsics_from_homographies(Hs, *, skew: bool = False, aspect: bool = False
     # column scaling for conditioning
     sc = np.linalg.norm(Vr, axis=0)
     sc[sc == 0] = 1.0
-    _, s, Vt = np.linalg.svd(Vr / sc)
+    _, s, Vt = np.linalg.svd(Vr / sc, full_matrices=False)  # U of all views is never used: O(views), not O(views^2)
     k = Vr.shape[1]
     if s.size < k - 1 or s[k - 2] <= 1e-12 * s[0]:
         raise DegenerateViewsError(

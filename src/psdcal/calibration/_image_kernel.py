@@ -17,8 +17,20 @@ view ``v``:
   ``dd/dtheta = -(dx/dd)^-1 dx/dtheta``.
 
 The Jacobian's global columns are chosen by ``gmap`` (index into the 12
-derivatives above, in that order); the pose columns of view ``v`` start at
-``n_global + 6 v`` (r then t), all other entries of the row are zero.
+derivatives above, in that order). It is returned in *compact block form*
+(2N, n_global + 6): the global columns, then the six (r, t) columns of the
+row's own view; in the dense Jacobian these six sit at ``n_global + 6 v`` and
+all other pose entries of the row are zero (:func:`expand_compact`).
+
+The normal equations of such a Jacobian are kept in blocks
+(:func:`block_normal`): the global block ``U`` (n_global^2), one 6 x 6 block
+``V_v`` per view and the coupling ``W_v`` (n_global x 6); the LM step and the
+covariance eliminate the poses view by view through the Schur complement
+``S = U - sum_v W_v V_v^-1 W_v^T`` (the reduced camera system, Triggs et al.,
+*Bundle adjustment - a modern synthesis*, 2000, Section 6.1), so their cost is
+linear in the number of views. The numpy reference of these steps is
+:mod:`psdcal.calibration._refine` (``block_normal_reference``,
+``schur_solve_reference``, ``schur_covariance_reference``).
 """
 from __future__ import annotations
 
@@ -229,10 +241,11 @@ def image_model(P, img, theta, separate_fy, poses, warm, meas, gmap, want_jac, t
     d : (N, 2) spot positions (before the gain readout), mm (the last iterate where the inverse failed)
     ok : (N,) bool, the inverse converged
     y : (N, 2) modelled measured points (``d`` itself without gains), mm
-    J : (2N, n_global + 6 n) Jacobian of y (rows x0, y0, x1, ...); (0, 0) without ``want_jac``
+    J : (2N, n_global + 6) Jacobian of y in compact block form (rows x0, y0, x1, ...): the
+        global columns, then the six (r, t) columns of the row's own view ``img[i]`` (all other
+        pose columns are zero; :func:`expand_compact` gives the dense matrix); (0, 0) without ``want_jac``
     """
     N = P.shape[0]
-    n = poses.shape[0]
     ng = gmap.shape[0]
     R, dR = _rotations(poses[:, :3], want_jac)
     tv = poses[:, 3:]
@@ -248,7 +261,7 @@ def image_model(P, img, theta, separate_fy, poses, warm, meas, gmap, want_jac, t
     y = np.empty((N, 2)) if gains_on else d
     ok = np.zeros(N, dtype=np.bool_)
     if want_jac:
-        J = np.zeros((2 * N, ng + 6 * n))
+        J = np.zeros((2 * N, ng + 6))
     else:
         J = np.zeros((0, 0))
     D = np.zeros((2, 16))
@@ -353,7 +366,7 @@ def image_model(P, img, theta, separate_fy, poses, warm, meas, gmap, want_jac, t
         for k in range(ng):
             J[row, k] = D[0, gmap[k]]
             J[row + 1, k] = D[1, gmap[k]]
-        base = ng + 6 * v
+        base = ng
         for k in range(3):
             g0 = dR[v, k, 0, 0] * X + dR[v, k, 0, 1] * Y
             g1 = dR[v, k, 1, 0] * X + dR[v, k, 1, 1] * Y
@@ -442,7 +455,8 @@ def template_model(P, img, theta, separate_fy, poses, meas, gmap, want_jac):
     Returns
     -------
     r : (2N,) residuals, mm on the plate (rows x0, y0, x1, ...)
-    J : (2N, n_global + 6 n) their Jacobian; (0, 0) without ``want_jac``
+    J : (2N, n_global + 6) their Jacobian in the compact block form of :func:`image_model`;
+        (0, 0) without ``want_jac``
     """
     N = P.shape[0]
     n = poses.shape[0]
@@ -467,7 +481,7 @@ def template_model(P, img, theta, separate_fy, poses, meas, gmap, want_jac):
         _inv3(Mm[v], Minv[v])
     r = np.empty(2 * N)
     if want_jac:
-        J = np.zeros((2 * N, ng + 6 * n))
+        J = np.zeros((2 * N, ng + 6))
     else:
         J = np.zeros((0, 0))
     D = np.zeros((2, 16))
@@ -524,7 +538,7 @@ def template_model(P, img, theta, separate_fy, poses, meas, gmap, want_jac):
             J[row, k] = D[0, gmap[k]]
             J[row + 1, k] = D[1, gmap[k]]
         # poses: dq = -M^-1 (dM q); dM/dr_k q = dR_k[:, :2] q[:2], dM/dt q = q2 I
-        base = ng + 6 * v
+        base = ng
         for k in range(6):
             if k < 3:
                 m0 = dR[v, k, 0, 0] * q0 + dR[v, k, 0, 1] * q1
@@ -540,3 +554,252 @@ def template_model(P, img, theta, separate_fy, poses, meas, gmap, want_jac):
             J[row, base + k] = a00 * w0 + a02 * w2
             J[row + 1, base + k] = a11 * w1 + a12 * w2
     return r, J
+
+
+def expand_compact(Jc, img, n_views):
+    """Dense Jacobian (2N, ng + 6 n) of a compact block Jacobian ``Jc`` (2N, ng + 6) (numpy)."""
+    ng = Jc.shape[1] - 6
+    N = img.shape[0]
+    J = np.zeros((2 * N, ng + 6 * n_views))
+    J[:, :ng] = Jc[:, :ng]
+    rows = np.arange(2 * N)
+    cols = ng + 6 * np.repeat(img, 2)[:, None] + np.arange(6)[None, :]
+    J[rows[:, None], cols] = Jc[:, ng:]
+    return J
+
+
+@njit
+def block_normal(Jc, r, img, n_views):
+    """Normal equations of a compact block Jacobian, kept in blocks.
+
+    Parameters
+    ----------
+    Jc : (2N, ng + 6) compact Jacobian (:func:`image_model`), r : (2N,) residuals,
+    img : (N,) int view of each observation, n_views : int
+
+    Returns
+    -------
+    U : (ng, ng) global block of ``J^T J``
+    W : (n_views, ng, 6) global-pose coupling blocks
+    V : (n_views, 6, 6) pose blocks
+    gg : (ng,) global part of ``J^T r``
+    gp : (n_views, 6) pose part of ``J^T r``
+
+    Cost O(N (ng + 6)^2): each observation touches its own view's blocks only.
+    """
+    m = Jc.shape[1]
+    ng = m - 6
+    U = np.zeros((ng, ng))
+    W = np.zeros((n_views, ng, 6))
+    V = np.zeros((n_views, 6, 6))
+    gg = np.zeros(ng)
+    gp = np.zeros((n_views, 6))
+    for i in range(img.shape[0]):
+        v = img[i]
+        for row in range(2 * i, 2 * i + 2):
+            ri = r[row]
+            for a in range(ng):
+                ja = Jc[row, a]
+                if ja == 0.0:
+                    continue
+                gg[a] += ja * ri
+                for b in range(a + 1):
+                    U[a, b] += ja * Jc[row, b]
+                for b in range(6):
+                    W[v, a, b] += ja * Jc[row, ng + b]
+            for a in range(6):
+                ja = Jc[row, ng + a]
+                gp[v, a] += ja * ri
+                for b in range(a + 1):
+                    V[v, a, b] += ja * Jc[row, ng + b]
+    for a in range(ng):
+        for b in range(a):
+            U[b, a] = U[a, b]
+    for v in range(n_views):
+        for a in range(6):
+            for b in range(a):
+                V[v, b, a] = V[v, a, b]
+    return U, W, V, gg, gp
+
+
+@njit
+def _cholesky(A, L):
+    """Lower Cholesky factor of the symmetric ``A`` into ``L``; False when A is not positive definite."""
+    n = A.shape[0]
+    for j in range(n):
+        s = A[j, j]
+        for k in range(j):
+            s -= L[j, k] * L[j, k]
+        if not (s > 0.0):
+            return False
+        d = math.sqrt(s)
+        L[j, j] = d
+        for i in range(j + 1, n):
+            t = A[i, j]
+            for k in range(j):
+                t -= L[i, k] * L[j, k]
+            L[i, j] = t / d
+        for i in range(j):
+            L[i, j] = 0.0
+    return True
+
+
+@njit
+def _cho_solve(L, b):
+    """Solve ``L L^T x = b`` in place (b (n,))."""
+    n = L.shape[0]
+    for i in range(n):
+        t = b[i]
+        for k in range(i):
+            t -= L[i, k] * b[k]
+        b[i] = t / L[i, i]
+    for i in range(n - 1, -1, -1):
+        t = b[i]
+        for k in range(i + 1, n):
+            t -= L[k, i] * b[k]
+        b[i] = t / L[i, i]
+
+
+@njit
+def _reduce(U, W, V, damp_g, damp_p):
+    """Schur complement of the (damped) pose blocks.
+
+    Returns ``(ok, S, Y, Lv)``: ``S = U + diag(damp_g) - sum_v W_v Vd_v^-1 W_v^T``
+    (ng, ng), ``Y[v] = Vd_v^-1 W_v^T`` (n, 6, ng) and the Cholesky factors
+    ``Lv`` (n, 6, 6) of ``Vd_v = V_v + diag(damp_p[v])``; ok is False when a
+    pose block is not positive definite.
+    """
+    n = V.shape[0]
+    ng = U.shape[0]
+    S = U.copy()
+    for a in range(ng):
+        S[a, a] += damp_g[a]
+    Y = np.empty((n, 6, ng))
+    Lv = np.zeros((n, 6, 6))
+    Vd = np.empty((6, 6))
+    col = np.empty(6)
+    for v in range(n):
+        for a in range(6):
+            for b in range(6):
+                Vd[a, b] = V[v, a, b]
+            Vd[a, a] += damp_p[v, a]
+        if not _cholesky(Vd, Lv[v]):
+            return False, S, Y, Lv
+        for c in range(ng):
+            for a in range(6):
+                col[a] = W[v, c, a]
+            _cho_solve(Lv[v], col)
+            for a in range(6):
+                Y[v, a, c] = col[a]
+        for a in range(ng):
+            for b in range(a + 1):
+                acc = 0.0
+                for k in range(6):
+                    acc += W[v, a, k] * Y[v, k, b]
+                S[a, b] -= acc
+    for a in range(ng):
+        for b in range(a):
+            S[b, a] = S[a, b]
+    return True, S, Y, Lv
+
+
+@njit
+def schur_solve(U, W, V, gg, gp, damp_g, damp_p):
+    """Solve ``(A + diag(damp)) h = g`` of block normal equations by eliminating the poses.
+
+    ``A = [[U, W_1 .. W_n], [W^T, diag(V_1 .. V_n)]]``, ``g = (gg, gp)``,
+    ``damp = (damp_g, damp_p)``. The global part solves the reduced system
+    ``S hg = gg - sum_v W_v Vd_v^-1 gp_v``, then each view
+    ``hp_v = Vd_v^-1 (gp_v - W_v^T hg)``: O(n ng^2) work, no matrix of the
+    size of A.
+
+    Returns
+    -------
+    ok : bool, False when a block or S is not positive definite
+    hg : (ng,), hp : (n, 6)
+    """
+    n = V.shape[0]
+    ng = U.shape[0]
+    hg = np.zeros(ng)
+    hp = np.zeros((n, 6))
+    ok, S, Y, Lv = _reduce(U, W, V, damp_g, damp_p)
+    if not ok:
+        return False, hg, hp
+    b = gg.copy()
+    col = np.empty(6)
+    for v in range(n):
+        for a in range(6):
+            col[a] = gp[v, a]
+        _cho_solve(Lv[v], col)
+        for c in range(ng):
+            acc = 0.0
+            for a in range(6):
+                acc += W[v, c, a] * col[a]
+            b[c] -= acc
+    Ls = np.zeros((ng, ng))
+    if not _cholesky(S, Ls):
+        return False, hg, hp
+    _cho_solve(Ls, b)
+    for c in range(ng):
+        hg[c] = b[c]
+    for v in range(n):
+        for a in range(6):
+            acc = gp[v, a]
+            for c in range(ng):
+                acc -= W[v, c, a] * hg[c]
+            col[a] = acc
+        _cho_solve(Lv[v], col)
+        for a in range(6):
+            hp[v, a] = col[a]
+    return True, hg, hp
+
+
+@njit
+def schur_covariance(U, W, V):
+    """Blocks of ``A^-1`` for block normal equations (no damping), without forming A.
+
+    Returns
+    -------
+    ok : bool (False when A is not positive definite)
+    Cg : (ng, ng) ``S^-1``, the global block (the covariance of the intrinsics up to sigma^2)
+    Cp : (n, 6, 6) ``V_v^-1 + Y_v S^-1 Y_v^T`` (``Y_v = V_v^-1 W_v^T``), the pose blocks
+    Cx : (n, ng, 6) ``-S^-1 Y_v^T``, the global-pose blocks
+    """
+    n = V.shape[0]
+    ng = U.shape[0]
+    Cg = np.zeros((ng, ng))
+    Cp = np.zeros((n, 6, 6))
+    Cx = np.zeros((n, ng, 6))
+    ok, S, Y, Lv = _reduce(U, W, V, np.zeros(ng), np.zeros((n, 6)))
+    if not ok:
+        return False, Cg, Cp, Cx
+    Ls = np.zeros((ng, ng))
+    if not _cholesky(S, Ls):
+        return False, Cg, Cp, Cx
+    e = np.empty(ng)
+    for c in range(ng):
+        for a in range(ng):
+            e[a] = 0.0
+        e[c] = 1.0
+        _cho_solve(Ls, e)
+        for a in range(ng):
+            Cg[a, c] = e[a]
+    col = np.empty(6)
+    for v in range(n):
+        for a in range(6):  # Cx = -Cg Y^T
+            for c in range(ng):
+                acc = 0.0
+                for k in range(ng):
+                    acc += Cg[c, k] * Y[v, a, k]
+                Cx[v, c, a] = -acc
+        for b in range(6):  # V^-1 column b
+            for a in range(6):
+                col[a] = 0.0
+            col[b] = 1.0
+            _cho_solve(Lv[v], col)
+            for a in range(6):
+                acc = 0.0
+                for c in range(ng):
+                    acc -= Y[v, a, c] * Cx[v, c, b]
+                Cp[v, a, b] = col[a] + acc
+    return True, Cg, Cp, Cx

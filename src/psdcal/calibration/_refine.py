@@ -187,17 +187,21 @@ class Evaluator:
         self._dkey = self._dval = self._yval = None
         self._anchor = None
         self._kernel = self._tkernel = self._normal = None  # compiled image / template cost
+        self._blocks = None  # compiled block normal equations
+        self._ckey = self._cval = None
         if prob.cost == "image" or not prob.spec.fit_gains:
             from psdcal import _jit
 
-            if _jit.enabled():  # the compiled costs (psdcal.calibration._image_kernel); this class's numpy code is their reference
-                from psdcal.calibration._image_kernel import global_map, image_model, normal_equations, template_model
+            if _jit.use_compiled(len(self.img_idx)):  # the compiled costs (psdcal.calibration._image_kernel); this class's numpy code is their reference
+                from psdcal.calibration._image_kernel import (block_normal, global_map, image_model, normal_equations,
+                                                              template_model)
 
                 if prob.cost == "image":
                     self._kernel = image_model
                 else:
                     self._tkernel = template_model
                 self._normal = normal_equations
+                self._blocks = block_normal
                 self._gmap = global_map(prob.names)
                 self._no_warm = np.full(self.d_meas.shape, np.nan)
                 self._separate_fy = prob.spec.aspect
@@ -236,11 +240,13 @@ class Evaluator:
         key = z.tobytes()
         if key == self._key:
             return self._val
-        if self._kernel is not None:
-            d, J = self._compiled(z, key, want_jac=True)
-            val = ((d - self.d_meas).ravel(), J)
-        elif self._tkernel is not None:
-            val = self._template_compiled(z, want_jac=True)
+        if self._kernel is not None or self._tkernel is not None:
+            r, Jc = self.evaluate_compact(z)
+            from psdcal.calibration._image_kernel import expand_compact
+
+            val = (r, expand_compact(Jc, self.img_idx, self.prob.n_images))
+            self._key, self._val = key, val
+            return val
         elif self.prob.cost == "image":
             val = self._image(z)
         else:
@@ -257,6 +263,44 @@ class Evaluator:
 
     def jacobian(self, z):
         return self.evaluate(z)[1]
+
+    def evaluate_compact(self, z):
+        """Residuals (2N,) and the Jacobian in compact block form (2N, n_global + 6) at ``z``.
+
+        Row ``2i`` / ``2i+1`` holds the global columns, then the six (r, t)
+        columns of observation i's own view (``self.img_idx[i]``); memory and
+        work are linear in the number of observations, not in views x observations.
+        """
+        key = z.tobytes()
+        if key == self._ckey:
+            return self._cval
+        if self._kernel is not None:
+            d, Jc = self._compiled(z, key, want_jac=True)
+            r = (d - self.d_meas).ravel()
+        elif self._tkernel is not None:
+            r, Jc = self._template_compiled(z, want_jac=True)
+        else:  # numpy reference: the dense Jacobian's non-zero blocks
+            r, J = self.evaluate(z)
+            Jc = compact_from_dense(J, self.img_idx, self.prob.n_global)
+        bad = ~np.isfinite(r)
+        if np.any(bad):
+            r = np.where(bad, 1e3, r)
+            Jc = np.nan_to_num(np.where(bad[:, None], 0.0, Jc))
+        self._ckey, self._cval = key, (r, Jc)
+        return r, Jc
+
+    def jacobian_compact(self, z):
+        """The compact block Jacobian (2N, n_global + 6) at ``z`` (see :meth:`evaluate_compact`)."""
+        return self.evaluate_compact(z)[1]
+
+    def block_system(self, Jc, r):
+        """The normal equations ``J^T J``, ``J^T r`` of a compact Jacobian as a :class:`BlockNormal`."""
+        n = self.prob.n_images
+        if self._blocks is not None:
+            U, W, V, gg, gp = self._blocks(Jc, r, self.img_idx, n)
+        else:
+            U, W, V, gg, gp = block_normal_reference(Jc, r, self.img_idx, n)
+        return BlockNormal(U, W, V, gg, gp, compiled=self._blocks is not None)
 
     def normal_equations(self, J, r):
         """``(J^T J, J^T r)``, from the block structure when the kernel is compiled."""
@@ -458,6 +502,192 @@ class Evaluator:
         return r, self._assemble(G, dP_dq @ dq_dr, dP_dq @ dq_dt)
 
 
+def compact_from_dense(J, img, ng):
+    """Compact block form (2N, ng + 6) of a dense Jacobian (2N, ng + 6 n) whose pose entries of
+    observation i lie only in the six columns of its view ``img[i]`` (numpy)."""
+    rows = np.arange(J.shape[0])
+    cols = ng + 6 * np.repeat(img, 2)[:, None] + np.arange(6)[None, :]
+    return np.concatenate([J[:, :ng], J[rows[:, None], cols]], axis=1)
+
+
+def block_normal_reference(Jc, r, img, n_views):
+    """Numpy reference of :func:`psdcal.calibration._image_kernel.block_normal`:
+    ``(U, W, V, gg, gp)`` of a compact Jacobian."""
+    ng = Jc.shape[1] - 6
+    Jg = Jc[:, :ng]
+    Jp = Jc[:, ng:].reshape(-1, 2, 6)
+    rr = r.reshape(-1, 2)
+    U = Jg.T @ Jg
+    gg = Jg.T @ r
+    Wi = np.einsum("nca,ncb->nab", Jg.reshape(-1, 2, ng), Jp)  # (N, ng, 6)
+    Vi = np.einsum("nca,ncb->nab", Jp, Jp)
+    gi = np.einsum("nca,nc->na", Jp, rr)
+    W = np.zeros((n_views, ng, 6))
+    V = np.zeros((n_views, 6, 6))
+    gp = np.zeros((n_views, 6))
+    np.add.at(W, img, Wi)
+    np.add.at(V, img, Vi)
+    np.add.at(gp, img, gi)
+    return U, W, V, gg, gp
+
+
+def schur_solve_reference(U, W, V, gg, gp, damp_g, damp_p):
+    """Numpy reference of :func:`psdcal.calibration._image_kernel.schur_solve` (batched LAPACK)."""
+    n = V.shape[0]
+    ng = U.shape[0]
+    Vd = V + np.einsum("na,ab->nab", damp_p, np.eye(6))
+    try:
+        np.linalg.cholesky(Vd)
+        Y = np.linalg.solve(Vd, np.swapaxes(W, 1, 2))  # (n, 6, ng)
+        y = np.linalg.solve(Vd, gp[:, :, None])[:, :, 0]
+        S = U + np.diag(damp_g) - np.einsum("nak,nkb->ab", W, Y)
+        b = gg - np.einsum("nak,nk->a", W, y)
+        np.linalg.cholesky(S)
+        hg = np.linalg.solve(S, b)
+    except np.linalg.LinAlgError:
+        return False, np.zeros(ng), np.zeros((n, 6))
+    hp = np.linalg.solve(Vd, (gp - np.einsum("nak,a->nk", W, hg))[:, :, None])[:, :, 0]
+    return True, hg, hp
+
+
+def schur_covariance_reference(U, W, V):
+    """Numpy reference of :func:`psdcal.calibration._image_kernel.schur_covariance`."""
+    n = V.shape[0]
+    ng = U.shape[0]
+    try:
+        np.linalg.cholesky(V)
+        Vinv = np.linalg.inv(V)
+        Y = Vinv @ np.swapaxes(W, 1, 2)
+        S = U - np.einsum("nak,nkb->ab", W, Y)
+        np.linalg.cholesky(S)
+        Cg = np.linalg.inv(S)
+    except np.linalg.LinAlgError:
+        return False, np.zeros((ng, ng)), np.zeros((n, 6, 6)), np.zeros((n, ng, 6))
+    Cx = -np.einsum("ab,nkb->nak", Cg, Y)
+    Cp = Vinv - np.einsum("nka,nab->nkb", Y, Cx)
+    return True, Cg, Cp, Cx
+
+
+class DenseNormal:
+    """Dense normal equations ``A h = g`` for :func:`levenberg_marquardt`.
+
+    Attributes ``A`` (n, n) and ``g`` (n,) may be added to (priors, extra rows)
+    before the solver uses them.
+    """
+
+    def __init__(self, A, g):
+        self.A = A
+        self.g = g
+
+    def diagonal(self):
+        return np.diag(self.A).copy()
+
+    def solve(self, damp):
+        """``(A + diag(damp))^-1 g``, or None when the matrix is not positive definite."""
+        Ad = self.A.copy()
+        Ad.flat[:: Ad.shape[0] + 1] += damp
+        try:
+            L = np.linalg.cholesky(Ad)
+        except np.linalg.LinAlgError:
+            return None
+        return _cho_solve_dense(L, self.g)
+
+    def inverse(self):
+        """``A^-1`` (pseudo-inverse when singular)."""
+        try:
+            return np.linalg.inv(self.A)
+        except np.linalg.LinAlgError:
+            return np.linalg.pinv(self.A)
+
+
+def _cho_solve_dense(L, b):
+    """``(L L^T)^-1 b`` for a lower-triangular L (two triangular solves, numpy only)."""
+    y = np.linalg.solve(L, b)
+    return np.linalg.solve(L.T, y)
+
+
+class BlockNormal:
+    """Normal equations of a block-sparse calibration Jacobian, kept in blocks.
+
+    ``A = [[U, W_1 .. W_n], [W_1^T .. W_n^T, diag(V_1 .. V_n)]]`` with the
+    global block ``U`` (ng, ng), the couplings ``W`` (n, ng, 6) and the pose
+    blocks ``V`` (n, 6, 6); ``g = (gg, gp.ravel())``. Steps and covariances
+    eliminate the poses through the Schur complement (the reduced system of
+    the global parameters), so memory and work grow linearly with the number
+    of views. Extra residual rows acting on the global parameters only
+    (priors) add to ``U`` and ``gg``.
+    """
+
+    def __init__(self, U, W, V, gg, gp, compiled: bool = True):
+        self.U, self.W, self.V, self.gg, self.gp = U, W, V, gg, gp
+        self.compiled = compiled
+
+    @property
+    def n_global(self) -> int:
+        return self.U.shape[0]
+
+    @property
+    def g(self):
+        return np.concatenate([self.gg, self.gp.ravel()])
+
+    def diagonal(self):
+        return np.concatenate([np.diag(self.U), np.einsum("naa->na", self.V).ravel()])
+
+    def solve(self, damp):
+        """``(A + diag(damp))^-1 g`` by the Schur complement, or None when not positive definite."""
+        ng = self.n_global
+        dg, dp = damp[:ng], damp[ng:].reshape(-1, 6)
+        if self.compiled:
+            from psdcal.calibration._image_kernel import schur_solve
+
+            ok, hg, hp = schur_solve(self.U, self.W, self.V, self.gg, self.gp, dg, dp)
+        else:
+            ok, hg, hp = schur_solve_reference(self.U, self.W, self.V, self.gg, self.gp, dg, dp)
+        if not ok:
+            return None
+        return np.concatenate([hg, hp.ravel()])
+
+    def covariance_blocks(self):
+        """Blocks of ``A^-1``: global (ng, ng), pose (n, 6, 6), global-pose (n, ng, 6).
+
+        When A is singular (an unidentifiable direction) the blocks come from
+        the pseudo-inverse of the dense A (rare; memory quadratic in views).
+        """
+        if self.compiled:
+            from psdcal.calibration._image_kernel import schur_covariance
+
+            ok, Cg, Cp, Cx = schur_covariance(self.U, self.W, self.V)
+        else:
+            ok, Cg, Cp, Cx = schur_covariance_reference(self.U, self.W, self.V)
+        if ok and np.all(np.isfinite(Cg)):
+            return Cg, Cp, Cx
+        ng, n = self.n_global, self.V.shape[0]
+        C = np.linalg.pinv(self.dense())
+        Cg = C[:ng, :ng]
+        Cp = np.stack([C[ng + 6 * v : ng + 6 * v + 6, ng + 6 * v : ng + 6 * v + 6] for v in range(n)]) if n else np.zeros((0, 6, 6))
+        Cx = np.stack([C[:ng, ng + 6 * v : ng + 6 * v + 6] for v in range(n)]) if n else np.zeros((0, ng, 6))
+        return Cg, Cp, Cx
+
+    def dense(self):
+        """The dense ``A`` (for tests and small problems)."""
+        ng, n = self.n_global, self.V.shape[0]
+        A = np.zeros((ng + 6 * n, ng + 6 * n))
+        A[:ng, :ng] = self.U
+        for v in range(n):
+            sl = slice(ng + 6 * v, ng + 6 * v + 6)
+            A[:ng, sl] = self.W[v]
+            A[sl, :ng] = self.W[v].T
+            A[sl, sl] = self.V[v]
+        return A
+
+
+def _as_system(val):
+    """A :class:`DenseNormal` / :class:`BlockNormal` from what a ``normal`` callback returned."""
+    if isinstance(val, tuple):
+        return DenseNormal(*val)
+    return val
+
+
 @dataclass(frozen=True)
 class RefineResult:
     """Raw output of :func:`refine`."""
@@ -468,15 +698,43 @@ class RefineResult:
     gains: np.ndarray
     rvecs: np.ndarray
     tvecs: np.ndarray
-    covariance: np.ndarray  # (n_params, n_params) of the full state
+    covariance_global: np.ndarray  # (n_global, n_global) of the intrinsics, distortion, gains
+    pose_covariance: np.ndarray  # (n_images, 6, 6) of each view's (r, t)
+    cross_covariance: np.ndarray  # (n_images, n_global, 6) global-pose blocks
     sigma2: float  # residual variance of the minimised cost, its unit^2
     cost_rms: float
     iterations: int
     converged: bool
     message: str
-    jacobian: np.ndarray
+    jacobian_compact: np.ndarray  # (2N, n_global + 6), see Evaluator.evaluate_compact
+    img_idx: np.ndarray  # (N,) view of each valid observation
     residuals: np.ndarray
     model_mm: np.ndarray | None = None  # (N, 2) modelled points of the valid observations (image cost)
+
+    @property
+    def covariance(self) -> np.ndarray:
+        """(n_params, n_params) covariance of the full state, assembled from the blocks
+        (memory quadratic in the number of views: prefer the blocks)."""
+        ng = self.covariance_global.shape[0]
+        n = self.pose_covariance.shape[0]
+        C = np.zeros((ng + 6 * n, ng + 6 * n))
+        C[:ng, :ng] = self.covariance_global
+        X = np.concatenate(list(self.cross_covariance), axis=1) if n else np.zeros((ng, 0))  # (ng, 6n)
+        # pose-pose blocks of different views: Y_i S^-1 Y_j^T = X_i^T Cg^-1 X_j
+        C[ng:, ng:] = X.T @ np.linalg.pinv(self.covariance_global) @ X
+        C[:ng, ng:] = X
+        C[ng:, :ng] = X.T
+        for v in range(n):
+            sl = slice(ng + 6 * v, ng + 6 * v + 6)
+            C[sl, sl] = self.pose_covariance[v]
+        return C
+
+    @property
+    def jacobian(self) -> np.ndarray:
+        """The dense Jacobian (2N, n_params) at the solution (memory quadratic in views)."""
+        from psdcal.calibration._image_kernel import expand_compact
+
+        return expand_compact(self.jacobian_compact, self.img_idx, self.pose_covariance.shape[0])
 
 
 def refine(prob: Problem, intr0: Intrinsics, dist0: Distortion, gains0, rvecs0, tvecs0, options: SolverOptions = SolverOptions()) -> RefineResult:
@@ -495,9 +753,9 @@ def refine(prob: Problem, intr0: Intrinsics, dist0: Distortion, gains0, rvecs0, 
 
         raise DegenerateViewsError(f"{m // 2} observed points give {m} equations for {n} unknowns: add images or points")
     with _single_threaded_blas():
-        sol = levenberg_marquardt(ev.residuals, ev.jacobian, z0, options, normal=ev.normal_equations)
-        r, J = ev.evaluate(sol.x)
-        return _finish(prob, ev, sol, r, J, m, n, options)
+        sol = levenberg_marquardt(ev.residuals, ev.jacobian_compact, z0, options, normal=ev.block_system)
+        r, Jc = ev.evaluate_compact(sol.x)
+        return _finish(prob, ev, sol, r, Jc, m, n, options)
 
 
 def _single_threaded_blas():
@@ -550,22 +808,24 @@ def levenberg_marquardt(fun, jac, x0, options: SolverOptions = SolverOptions(), 
     0 (not converged) when ``max_iterations`` Jacobians have been evaluated.
 
     ``normal(J, r)``, when given, returns ``(J^T J, J^T r)`` (e.g. exploiting
-    the sparsity of J); by default they are dense products.
+    the sparsity of J) or a normal-equations object with ``g``, ``diagonal()``
+    and ``solve(damp)`` (:class:`BlockNormal`: the poses are eliminated by the
+    Schur complement, so each iteration costs O(views)); by default they are
+    dense products (:class:`DenseNormal`).
     """
     if normal is None:
         def normal(J, r):
             return J.T @ J, J.T @ r
-
-    from scipy.linalg.lapack import dpotrf, dpotrs  # Cholesky straight from LAPACK: these systems are small
 
     x = np.asarray(x0, dtype=float).copy()
     r = fun(x)
     J = jac(x)
     nfev, njev = 1, 1
     F = 0.5 * float(r @ r)
-    A, g = normal(J, r)
-    D = np.maximum(np.diag(A).copy(), 1e-300)
-    diag = np.arange(x.size) * (x.size + 1)  # flat indices of the diagonal
+    sysm = _as_system(normal(J, r))
+    g = sysm.g
+    diagA = sysm.diagonal()
+    D = np.maximum(diagA, 1e-300)
     mu = 1e-8  # start near Gauss-Newton, like MINPACK's large initial trust region: a damped
     # first step from a poor closed-form start (C off by mm, Lens 1) can walk into a local minimum
     nu = 2.0
@@ -575,18 +835,15 @@ def levenberg_marquardt(fun, jac, x0, options: SolverOptions = SolverOptions(), 
         if F == 0.0:
             status, message = 4, "zero residual"
             break
-        colnorm = np.sqrt(np.maximum(A.flat[diag], 1e-300))
+        colnorm = np.sqrt(np.maximum(diagA, 1e-300))
         if np.max(np.abs(g) / colnorm) <= options.gtol * np.sqrt(2 * F):
             status, message = 1, "gradient below gtol"
             break
-        Ad = A.copy()
-        Ad.flat[diag] += mu * D
-        L, info = dpotrf(Ad, lower=1, clean=0, overwrite_a=1)
-        if info != 0:  # not positive definite at this damping
+        h = sysm.solve(mu * D)
+        if h is None:  # not positive definite at this damping
             mu *= nu
             nu *= 2.0
             continue
-        h, info = dpotrs(L, g, lower=1)
         h = -h
         sD = np.sqrt(D)
         if np.sqrt((sD * h) @ (sD * h)) <= options.xtol * (np.sqrt((sD * x) @ (sD * x)) + options.xtol):
@@ -603,8 +860,10 @@ def levenberg_marquardt(fun, jac, x0, options: SolverOptions = SolverOptions(), 
             x, r, F = x_new, r_new, F_new
             J = jac(x)
             njev += 1
-            A, g = normal(J, r)
-            D = np.maximum(D, A.flat[diag])
+            sysm = _as_system(normal(J, r))
+            g = sysm.g
+            diagA = sysm.diagonal()
+            D = np.maximum(D, diagA)
             mu *= max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
             nu = 2.0
             if small:
@@ -619,14 +878,10 @@ def levenberg_marquardt(fun, jac, x0, options: SolverOptions = SolverOptions(), 
     return LMResult(x=x, cost=F, status=status, message=message, njev=njev, nfev=nfev)
 
 
-def _finish(prob, ev, sol, r, J, m, n, options):
+def _finish(prob, ev, sol, r, Jc, m, n, options):
     dof = max(m - n, 1)
     sigma2 = float(r @ r) / dof
-    JtJ = ev.normal_equations(J, r)[0]
-    try:
-        cov = sigma2 * np.linalg.inv(JtJ)
-    except np.linalg.LinAlgError:
-        cov = sigma2 * np.linalg.pinv(JtJ)
+    Cg, Cp, Cx = ev.block_system(Jc, r).covariance_blocks()
     intr, coef, gains, rv, tv = ev.unpack(sol.x)
     iterations = int(sol.njev) if sol.njev is not None else int(sol.nfev)
     converged = bool(sol.status > 0) and bool(np.all(np.isfinite(sol.x))) and iterations <= options.max_iterations
@@ -637,13 +892,16 @@ def _finish(prob, ev, sol, r, J, m, n, options):
         gains=gains,
         rvecs=rv,
         tvecs=tv,
-        covariance=cov,
+        covariance_global=sigma2 * Cg,
+        pose_covariance=sigma2 * Cp,
+        cross_covariance=sigma2 * Cx,
         sigma2=sigma2,
         cost_rms=float(np.sqrt(np.mean(r**2)) * np.sqrt(2.0)),
         iterations=iterations,
         converged=converged,
         message=str(sol.message),
-        jacobian=J,
+        jacobian_compact=Jc,
+        img_idx=ev.img_idx,
         residuals=r,
         model_mm=ev.model_points(sol.x) if prob.cost == "image" else None,
     )

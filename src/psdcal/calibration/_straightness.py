@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from psdcal import _jit
-from psdcal._jit import njit
+from psdcal._jit import lazy_njit
 from psdcal.model.distortion import undistort
 
 
@@ -164,7 +164,7 @@ def _line_residuals(pts, group, n_groups, dpts=None):
     return res, jac
 
 
-@njit
+@lazy_njit
 def _radial_scatter_kernel(d_mm, group, n_groups, k, c_mm):
     """Undistort by radial terms and form each group's centred points and scatter (compiled).
 
@@ -223,7 +223,7 @@ def _radial_scatter_kernel(d_mm, group, n_groups, k, c_mm):
     return q, cnt, abc
 
 
-@njit
+@lazy_njit
 def _radial_line_residuals_kernel(d_mm, q_mm, group, cnt, abc, nx, ny, c_mm, z_scale, want_jac):
     """Compiled :func:`_line_residuals` (and its Jacobian) from :func:`_radial_scatter_kernel`'s output.
 
@@ -404,7 +404,7 @@ def estimate_radial(points_mm, lines, *, c_mm=(0.0, 0.0), n_terms: int = 2) -> S
     # unknowns scaled so that k_i * rmax^(2i) is O(1)
     scale = np.array([rmax2 ** (i + 1) for i in range(n_terms)])
 
-    if _jit.enabled() and n_terms <= 3:
+    if _jit.use_compiled(flat.shape[0]) and n_terms <= 3:
         # the compiled kernel: same residuals and Jacobian as the numpy reference below
         d_c = np.ascontiguousarray(flat)
         g_c = np.ascontiguousarray(group, dtype=np.int64)

@@ -581,7 +581,9 @@ def _calibrate(template_mm, points_mm, *, cost, radial, tangential, psd_radial, 
     # when it has nothing beyond the core); the lowest cost wins (global minimum).
     first = staged if staged is not None else spec
     pfirst = Problem(T, X, first, cost="image", sensor_mm=tuple(sensor_mm))
-    tried = _refine_starts(pfirst, first, cands, g0_start, solver)
+    # a start stage only seeds the final refinement: looser tolerances (_stage_solver) unless it is the final one
+    tried = _refine_starts(pfirst, first, cands, g0_start,
+                           solver if (staged is None and cost == "image") else _stage_solver(solver))
     good = [t for t in tried if t[2]]
     if not good:
         good = [t for t in tried if np.isfinite(t[1].cost_rms)]
@@ -984,6 +986,13 @@ def _psd_multistart(T, X, spec, sensor_mm, start, intr0, dist0, g0, rv0, tv0, so
     return min(ok, key=lambda c: c.cost_rms) if ok else None
 
 
+def _stage_solver(solver: SolverOptions) -> SolverOptions:
+    """Tolerances of a start stage: its solution only seeds the final refinement, which
+    converges to the same optimum, so it stops at a relative cost change of 1e-7
+    (the parameters are then within ~1e-3 standard errors of its optimum)."""
+    return replace(solver, ftol=max(solver.ftol, 1e-7), xtol=max(solver.xtol, 1e-8))
+
+
 def staged_start(spec: ModelSpec) -> ModelSpec | None:
     """The core model refined first when ``spec`` has terms beyond it (None otherwise)."""
     core = ModelSpec(radial=min(spec.radial, 2), tangential=False, psd_radial=0, skew=False, aspect=False, fit_gains=False)
@@ -1011,14 +1020,13 @@ def _make_result(prob, ref, start, ids, pids, spec, cost, g0, preliminary, norma
     rms = float(np.sqrt(sq.sum() / max(n_valid, 1)))
     per_image = np.sqrt(sq.sum(axis=1) / np.maximum(valid.sum(axis=1), 1))
     n_glob = prob.n_global
-    cov_full = ref.covariance
-    cov = cov_full[:n_glob, :n_glob]
+    cov = ref.covariance_global  # the reduced (Schur) system's inverse: no matrix of all poses
     std = {n: None for n in ("f_mm", "cx_mm", "cy_mm", "skew", *DISTORTION_NAMES)}
     if spec.aspect:
         std["fy_mm"] = None
     for k, n in enumerate(prob.names):
         std[n] = float(np.sqrt(max(cov[k, k], 0.0)))
-    pose_std = np.sqrt(np.clip(np.diag(cov_full)[n_glob:], 0, None)).reshape(-1, 6)
+    pose_std = np.sqrt(np.clip(np.einsum("naa->na", ref.pose_covariance), 0, None))
     m = 2 * n_valid
     dof = max(m - ref.z.size, 1)
     sigma_mm = float(np.sqrt(np.sum(sq) / dof)) if cost == "image" else float(rms / np.sqrt(2.0) * np.sqrt(m / dof))

@@ -101,6 +101,7 @@ def calibrate_command(points, template, output, cost, radial, tangential, psd_ra
         raise InputError("--fit-gains needs raw amplitudes (header image_id,point_id,vx1,vx2,vy1,vy2)", path=points, line=1)
     from psdcal.calibration._refine import SolverOptions
 
+    _kernels_for(pf.points_mm, quiet)
     bench_gains = None
     if gains_file is not None:
         from psdcal.calibration.bench import load_gains
@@ -186,6 +187,23 @@ def _diagnosis(result, noise_mm, points_kind) -> str:
         return ""
     tips = [c.advice for c in v.failed if c.advice]
     return f"; diagnosis: {tips[0]}" if tips else ""
+
+
+def _kernels_for(points_mm, quiet: bool) -> None:
+    """One-shot run: the compiled kernels only where they pay for their loading (psdcal._jit, "auto").
+
+    When they are needed and not yet compiled on this machine, say so on one line
+    (compiling takes some seconds, once) instead of stalling silently.
+    """
+    import numpy as np
+
+    from psdcal import _jit
+
+    _jit.set_mode("auto")
+    n_obs = int(np.all(np.isfinite(points_mm), axis=-1).sum())
+    if _jit.use_compiled(n_obs) and not _jit.cache_is_warm() and not quiet:
+        click.echo("psdcal: compiling the numerical kernels (first use on this machine, some seconds; "
+                   "`python3 tasks.py` set-up does it ahead) ...", err=True)
 
 
 def _with_inputs(res, template, points, gains_file=None):

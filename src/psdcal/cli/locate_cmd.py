@@ -50,7 +50,11 @@ def _demod_options(f):
         click.option("--chunk-samples", type=int, default=1 << 16, show_default=True,
                      help="Samples per channel read at once (bounds memory)."),
         click.option("--progress/--no-progress", default=None, help="Progress bar (default: on for long files)."),
-        click.option("-o", "--output", required=True, type=click.Path(dir_okay=False), help="Output CSV."),
+        click.option("-o", "--output", required=True, type=click.Path(dir_okay=False),
+                     help="Output file (CSV, or NumPy .npy with --format npy)."),
+        click.option("--format", "output_format", type=click.Choice(["csv", "npy"]), default="csv", show_default=True,
+                     help="Output format: CSV text, or one NumPy structured array (a field per column, full "
+                          "precision; np.load(path)), no text formatting to write or parse."),
     ]
     for o in reversed(opts):
         f = o(f)
@@ -79,7 +83,7 @@ def _demod_options(f):
 @_demod_options
 def locate_command(recordings, calib, sensors, gains_file, rate_hz, carriers, emitters, distance_mm, window_s, tdm,
                    schedule, n_emitters, check_carriers, min_snr, channels, dataset, group, chunk_samples, progress,
-                   output, track_path=None, track_q=None, raw_dtype="float64", raw_scale=1.0):
+                   output, track_path=None, track_q=None, raw_dtype="float64", raw_scale=1.0, output_format="csv"):
     """Demodulate RECORDING(s) and write angles of arrival and positions.
 
     \b
@@ -130,6 +134,7 @@ def locate_command(recordings, calib, sensors, gains_file, rate_hz, carriers, em
         n_emitters=n_emitters,
         chunk_samples=chunk_samples,
         check_carriers=check_carriers,
+        output_format=output_format,
     )
     opts = dict(channels=_channels(channels), dataset=dataset, group=group)
     if calib is not None:
@@ -218,7 +223,7 @@ class _Bar:
 @_demod_options
 def amplitudes_command(recording, rate_hz, carriers, emitters, window_s, tdm, schedule, n_emitters, check_carriers,
                        min_snr,
-                       image_id, channels, dataset, group, chunk_samples, progress, output):
+                       image_id, channels, dataset, group, chunk_samples, progress, output, output_format="csv"):
     """Demodulate RECORDING to carrier amplitudes (no calibration needed).
 
     \b
@@ -233,7 +238,8 @@ def amplitudes_command(recording, rate_hz, carriers, emitters, window_s, tdm, sc
     sched = load_schedule(schedule) if schedule else None
     config = LocateConfig(carriers_hz=tuple(carriers), window_s=window_s, emitters=tuple(emitters) or None,
                           min_snr=min_snr, tdm=bool(tdm or sched is not None), schedule=sched,
-                          n_emitters=n_emitters, chunk_samples=chunk_samples, check_carriers=check_carriers)
+                          n_emitters=n_emitters, chunk_samples=chunk_samples, check_carriers=check_carriers,
+                          output_format=output_format)
     rec = open_recording(recording, rate_hz, channels=_channels(channels), dataset=dataset, group=group)
     show = progress if progress is not None else (rec.n_samples is not None and rec.n_samples >= _PROGRESS_MIN_SAMPLES)
     bar = _Bar(rec.n_samples, rec.path) if show else None

@@ -195,6 +195,50 @@ def angles_from_points(d_mm, model: SensorModel, cov_d_mm2=None, dd_dgains=None)
     AoAResult
     """
     d = np.asarray(d_mm, dtype=float)
+    from psdcal import _jit
+
+    if d.ndim >= 1 and d.shape[-1] == 2 and _jit.use_compiled(d.size // 2):
+        return _angles_compiled(d, model, cov_d_mm2, dd_dgains)
+    return angles_from_points_reference(d, model, cov_d_mm2, dd_dgains)
+
+
+def _angles_compiled(d, model: SensorModel, cov_d_mm2, dd_dgains) -> AoAResult:
+    """:func:`angles_from_points` by the compiled kernel (psdcal.measure._aoa_kernel)."""
+    from psdcal.measure._aoa_kernel import PARAM_CODES, angles_kernel
+
+    intr = model.intrinsics
+    shape = d.shape[:-1]
+    N = int(np.prod(shape)) if shape else 1
+    dd = np.ascontiguousarray(d.reshape(N, 2))
+    names = model.names
+    codes = np.array([PARAM_CODES.index(nm) for nm in names], dtype=np.int64)
+    if cov_d_mm2 is None:
+        cov_d = np.zeros((0, 2, 2))
+    else:
+        cov_d = np.ascontiguousarray(np.broadcast_to(np.asarray(cov_d_mm2, dtype=float), shape + (2, 2)).reshape(N, 2, 2))
+    if dd_dgains is None:
+        ddg = np.zeros((0, 2, 3))
+    else:
+        ddg = np.ascontiguousarray(np.broadcast_to(np.asarray(dd_dgains, dtype=float), shape + (2, 3)).reshape(N, 2, 3))
+    vals = np.array([intr.f_mm, intr.cx_mm, intr.cy_mm, intr.skew, intr.fy], dtype=float)
+    x, n, alpha, covc, covn, dn_dp, dn_dd = angles_kernel(
+        dd, vals, intr.fy_mm is not None, np.ascontiguousarray(model.distortion.as_array(), dtype=float), codes,
+        np.ascontiguousarray(model.covariance, dtype=float), cov_d, ddg)
+    return AoAResult(
+        x_mm=x.reshape(shape + (2,)),
+        n=n.reshape(shape + (2,)),
+        alpha_rad=alpha.reshape(shape + (2,)),
+        cov_n_calib=covc.reshape(shape + (2, 2)),
+        cov_n_noise=covn.reshape(shape + (2, 2)),
+        dn_dp=dn_dp.reshape(shape + (2, len(names))),
+        dn_dd=dn_dd.reshape(shape + (2, 2)),
+        names=names,
+    )
+
+
+def angles_from_points_reference(d_mm, model: SensorModel, cov_d_mm2=None, dd_dgains=None) -> AoAResult:
+    """Numpy reference of :func:`angles_from_points` (the compiled kernel is tested against it)."""
+    d = np.asarray(d_mm, dtype=float)
     intr = model.intrinsics
     f, fy, s = intr.f_mm, intr.fy, intr.skew
     c = intr.c

@@ -72,6 +72,10 @@ class LocateConfig:
     check_carriers : bool
         Measure the carriers on the start of the recording and warn when an
         asked one is off (:func:`psdcal.signal.inspect.check_carrier`).
+    output_format : {"csv", "npy"}
+        ``csv``: text rows (10 significant digits); ``npy``: one NumPy
+        structured array (a field per column, full float64 precision, the
+        emitter names as strings), readable with ``np.load(path)``.
     """
 
     carriers_hz: tuple
@@ -84,6 +88,7 @@ class LocateConfig:
     n_emitters: int | None = None
     chunk_samples: int = DEFAULT_CHUNK
     check_carriers: bool = True
+    output_format: str = "csv"
 
     def emitter_names(self) -> tuple[str, ...]:
         if self.emitters is None:
@@ -200,6 +205,38 @@ def _write_rows(fh, cols: dict, order) -> int:
     return n
 
 
+class _NpyRows:
+    """Collects output columns and writes them as one NumPy structured array (``--format npy``)."""
+
+    def __init__(self, order):
+        self.order = tuple(order)
+        self.parts = {c: [] for c in self.order}
+
+    def write(self, cols: dict) -> int:
+        n = len(cols["t_s"])
+        for c in self.order:
+            self.parts[c].append(np.asarray(cols[c]))
+        return n
+
+    def save(self, path) -> None:
+        fields, data = [], []
+        for c in self.order:
+            a = np.concatenate(self.parts[c]) if self.parts[c] else np.zeros(0)
+            if a.dtype.kind in "OUS":
+                a = a.astype(str)
+                if a.size == 0:
+                    a = a.astype("U1")
+            elif a.dtype.kind not in "iub":
+                a = a.astype(np.float64)
+            fields.append((c, a.dtype))
+            data.append(a)
+        out = np.empty(len(data[0]) if data else 0, dtype=fields)
+        for (c, _), a in zip(fields, data):
+            out[c] = a
+        with open(path, "wb") as fh:
+            np.save(fh, out, allow_pickle=False)
+
+
 def _rows_single(t_s, names, a, var_a, model: SensorModel, distance_mm, min_snr):
     """Columns for rows (t, emitter) of amplitudes a (n, 4); drops low-SNR rows."""
     total = a.sum(-1)
@@ -264,9 +301,17 @@ def _stream_single(recording: Recording, config: LocateConfig, out_path, order, 
         v = np.stack([s.var_amplitude for s in segments])
         return make_cols(t, nm, a, v)
 
-    with atomic_path(out_path, suffix=".csv") as tmp:
+    if config.output_format not in ("csv", "npy"):
+        raise InputError(f"output format must be 'csv' or 'npy', got {config.output_format!r}", field="format")
+    npy = _NpyRows(order) if config.output_format == "npy" else None
+    with atomic_path(out_path, suffix="." + config.output_format) as tmp:
         with open(tmp, "w", encoding="utf-8", newline="") as fh:
-            fh.write(",".join(order) + "\n")
+            if npy is None:
+                fh.write(",".join(order) + "\n")
+                write = _write_rows
+            else:  # rows are collected and written as one array below
+                def write(_fh, cols, _order):
+                    return npy.write(cols)
             for t0, block in recording.chunks(chunk):
                 n_samples += block.shape[1]
                 wb = lockin.process(t0, block)
@@ -280,15 +325,17 @@ def _stream_single(recording: Recording, config: LocateConfig, out_path, order, 
                         cols, skipped = make_cols(t, nm, wb.amplitude.reshape(-1, 4), wb.var_amplitude.reshape(-1, 4))
                     n_skipped += skipped
                     if cols is not None:
-                        n_rows += _write_rows(fh, cols, order)
+                        n_rows += write(fh, cols, order)
                 if progress is not None:
                     progress(n_samples)
             if seg is not None:
                 cols, skipped = segment_rows(seg.finish())
                 n_skipped += skipped
                 if cols is not None:
-                    n_rows += _write_rows(fh, cols, order)
+                    n_rows += write(fh, cols, order)
                 warnings.extend(seg.warnings)
+        if npy is not None and n_rows > 0:
+            npy.save(tmp)
         if n_windows == 0:
             raise InputError(
                 f"the recording is shorter than one {lockin.window_s:g} s window ({n_samples} samples)",
@@ -407,6 +454,8 @@ def locate_multi_to_csv(recordings, sensors, out_path, config: LocateConfig,
     -------
     LocateSummary
     """
+    if config.output_format != "csv":
+        raise InputError("--format npy is not available with --sensors (several sensors): write CSV", field="format")
     if len(recordings) != len(sensors) or len(sensors) < 2:
         raise InputError("give one recording per sensor and at least two sensors", field="sensors")
     if config.tdm:
