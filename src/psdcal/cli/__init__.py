@@ -37,6 +37,8 @@ _COMMANDS = (
     "inspect_cmd",
     "module_cmd",
     "gains_cmd",
+    "export_cmd",
+    "capture_cmd",
 )
 
 
