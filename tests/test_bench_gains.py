@@ -195,3 +195,48 @@ def test_calibrate_with_bench_gains(tmp_path, capsys):
            for k, d in out.items()}
     assert err[2] < 0.1 * err[0]
     np.testing.assert_allclose(out[2]["gains"], load_gains(gains)[0], rtol=1e-12)
+
+
+def test_bench_gains_as_a_prior_combine_with_the_template_views(tmp_path, capsys):
+    """`calibrate --fit-gains --prior-file gains.json` (issue 13.4 with 13.3): the bench's gains and their
+    covariance combine with what the template views say; the combined std is below both, the estimate
+    stays within its std of the truth, and the covariance equals the closed-form combination of the
+    two Gaussian estimates (information adds up)."""
+    sim = tmp_path / "sim"
+    assert main(["simulate", "--images", "10", "--noise-mm", "0.002", "--seed", "4", "-o", str(sim)]) == 0
+    lines = (sim / "points.csv").read_text().splitlines()
+    rows = [ln.split(",") for ln in lines[1:]]
+    amps = photocurrents(np.array([[float(r[2]), float(r[3])] for r in rows]), 1.0) * G_TRUE  # through the channels
+    (tmp_path / "raw.csv").write_text("image_id,point_id,vx1,vx2,vy1,vy2\n" + "".join(
+        f"{r[0]},{r[1]}," + ",".join(repr(float(v)) for v in a) + "\n" for r, a in zip(rows, amps)))
+    spots, a = bench(np.random.default_rng(8), noise=3e-3)
+    pos, amp = write_bench(tmp_path, spots, [a])
+    gains = tmp_path / "gains.json"
+    assert main(["gains", str(amp), "--positions", str(pos), "-o", str(gains)]) == 0
+    g_bench, cov_bench = load_gains(gains)[0][1:], np.array(json.loads(gains.read_text())["covariance"]["matrix"])
+    out = {}
+    for tag, opt in (("free", []), ("prior", ["--prior-file", str(gains)])):
+        o = tmp_path / f"{tag}.json"
+        assert main(["calibrate", str(tmp_path / "raw.csv"), "-t", str(sim / "template.csv"), "--fit-gains",
+                     *opt, "-q", "-o", str(o)]) == 0, capsys.readouterr().err
+        out[tag] = json.loads(o.read_text())
+    names = ["g_x2", "g_y1", "g_y2"]
+
+    def block(d):
+        n = d["covariance"]["names"]
+        idx = [n.index(k) for k in names]
+        return np.array(d["covariance"]["matrix"])[np.ix_(idx, idx)]
+
+    s_free, s_prior = [np.array([out[t]["std"][k] for k in names]) for t in ("free", "prior")]
+    s_bench = np.sqrt(np.diag(cov_bench))
+    assert np.all(s_prior < s_free) and np.all(s_prior < s_bench)
+    # information adds: the gains' marginal information of the views (the inverse of their block of the free
+    # covariance, rescaled to the constrained fit's noise estimate s^2) plus the bench's
+    r = (out["free"]["residuals"]["sigma_mm"] / out["prior"]["residuals"]["sigma_mm"]) ** 2
+    combined = np.linalg.inv(r * np.linalg.inv(block(out["free"])) + np.linalg.inv(cov_bench))
+    # (to first order: the bench's estimate is about 1 sigma from the views', where the model's Jacobian differs a
+    # little; a prior centred on the free estimate matches to 1e-6, tests/test_priors.py)
+    np.testing.assert_allclose(np.sqrt(np.diag(block(out["prior"]))), np.sqrt(np.diag(combined)), rtol=0.2)
+    assert np.all(np.abs(np.array(out["prior"]["gains"][1:]) - G_TRUE[1:]) < 4 * s_prior)
+    assert out["prior"]["verdict"] == "good"
+    assert np.all(np.abs(g_bench - G_TRUE[1:]) < 4 * s_bench)

@@ -178,7 +178,8 @@ def read_prior_file(path) -> GaussianPrior:
     - means: ``values``, ``mean``, ``gains``; a vector one longer than
       ``names`` whose first entry is 1 is read as ``(g_x1, g_x2, g_y1, g_y2)``
       relative gains (the gains JSON of ``psdcal gains``) and its first entry dropped;
-    - spread: ``covariance`` (k x k), else ``std`` (a list, or a dict by name).
+    - spread: ``covariance`` (k x k, or ``{"names": [...], "matrix": [[...]]}``, whose names then
+      name the means), else ``std`` (a list, or a dict by name).
     """
     p = Path(path)
     try:
@@ -196,6 +197,13 @@ def read_prior_file(path) -> GaussianPrior:
         values = [float(v) for v in values]
     except (TypeError, ValueError):
         raise InputError("the means must be a list of numbers", path=p, field="values") from None
+    cov_in = d.get("covariance")
+    if isinstance(cov_in, dict):  # {"names": [...], "matrix": [[...]]}: the gains JSON of `psdcal gains`
+        names_cov = cov_in.get("names")
+        if d.get("names") is None and names_cov is not None:
+            d = {**d, "names": names_cov}
+        cov_in = cov_in.get("matrix")
+        d = {**d, "covariance": cov_in}
     names = d.get("names")
     if names is None:
         if len(values) in (3, 4):
