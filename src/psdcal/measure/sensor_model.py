@@ -220,6 +220,8 @@ class SensorModel:
             except (TypeError, ValueError):
                 raise bad("'covariance.matrix' must be a square list of lists of numbers", "covariance.matrix") from None
             n = len(names)
+            if n == 0 and cov.size == 0:  # no free parameter: an empty matrix, however it was written
+                cov = cov.reshape(0, 0)
             if cov.shape != (n, n):
                 raise bad(f"'covariance.matrix' must be {n}x{n} (one row per name), got shape {cov.shape}", "covariance.matrix")
             if not np.all(np.isfinite(cov)):
