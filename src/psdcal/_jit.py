@@ -11,7 +11,9 @@ compiled ones are checked against them in the tests.
 ``PSDCAL_JIT=0`` in the environment (or numba missing) selects the numpy
 code everywhere. Compiled functions are cached on disk (``cache=True``):
 the first calibration on a machine compiles them (a few seconds), later
-processes load them.
+processes load them. Where no cache can be written (a read-only install
+run by a user without a writable home), the functions are compiled in
+memory for each process instead: slower to start, never a crash.
 """
 from __future__ import annotations
 
@@ -39,4 +41,7 @@ def njit(fn):
     """Compile ``fn`` lazily with numba (no Python objects, cached on disk); identity without numba."""
     if _numba is None:
         return fn
-    return _numba.njit(cache=True, nogil=True, error_model="numpy")(fn)
+    try:
+        return _numba.njit(cache=True, nogil=True, error_model="numpy")(fn)
+    except (RuntimeError, OSError):  # numba: "cannot cache function ...: no locator available"
+        return _numba.njit(cache=False, nogil=True, error_model="numpy")(fn)

@@ -155,7 +155,9 @@ def locate_command(recordings, calib, sensors, rate_hz, carriers, emitters, dist
     if track_path:
         from psdcal.measure.tracking import track_csv
 
-        info = track_csv(output, track_path, q=track_q)
+        from psdcal._atomic import staged
+
+        info = track_csv(staged(output), track_path, q=track_q)
         click.echo(f"wrote {info['n_rows']} tracked rows to {track_path} ({info['n_gated']} gated, "
                    f"mean NIS {info['mean_nis']:.3g} for {info['dims']} dimensions)")
 

@@ -452,7 +452,9 @@ def pose_command(source, calib, emitters_csv, rate_hz, carriers, emitter_names, 
         config = LocateConfig(carriers_hz=cs, window_s=window_s, emitters=ems, min_snr=min_snr, tdm=is_tdm,
                               schedule=sched)
         rec = open_recording(source, rate_hz)
-        with tempfile.TemporaryDirectory() as tmp:
+        from psdcal._atomic import immediate
+
+        with tempfile.TemporaryDirectory() as tmp, immediate():
             amp = Path(tmp) / "amp.csv"
             amplitudes_to_csv(rec, amp, config)
             header, rows = _read_table(amp)
@@ -833,5 +835,7 @@ def live_locate(recordings, calib, rate_hz, carriers, emitters, distance_mm, win
 
         if str(output) == "-":
             raise InputError("--track needs -o FILE (not stdout) with live input", field="track")
-        info = track_csv(output, track_path, q=track_q)
+        from psdcal._atomic import staged
+
+        info = track_csv(staged(output), track_path, q=track_q)
         click.echo(f"wrote {info['n_rows']} tracked rows to {track_path} ({info['n_gated']} gated)")
