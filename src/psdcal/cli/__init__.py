@@ -60,6 +60,7 @@ class PolicyCommand(click.Command):
             self._added_force = False
 
     def invoke(self, ctx):
+        _check_values(ctx)
         if self._policy:
             force = ctx.params.pop("force", False) if self._added_force else bool(ctx.params.get("force"))
             self._guard(ctx, force)
@@ -95,6 +96,40 @@ class PolicyCommand(click.Command):
                         ([o for o in p.opts if o.startswith("--")] or p.opts)[0]]}
         merge = {([o for o in p.opts if o.startswith("--")] or p.opts)[0] for p in self.params if p.name in MERGE_PARAMS}
         guard_outputs(ins, outs, force, suffixes=suffixes, dirs=dirs, merge=merge)
+
+
+#: Options that must be >= 0 / >= 1 wherever a command has them (by Python name).
+NON_NEGATIVE = frozenset({"seed", "sigma_d_mm", "noise_mm", "noise_um", "min_snr", "gap_s"})
+AT_LEAST_ONE = frozenset({"n_emitters", "images", "views", "trials", "grid", "workers", "chunk_samples"})
+#: Options written into CSV cells: no separator, quote or line break.
+CSV_CELL = frozenset({"image_id", "name"})
+
+
+def _check_values(ctx) -> None:
+    """Refuse NaN/infinite numbers, negative seeds and sigmas, zero counts, CSV-breaking ids (one line, exit 2)."""
+    import math
+
+    def fail(param, msg):
+        raise click.BadParameter(msg, ctx=ctx, param=param)
+
+    for p in ctx.command.params:
+        v = ctx.params.get(p.name)
+        if v is None or isinstance(v, bool):
+            continue
+        vals = v if isinstance(v, (tuple, list)) else (v,)
+        flat = [x for item in vals for x in (item if isinstance(item, (tuple, list)) else (item,))]
+        for x in flat:
+            if isinstance(x, float) and not math.isfinite(x):
+                fail(p, f"{x} is not a finite number")
+            if isinstance(x, (int, float)) and not isinstance(x, bool):
+                if p.name in NON_NEGATIVE and x < 0:
+                    fail(p, f"{x} is negative")
+                if p.name in AT_LEAST_ONE and x < 1:
+                    fail(p, f"{x} must be at least 1")
+            if p.name in CSV_CELL and isinstance(x, str) and any(c in x for c in ',"\r\n\t\x00'):
+                fail(p, f"{x!r} contains a comma, quote, tab or line break (it becomes a CSV cell)")
+        if p.name == "sensor_mm" and v is not None and any(x <= 0 for x in flat if isinstance(x, float)):
+            fail(p, "sensor lengths must be positive")
 
 
 class PolicyGroup(click.Group):

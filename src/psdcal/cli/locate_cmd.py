@@ -15,6 +15,8 @@ def _channels(value):
     names = [v.strip() for v in value.split(",")]
     if len(names) != 4 or not all(names):
         raise click.BadParameter("give 4 comma-separated names (for vx1,vx2,vy1,vy2)")
+    if len(set(names)) != 4:
+        raise click.BadParameter(f"the 4 channel names must differ, got {','.join(names)}")
     return tuple(names)
 
 
