@@ -67,11 +67,14 @@ def model_options(f):
                    "errors against the predicted uncertainty (adds the check 'cross_validation').")
 @click.option("--strict", is_flag=True, default=False,
               help="Exit 2 (and write no --output) unless the verdict is good.")
+@click.option("--sensor-id", "sensor_id", default=None, metavar="ID",
+              help="Identity of the calibrated sensor (serial number, lens): kept as sensor_id in the JSON, shown "
+                   "by report, checked by `locate/aoa --expect-sensor ID`.")
 @click.option("--quiet", "-q", is_flag=True, help="Print nothing but errors.")
 def calibrate_command(points, template, output, cost, radial, tangential, psd_radial, skew, aspect, preliminary,
                       normalize, sensor_mm, max_iterations, fit_gains, quiet, reject_k=None, f_guess_mm=None,
                       noise_um=None, strict=False, model_choice="manual", cv_k=None, fix_items=(),
-                      prior_items=(), prior_files=()):
+                      prior_items=(), prior_files=(), sensor_id=None):
     """Calibrate a PSD + lens sensor from views of a planar LED template.
 
     POINTS is a CSV of impact points, `image_id,point_id,x_mm,y_mm` (a missing
@@ -90,6 +93,8 @@ def calibrate_command(points, template, output, cost, radial, tangential, psd_ra
 
     from psdcal.calibration.priors import parse_fix, parse_prior, read_prior_file
 
+    if sensor_id is not None and (not sensor_id.strip() or any(c in sensor_id for c in "\r\n\x00")):
+        raise InputError(f"--sensor-id must be a non-empty single line, got {sensor_id!r}", field="--sensor-id")
     fix = parse_fix(fix_items) or None
     priors = [parse_prior(t) for t in prior_items] + [read_prior_file(f) for f in prior_files]
     tids, txy = read_template(template)
@@ -157,8 +162,15 @@ def calibrate_command(points, template, output, cost, radial, tangential, psd_ra
         v = Verdict.from_dict(res.verdict)
         raise VerdictError(f"--strict: the verdict is {v.verdict} ({'; '.join(v.reasons)}); nothing written")
     if output is not None:
-        save_calibration(output, res)
+        if sensor_id is not None:
+            from psdcal.io import write_json
+
+            write_json(output, {**res.to_dict(), "sensor_id": sensor_id})
+        else:
+            save_calibration(output, res)
     if not quiet:
+        if sensor_id is not None:
+            click.echo(f"sensor: {sensor_id}")
         print_calibration(res)
         _echo_constraints(res)
         if output is not None:

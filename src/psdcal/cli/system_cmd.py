@@ -87,6 +87,10 @@ def simulate_template_command(lens, psd_l1, views, mux, fmt, rate_hz, carrier_hz
     from psdcal.study.simulate import LENSES
 
     intr, dist = LENSES[lens]
+    from psdcal._limits import check_bytes
+
+    check_bytes(views * 14 * max(on_s + gap_s, 0.0) * rate_hz * 8 * 4 * 4, f"--on-s {on_s:g} x --views {views}",
+                "--on-s")
     tv = simulate_template_views((intr, dist), n_views=views, mux=mux, rate_hz=rate_hz, carrier_hz=carrier_hz,
                                  carrier_step_hz=carrier_step_hz, on_s=on_s, gap_s=gap_s,
                                  snr_db=None if no_noise else snr_db, gain_imbalance=gain_imbalance,
@@ -219,6 +223,10 @@ def simulate_room_command(lens, psd_l1, calib, room_m, n_sensors, anchors, senso
                                     carrier_step_hz=carrier_step_hz, seed=seed, survey_s=survey_s)
     if not emitters:
         raise InputError("no emitters: give --anchors > 0 or a --moving trajectory", field="anchors")
+    from psdcal._limits import check_bytes
+
+    check_bytes(max(duration_s, 0.0) * rate_hz * 8 * 4 * 4 * max(len(sensors), 1), f"--duration-s {duration_s:g}",
+                "--duration-s")
     rr = simulate_room(sensors, emitters, duration_s=duration_s, rate_hz=rate_hz, snr_db=snr_db, mux=mux,
                        slot_s=slot_s, gain_imbalance=gain_imbalance, seed=seed)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -794,6 +802,12 @@ def plan_command(sensors_json, candidates, calib, room_m, height_m, grid_mm, sig
         raise InputError("give exactly one of --sensors or --candidates", field="sensors")
     sensors = load_sensors(sensors_json) if sensors_json is not None else _read_candidates(candidates, calib)
     name = (sensors_json or candidates).name
+    from psdcal._limits import check_bytes
+
+    if not grid_mm > 0:
+        raise InputError(f"--grid-mm must be positive, got {grid_mm}", field="--grid-mm")
+    n_cells = (room_m[0] * 1000.0 / grid_mm + 1) * (room_m[1] * 1000.0 / grid_mm + 1)
+    check_bytes(n_cells * 8 * (64 + 16 * len(sensors)), f"--grid-mm {grid_mm:g} over the room", "--grid-mm")
     pm = plan_map(sensors, np.array(room_m) * 1000.0, z_mm=height_m * 1000.0, grid_mm=grid_mm, sigma_d_mm=sigma_d_mm)
     plot_plan(pm, output, title=f"{name}: {len(sensors)} sensors, plane Z = {height_m:g} m")
     if csv_path:
