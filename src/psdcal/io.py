@@ -79,6 +79,19 @@ def read_text_file(path, what: str = "text file", *, max_bytes: int = MAX_TEXT_B
     return text
 
 
+def csv_rows(path, what: str = "CSV file") -> list:
+    """All rows of a CSV file as lists of strings, after :func:`read_text_file`'s checks (InputError otherwise)."""
+    path = Path(path)
+    text = read_text_file(path, what)
+    reader = csv.reader(text.splitlines())
+    rows = list(_csv_rows(reader, path))
+    for k, row in enumerate(rows, start=1):
+        for c in row:
+            if len(c) > MAX_FIELD_CHARS:
+                raise InputError(f"a field of {len(c)} characters (more than {MAX_FIELD_CHARS})", path=path, line=k)
+    return rows
+
+
 def _read_rows(path):
     path = Path(path)
     text = read_text_file(path, "CSV file")

@@ -231,6 +231,9 @@ def main(argv=None) -> int:
         return _error(f"{where}{exc.strerror or exc}")
     except RecursionError:
         return _error("input nested too deeply")
+    except UnicodeDecodeError as exc:
+        return _error(f"an input file is not UTF-8 text (byte 0x{exc.object[exc.start]:02x} at offset {exc.start}); "
+                      "save it as UTF-8")
     return 0
 
 

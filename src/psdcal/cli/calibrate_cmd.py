@@ -32,6 +32,10 @@ def model_options(f):
     return f
 
 
+#: Most template points ``calibrate`` accepts (the line search costs O(M^2 log M)).
+MAX_TEMPLATE_POINTS = 2000
+
+
 @cli.command("calibrate")
 @click.argument("points", type=click.Path(dir_okay=False, path_type=Path))
 @click.option("--template", "-t", "template", required=True, type=click.Path(dir_okay=False, path_type=Path),
@@ -98,7 +102,14 @@ def calibrate_command(points, template, output, cost, radial, tangential, psd_ra
     fix = parse_fix(fix_items) or None
     priors = [parse_prior(t) for t in prior_items] + [read_prior_file(f) for f in prior_files]
     tids, txy = read_template(template)
+    if len(tids) > MAX_TEMPLATE_POINTS:
+        raise InputError(f"{len(tids)} template points: more than the {MAX_TEMPLATE_POINTS} a calibration handles "
+                         "(the line search is quadratic in them); use a subset of the LEDs", path=template)
     pf = read_points(points, tids, sensor_mm=sensor_mm)
+    from psdcal._limits import check_bytes
+
+    n_img, n_pts = pf.points_mm.shape[:2]
+    check_bytes(2.0 * n_img * n_pts * (20 + 6 * n_img) * 8 * 3, f"{n_img} views of {n_pts} points", "POINTS")
     if fit_gains and pf.kind != "amplitudes":
         raise InputError("--fit-gains needs raw amplitudes (header image_id,point_id,vx1,vx2,vy1,vy2)", path=points, line=1)
     from psdcal.calibration._refine import SolverOptions

@@ -293,8 +293,9 @@ def _read_table(path):
     """(header, rows) of a CSV whose header names 'emitter' (a locate or amplitudes output), else None."""
     import csv
 
-    with open(path, newline="", encoding="utf-8") as fh:
-        rows = list(csv.reader(fh))
+    from psdcal.io import csv_rows
+
+    rows = csv_rows(path, "table")
     if not rows or "emitter" not in [h.strip() for h in rows[0]]:
         return None
     return [h.strip() for h in rows[0]], [r for r in rows[1:] if r and any(c.strip() for c in r)]
@@ -733,12 +734,9 @@ def _read_candidates(path, calib):
         raise InputError("--candidates needs --calib (the sensors' calibration)", field="calib")
     model = SensorModel.load(calib)
     cols = ["X_m", "Y_m", "Z_m", "aim_X_m", "aim_Y_m", "aim_Z_m"]
-    try:
-        fh = open(path, newline="", encoding="utf-8")
-    except FileNotFoundError:
-        raise InputError("candidates file not found", path=path) from None
-    with fh:
-        rows = list(csv.reader(fh))
+    from psdcal.io import csv_rows
+
+    rows = csv_rows(path, "candidates file")
     header = [h.strip() for h in rows[0]] if rows else []
     for c in ["name"] + cols:
         if c not in header:

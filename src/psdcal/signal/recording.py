@@ -229,7 +229,7 @@ def _chunks_npy(rec: Recording, chunk: int):
 
 # --------------------------------------------------------------------------- csv
 def _csv_header(path, names):
-    with open(path, newline="", encoding="utf-8") as fh:
+    with open(path, newline="", encoding="utf-8-sig") as fh:
         first = fh.readline()
     header = [h.strip() for h in next(csv.reader([first]), [])]
     missing = [c for c in names if c not in header]
@@ -263,7 +263,7 @@ def _open_csv(path, opts):
     rate, t0 = None, 0.0
     if tcol is not None:
         # the rate from the span of the first rows (robust to rounded time stamps)
-        with open(path, newline="", encoding="utf-8") as fh:
+        with open(path, newline="", encoding="utf-8-sig") as fh:
             fh.readline()
             lines = []
             for ln in fh:
