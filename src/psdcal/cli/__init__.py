@@ -203,8 +203,11 @@ def main(argv=None) -> int:
     """
     from psdcal._atomic import output_set
 
+    import logging
+
     _register()
     _quiet_libraries()
+    logging.disable(logging.WARNING)  # npTDMS and friends: no log line before the one error line
     try:
         with output_set():
             cli.main(args=argv, standalone_mode=False, prog_name="psdcal")
@@ -234,6 +237,8 @@ def main(argv=None) -> int:
     except UnicodeDecodeError as exc:
         return _error(f"an input file is not UTF-8 text (byte 0x{exc.object[exc.start]:02x} at offset {exc.start}); "
                       "save it as UTF-8")
+    finally:
+        logging.disable(logging.NOTSET)
     return 0
 
 

@@ -170,7 +170,7 @@ def open_recording(path, rate_hz: float | None = None, *, channels=None, dataset
     except MemoryError:
         raise InputError("the file's header asks for more memory than there is: a corrupt recording", path=path) from None
     except (OSError, ValueError, TypeError, KeyError, AttributeError, IndexError, OverflowError, EOFError,
-            csv.Error, struct.error) as exc:
+            csv.Error, struct.error, SyntaxError) as exc:
         raise InputError(f"not a readable {ext[1:].upper()} recording ({type(exc).__name__}: "
                          f"{' '.join(str(exc).split())[:200]})", path=path) from None
     file_rate = rec.rate_hz
@@ -196,8 +196,9 @@ def open_recording(path, rate_hz: float | None = None, *, channels=None, dataset
 def _npy_array(path):
     try:
         arr = np.load(path, mmap_mode="r", allow_pickle=False)
-    except (ValueError, OSError) as exc:
-        raise InputError(f"not a readable .npy array: {exc}", path=path) from None
+    except Exception as exc:  # numpy's header parser raises ValueError, SyntaxError, tokenize.TokenError...
+        raise InputError(f"not a readable .npy array ({type(exc).__name__}: {' '.join(str(exc).split())[:200]})",
+                         path=path) from None
     if np.issubdtype(arr.dtype, np.complexfloating):
         raise InputError(f"complex samples ({arr.dtype}): expected real voltages", path=path)
     if arr.ndim != 2 or 4 not in arr.shape or not np.issubdtype(arr.dtype, np.number):
@@ -348,11 +349,16 @@ def _h5_locate(f, rec_path, opts):
         if opts["dataset"] not in grp:
             raise InputError(f"no dataset '{opts['dataset']}'", path=rec_path, field=opts["dataset"])
         ds = grp[opts["dataset"]]
+        if not isinstance(ds, h5py.Dataset):
+            raise InputError(f"'{opts['dataset']}' is a group, expected a dataset", path=rec_path, field=opts["dataset"])
         if ds.ndim != 2 or 4 not in ds.shape:
             raise InputError(f"dataset must be (n, 4), got shape {ds.shape}", path=rec_path, field=opts["dataset"])
         return [ds], True, _rate_attr(ds, grp, f)
     if all(n in grp for n in names):
         dss = [grp[n] for n in names]
+        for n, d in zip(names, dss):
+            if not isinstance(d, h5py.Dataset):
+                raise InputError(f"'{n}' is a group, expected a dataset of samples", path=rec_path, field=n)
         lens = {d.shape for d in dss}
         if len(lens) != 1 or dss[0].ndim != 1:
             raise InputError(f"datasets {list(names)} must be 1-D and of equal length", path=rec_path)
@@ -376,6 +382,10 @@ def _open_hdf5(path, opts):
         with h5py.File(path, "r") as f:
             dss, matrix, rate = _h5_locate(f, path, opts)
             ds = dss[0]
+            for d in dss:
+                if not (np.issubdtype(d.dtype, np.integer) or np.issubdtype(d.dtype, np.floating)):
+                    raise InputError(f"dataset '{d.name}' holds {d.dtype}, expected real numbers", path=path,
+                                     field=d.name)
             n = (ds.shape[0] if ds.shape[1] == 4 else ds.shape[1]) if matrix else ds.shape[0]
     except OSError as exc:
         raise InputError(f"not a readable HDF5 file: {exc}", path=path) from None
