@@ -182,3 +182,33 @@ def test_big_template_is_refused_quickly(made, capsys, tmp_path):
     p.write_text("image_id,point_id,x_mm,y_mm\n0,0,0,0\n")
     code, _, err = run(["calibrate", p, "-t", t], capsys)
     assert code == 2 and "3600 template points" in err
+
+
+def test_parallel_noiseless_views_are_refused_not_standard_error_zero(tmp_path, capsys):
+    from psdcal.io import write_points, write_template
+    from psdcal.study.simulate import LENSES, default_template, measured_points
+
+    P = default_template()
+    intr, dist = LENSES["lens2"]
+    rng = np.random.default_rng(0)
+    R = np.array([[0, 0, rng.uniform(-1, 1)] for _ in range(8)])
+    T = np.array([[rng.uniform(-20, 20), rng.uniform(-20, 20), rng.uniform(400, 600)] for _ in range(8)])
+    X = measured_points(P, intr, dist, R, T)
+    write_template(tmp_path / "t.csv", list(range(len(P))), P)
+    write_points(tmp_path / "p.csv", list(range(8)), list(range(len(P))), X)
+    code, _, err = run(["calibrate", tmp_path / "p.csv", "-t", tmp_path / "t.csv", "-o", tmp_path / "c.json"], capsys)
+    assert code == 2 and "do not determine" in err and "f_mm" in err
+    assert not (tmp_path / "c.json").exists()
+
+
+def test_tilted_noiseless_views_still_calibrate(tmp_path, capsys):
+    from psdcal.io import write_points, write_template
+    from psdcal.study.simulate import default_template, simulate_set
+
+    s = simulate_set("lens2", 8, noise_mm=0.0, seed=1)
+    P = default_template()
+    write_template(tmp_path / "t.csv", list(range(len(P))), P)
+    write_points(tmp_path / "p.csv", list(range(8)), list(range(len(P))), s.points_mm)
+    code, _, err = run(["calibrate", tmp_path / "p.csv", "-t", tmp_path / "t.csv", "-o", tmp_path / "c.json", "-q"],
+                       capsys)
+    assert code == 0, err

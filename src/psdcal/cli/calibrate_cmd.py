@@ -152,6 +152,7 @@ def calibrate_command(points, template, output, cost, radial, tangential, psd_ra
                            f"residual {p.residual_mm * 1e3:.2f} um = {p.ratio:.1f} sigma")
             for iid, pid in rej.kept_flagged:
                 click.echo(f"  kept (too few points left to remove it): image {iid}, point {pid}")
+    undetermined_parameters(res, points)
     res = with_verdict(res, noise_mm=noise_mm, points_kind=pf.kind)
     if cv_k is not None:
         import dataclasses
@@ -186,6 +187,42 @@ def calibrate_command(points, template, output, cost, radial, tangential, psd_ra
         _echo_constraints(res)
         if output is not None:
             click.echo(f"wrote {output}")
+
+
+def undetermined_parameters(res, points) -> None:
+    """DegenerateViewsError when the covariance shows parameters the views do not determine.
+
+    A negative or non-finite variance, or a covariance that is not positive
+    semi-definite, means the normal equations are singular (e.g. every view
+    parallel to the sensor: f and the distance trade off exactly). Writing
+    such a result would give a standard error of 0 -- a perfect-looking
+    calibration of a parameter the data do not fix.
+    """
+    import numpy as np
+
+    from psdcal.errors import DegenerateViewsError
+
+    C = np.asarray(res.covariance, dtype=float)
+    names = list(res.param_names)
+    if C.size == 0:
+        return
+    diag = np.diag(C)
+    bad = [n for n, v in zip(names, diag) if not (np.isfinite(v) and v >= 0)]
+    if not bad and np.all(np.isfinite(C)):
+        d = np.sqrt(diag)
+        ok = d > 0
+        if ok.sum() >= 2:
+            R = C[np.ix_(ok, ok)] / np.outer(d[ok], d[ok])
+            w, v = np.linalg.eigh(0.5 * (R + R.T))
+            if w.min() < -1e-6:
+                k = np.argsort(-np.abs(v[:, 0]))[:2]
+                sub = [n for n, o in zip(names, ok) if o]
+                bad = [sub[i] for i in k]
+    if bad:
+        raise DegenerateViewsError(
+            f"{points}: the views do not determine {', '.join(bad)} (their covariance is not a covariance: the "
+            "normal equations are singular, e.g. every view parallel to the sensor); tilt the template by "
+            "10-40 deg in different directions between views, or fix the parameter with --fix")
 
 
 def _diagnosis(result, noise_mm, points_kind) -> str:
