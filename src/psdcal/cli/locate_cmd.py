@@ -136,6 +136,11 @@ def locate_command(recordings, calib, sensors, rate_hz, carriers, emitters, dist
     if any(is_stream_source(str(r)) for r in recordings):  # live input: see `psdcal.cli.system_cmd.live_locate`
         from psdcal.cli.system_cmd import live_locate
 
+        if expect_sensor is not None and calib is not None:
+            from psdcal.measure.sensor_model import SensorModel
+
+            check_sensor(SensorModel.load(calib), expect_sensor, True)
+
         return live_locate(recordings, calib, rate_hz, carriers, emitters, distance_mm, window_s, tdm, schedule,
                            n_emitters, min_snr, output, raw_dtype, raw_scale, track_path, track_q)
     sched = load_schedule(schedule) if schedule else None
