@@ -468,8 +468,10 @@ def check_covariance(m, path=None, field="covariance.matrix") -> None:
         return
     if not np.all(np.isfinite(m)):
         raise InputError("has non-finite entries (NaN or infinity)", path=path, field=field)
-    scale = np.sqrt(np.abs(np.outer(np.diag(m), np.diag(m)))) + 1e-300
-    if not np.allclose(m / scale, m.T / scale, atol=1e-6):
+    with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+        scale = np.sqrt(np.abs(np.outer(np.diag(m), np.diag(m)))) + 1e-300
+        symmetric = bool(np.allclose(m / scale, m.T / scale, atol=1e-6))
+    if not symmetric:
         raise InputError("is not symmetric", path=path, field=field)
     if np.any(np.diag(m) < 0):
         raise InputError("has a negative variance on its diagonal", path=path, field=field)
