@@ -93,7 +93,7 @@ def test_bad_points_file(case, simset, tmp_path, capsys):
     p.write_text("\n".join(edit(_points_text(s))) + ("\n" if case != "empty" else ""))
     out_json = tmp_path / "calib.json"
     out_json.write_text("precious")
-    code, out, err = run(["calibrate", p, "-t", d / "template.csv", "-o", out_json], capsys)
+    code, out, err = run(["calibrate", p, "-t", d / "template.csv", "-o", out_json, "--force"], capsys)
     assert code == 2
     lines = [ln for ln in err.splitlines() if ln.strip()]
     assert len(lines) == 1 and lines[0].startswith("psdcal: error:"), err
@@ -154,7 +154,7 @@ def test_non_convergence_exits_2_and_keeps_output(simset, tmp_path, capsys):
     d, s = simset
     out_json = tmp_path / "calib.json"
     out_json.write_text("keep")
-    code, out, err = run(["calibrate", d / "points.csv", "-t", d / "template.csv", "-o", out_json, "--max-iterations", "1"], capsys)
+    code, out, err = run(["calibrate", d / "points.csv", "-t", d / "template.csv", "-o", out_json, "--force", "--max-iterations", "1"], capsys)
     assert code == 2 and "did not converge" in err and len(err.strip().splitlines()) == 1
     assert out_json.read_text() == "keep"
 

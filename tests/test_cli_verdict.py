@@ -45,7 +45,7 @@ def cases(tmp_path_factory):
 def test_seen_1_wrong_minimum_is_gone_and_good(cases, tmp_path):
     c, t, p = cases["minima"]
     for extra in ([], ["--radial", "1"]):
-        code, text = _run(["calibrate", p, "-t", t, "--no-tangential", *extra, "-o", tmp_path / "c.json"])
+        code, text = _run(["calibrate", p, "-t", t, "--no-tangential", *extra, "-o", tmp_path / "c.json", "--force"])
         assert code == 0, text
         d = json.loads((tmp_path / "c.json").read_text())
         assert abs(d["intrinsics"]["f_mm"] - 25.0) < 6 * d["std"]["f_mm"]

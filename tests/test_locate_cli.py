@@ -102,7 +102,7 @@ def test_aoa_command(tmp_path, calib):
         f"0,{i},{float(a)!r},{float(b)!r}\n" for i, (a, b) in enumerate(d)))
     out = tmp_path / "ang.csv"
     assert main(["aoa", str(tmp_path / "pts.csv"), "--calib", str(calib), "--distance-mm", "1000",
-                 "-o", str(out)]) == 0
+                 "-o", str(out), "--force"]) == 0
     r = read(out)
     assert r.dtype.names[:2] == ("image_id", "point_id")
     np.testing.assert_allclose(r["alpha_x_deg"], [1.0, -15.0], atol=1e-9)
@@ -112,7 +112,7 @@ def test_aoa_command(tmp_path, calib):
     a = amplitudes(m, d)
     (tmp_path / "amp.csv").write_text("point_id,vx1,vx2,vy1,vy2\n" + "".join(
         f"{i}," + ",".join(repr(float(v)) for v in row) + "\n" for i, row in enumerate(a)))
-    assert main(["aoa", str(tmp_path / "amp.csv"), "--calib", str(calib), "-o", str(out)]) == 0
+    assert main(["aoa", str(tmp_path / "amp.csv"), "--calib", str(calib), "-o", str(out), "--force"]) == 0
     np.testing.assert_allclose(read(out)["alpha_y_deg"], [2.0, 10.0], atol=1e-9)
 
 
@@ -150,7 +150,7 @@ def test_bad_input_exits_2_with_one_line(tmp_path, calib, capsys, args, message)
     out = tmp_path / "out.csv"
     out.write_text("old\n")
     fmt = dict(rec=tmp_path / "rec.npy", calib=calib, out=out, tmp=tmp_path)
-    rc = main([a.format(**fmt) for a in args])
+    rc = main([a.format(**fmt) for a in args] + ["--force"])
     err = capsys.readouterr().err
     assert rc == 2
     assert message in err and "Traceback" not in err and len(err.strip().splitlines()) == 1
@@ -180,5 +180,5 @@ def test_amplitudes_command_writes_a_calibration_points_csv(tmp_path):
     assert list(r["image_id"]) == [7, 7] and list(r["point_id"]) == [1, 2]
     np.testing.assert_allclose(np.stack([r[c] for c in ("vx1", "vx2", "vy1", "vy2")], 1), amp, atol=1e-3)
     assert main(["amplitudes", str(tmp_path / "view.npy"), "--rate-hz", "125000", "--carrier-hz", "1000",
-                 "-o", str(out)]) == 0
+                 "-o", str(out), "--force"]) == 0
     assert out.read_text().splitlines()[0] == "t_s,emitter,vx1,vx2,vy1,vy2,sigma_vx1,sigma_vx2,sigma_vy1,sigma_vy2"

@@ -38,7 +38,7 @@ def written(tmp_path_factory) -> dict:
     cli = [sys.executable, "-m", "psdcal.cli"]
     subprocess.run([*cli, "simulate", "--lens", "lens2", "--images", "6", "--noise-mm", "0.002", "--seed", "1",
                     "-o", str(d)], check=True, capture_output=True)
-    subprocess.run([*cli, "calibrate", str(d / "points.csv"), "-t", str(d / "template.csv"), "--aspect",
+    subprocess.run([*cli, "calibrate", str(d / "points.csv"), "-t", str(d / "template.csv"), "--aspect", "--sensor-id", "lab-1",
                     "-o", str(d / "c.json")], check=True, capture_output=True)
     return json.loads((d / "c.json").read_text())
 

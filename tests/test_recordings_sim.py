@@ -153,7 +153,7 @@ def test_room_tdm_locate_angles_and_pose(tmp_path):
     _run(["simulate-recording", "room", "--sensors", 1, "--anchors", 4, "--moving", "none", "--mux", "tdm",
           "--duration-s", 0.8, "--snr-db", 50, "--seed", 6, "-o", room])
     out = tmp_path / "ang.csv"
-    _run(["locate", room / "s1.npy", "--calib", room / "calib_truth.json", "--rate-hz", 20000, "--carrier-hz", 1000,
+    _run(["locate", room / "s1.npy", "--calib", room / "calib_truth.json", "--allow-no-covariance", "--rate-hz", 20000, "--carrier-hz", 1000,
           "--schedule", room / "schedule.csv", "--window-s", 0.005, "-o", out])
     truth = json.loads((room / "truth.json").read_text())
     s = truth["sensors"][0]

@@ -65,7 +65,7 @@ def test_report_is_self_contained(made):
 
 def test_report_flags_an_outlier_without_reject(made, tmp_path):
     out = tmp_path / "raw.html"
-    assert main(["report", str(made / "raw.json"), "-o", str(out)]) == 0
+    assert main(["report", str(made / "raw.json"), "-o", str(out), "--force"]) == 0
     text = out.read_text(encoding="utf-8")
     assert "1 outlier point(s) above 5 robust sigma" in text
     assert "flagged (--reject 5 removes it)" in text
@@ -74,19 +74,19 @@ def test_report_flags_an_outlier_without_reject(made, tmp_path):
 def test_report_errors_never_clobber(made, tmp_path, capsys):
     out = tmp_path / "r.html"
     out.write_text("old")
-    rc = main(["report", str(made / "rej.json"), "--points", str(made / "points.csv"), "-o", str(out)])
+    rc = main(["report", str(made / "rej.json"), "--points", str(made / "points.csv"), "-o", str(out), "--force"])
     assert rc == 2 and "--template" in capsys.readouterr().err
     other = tmp_path / "other.csv"
     s = simulate_set("lens2", n_images=8, noise_mm=0.003, seed=99)
     write_points(other, list(range(8)), list(range(14)), s.points_mm)
-    rc = main(["report", str(made / "rej.json"), "--points", str(other), "-t", str(made / "template.csv"), "-o", str(out)])
+    rc = main(["report", str(made / "rej.json"), "--points", str(other), "-t", str(made / "template.csv"), "-o", str(out), "--force"])
     assert rc == 2 and "differ" in capsys.readouterr().err
-    rc = main(["report", str(tmp_path / "nope.json"), "-o", str(out)])
+    rc = main(["report", str(tmp_path / "nope.json"), "-o", str(out), "--force"])
     assert rc == 2 and "nope.json" in capsys.readouterr().err
     blocker = tmp_path / "file"
     blocker.write_text("")
     rc = main(["report", str(made / "rej.json"), "-o", str(blocker / "r.html")])
-    assert rc == 2 and "cannot write the report" in capsys.readouterr().err
+    assert rc == 2 and "is a file, not a folder" in capsys.readouterr().err  # refused before any work
     assert out.read_text() == "old"
 
 
@@ -147,9 +147,9 @@ def test_report_of_a_minimal_calibration_file(made, tmp_path):
     d["residuals"] = {"rms_mm": rms, "per_image_rms_mm": d["residuals"]["per_image_rms_mm"]}
     (tmp_path / "min.json").write_text(json.dumps(d))
     out = tmp_path / "min.html"
-    assert main(["report", str(tmp_path / "min.json"), "-o", str(out)]) == 2  # no points anywhere
+    assert main(["report", str(tmp_path / "min.json"), "-o", str(out), "--force"]) == 2  # no points anywhere
     assert main(["report", str(tmp_path / "min.json"), "--points", str(made / "points.csv"), "-t",
-                 str(made / "template.csv"), "-o", str(out)]) == 0
+                 str(made / "template.csv"), "-o", str(out), "--force"]) == 0
     text = out.read_text(encoding="utf-8")
     assert f"{rms * 1e3:.3f} um" in text  # residuals recomputed from the parameters and poses agree
     assert "no covariance matrix" in text

@@ -134,7 +134,7 @@ def test_track_time_multiplexed_angles(tmp_path):
                  "--speed-mm-s", "300", "--mux", "tdm", "--duration-s", "2.4", "--snr-db", "45", "--seed", "3",
                  "-o", str(room)]) == 0
     out, trk = tmp_path / "ang.csv", tmp_path / "trk.csv"
-    assert main(["locate", str(room / "s1.npy"), "--calib", str(room / "calib_truth.json"), "--rate-hz", "20000",
+    assert main(["locate", str(room / "s1.npy"), "--calib", str(room / "calib_truth.json"), "--allow-no-covariance", "--rate-hz", "20000",
                  "--carrier-hz", "1000", "--schedule", str(room / "schedule.csv"), "--window-s", "0.005",
                  "-o", str(out), "--track", str(trk), "--track-q", "0.5"]) == 0
     with open(trk) as fh:

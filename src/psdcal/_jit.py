@@ -20,6 +20,9 @@ and loading the kernels costs some 0.4 s per process). :func:`set_mode`
 ``("auto")``, used by the command line for its one-shot runs, keeps small
 problems on the numpy path, where a whole calibration costs less than that
 loading; the library's default (``"always"``) compiles whenever it can.
+Where no cache can be written (a read-only install run by a user without a
+writable home), the functions are compiled in memory for each process
+instead: slower to start, never a crash.
 """
 from __future__ import annotations
 
@@ -80,7 +83,11 @@ def njit(fn):
     """
     if not AVAILABLE:
         return fn
-    return _load_numba().njit(cache=True, nogil=True, error_model="numpy")(fn)
+    numba = _load_numba()
+    try:
+        return numba.njit(cache=True, nogil=True, error_model="numpy")(fn)
+    except (RuntimeError, OSError):  # numba: "cannot cache function ...: no locator available"
+        return numba.njit(cache=False, nogil=True, error_model="numpy")(fn)
 
 
 class _Lazy:

@@ -23,35 +23,113 @@ from psdcal._atomic import atomic_path, write_text_atomic
 from psdcal.errors import InputError
 from psdcal.model.readout import LX_MM, LY_MM, impact_point
 
+#: Largest text input read whole (CSV, JSON), bytes; larger files are refused before reading.
+MAX_TEXT_BYTES = 256 * 1024 * 1024
+#: Largest field of a CSV file, characters (a longer one is a corrupt file, not data).
+MAX_FIELD_CHARS = 4096
+
 TEMPLATE_HEADER = ("point_id", "X_mm", "Y_mm")
 POINTS_HEADER = ("image_id", "point_id", "x_mm", "y_mm")
 AMPLITUDES_HEADER = ("image_id", "point_id", "vx1", "vx2", "vy1", "vy2")
 
 
+def check_regular_file(path, what: str = "file") -> Path:
+    """``path`` as a Path if it is an existing regular file (not a folder, device or pipe), else InputError."""
+    import stat
+
+    path = Path(path)
+    try:
+        st = path.stat()
+    except FileNotFoundError:
+        raise InputError(f"{what} not found", path=path) from None
+    except OSError as exc:
+        raise InputError(f"cannot read the {what}: {exc.strerror or exc}", path=path) from None
+    if stat.S_ISDIR(st.st_mode):
+        raise InputError(f"is a directory, expected a {what}", path=path)
+    if not stat.S_ISREG(st.st_mode):
+        raise InputError(f"not a regular file (a device or a pipe), expected a {what}", path=path)
+    return path
+
+
+def read_text_file(path, what: str = "text file", *, max_bytes: int = MAX_TEXT_BYTES) -> str:
+    """The text of a UTF-8 file (a BOM is dropped), validated; InputError naming the file otherwise.
+
+    Refuses folders, devices (``/dev/zero``), files over ``max_bytes``,
+    binary files (NUL bytes), UTF-16/32 and other non-UTF-8 encodings.
+    """
+    path = check_regular_file(path, what)
+    size = path.stat().st_size
+    if size > max_bytes:
+        raise InputError(f"{size / 2**20:.0f} MiB is more than the {max_bytes / 2**20:.0f} MiB a {what} may have",
+                         path=path)
+    try:
+        data = path.read_bytes()
+    except OSError as exc:
+        raise InputError(f"cannot read the {what}: {exc.strerror or exc}", path=path) from None
+    if data[:2] in (b"\xff\xfe", b"\xfe\xff"):
+        raise InputError(f"UTF-16 encoded; save the {what} as UTF-8", path=path)
+    if b"\x00" in data:
+        raise InputError(f"binary data (NUL bytes), expected a UTF-8 {what}", path=path)
+    try:
+        text = data.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        line = data[: exc.start].count(b"\n") + 1
+        raise InputError(f"not UTF-8 text (byte 0x{data[exc.start]:02x}; Latin-1? save the {what} as UTF-8)",
+                         path=path, line=line) from None
+    return text
+
+
+def csv_rows(path, what: str = "CSV file") -> list:
+    """All rows of a CSV file as lists of strings, after :func:`read_text_file`'s checks (InputError otherwise)."""
+    path = Path(path)
+    text = read_text_file(path, what)
+    reader = csv.reader(text.splitlines())
+    rows = list(_csv_rows(reader, path))
+    for k, row in enumerate(rows, start=1):
+        for c in row:
+            if len(c) > MAX_FIELD_CHARS:
+                raise InputError(f"a field of {len(c)} characters (more than {MAX_FIELD_CHARS})", path=path, line=k)
+    return rows
+
+
 def _read_rows(path):
     path = Path(path)
-    if not path.exists():
-        raise InputError("file not found", path=path)
-    if path.is_dir():
-        raise InputError("is a directory, expected a CSV file", path=path)
-    try:
-        text = path.read_text(encoding="utf-8-sig")
-    except UnicodeDecodeError:
-        raise InputError("not a text (UTF-8) CSV file", path=path) from None
+    text = read_text_file(path, "CSV file")
     lines = text.splitlines()
     if not lines or not any(ln.strip() for ln in lines):
         raise InputError("empty file", path=path)
-    reader = csv.reader(lines)
     rows = []
-    for lineno, row in enumerate(reader, start=1):
+    for lineno, ln in enumerate(lines, start=1):
+        if len(ln) > MAX_FIELD_CHARS * 8:
+            raise InputError(f"line of {len(ln)} characters: not a psdcal CSV line", path=path, line=lineno)
+    reader = csv.reader(lines)
+    for lineno, row in enumerate(_csv_rows(reader, path), start=1):
         if not row or all(not c.strip() for c in row):
             continue  # blank line
         if row[0].lstrip().startswith("#"):
             continue  # comment
-        rows.append((lineno, [c.strip() for c in row]))
+        cells = [c.strip() for c in row]
+        for k, c in enumerate(cells):
+            if len(c) > MAX_FIELD_CHARS:
+                raise InputError(f"field {k + 1} has {len(c)} characters (more than {MAX_FIELD_CHARS})", path=path,
+                                 line=lineno)
+        rows.append((lineno, cells))
     if not rows:
         raise InputError("empty file", path=path)
     return path, rows
+
+
+def _csv_rows(reader, path):
+    lineno = 0
+    while True:
+        try:
+            row = next(reader)
+        except StopIteration:
+            return
+        except csv.Error as exc:
+            raise InputError(f"malformed CSV: {exc}", path=path, line=reader.line_num) from None
+        lineno += 1
+        yield row
 
 
 def _header(path, rows, expected_options):
@@ -235,20 +313,22 @@ def _nan_to_none(o):
     return o
 
 
-def read_json(path) -> dict:
+def read_json(path, what: str = "JSON file") -> dict:
+    """Parse a UTF-8 JSON file; InputError with the file and line otherwise (NaN/Infinity are refused)."""
     path = Path(path)
-    if not path.exists():
-        raise InputError("file not found", path=path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except UnicodeDecodeError:
-        raise InputError("not a UTF-8 JSON file", path=path) from None
+    text = read_text_file(path, what)
     if not text.strip():
         raise InputError("empty file", path=path)
+
+    def no_constant(name):
+        raise ValueError(f"{name} is not JSON (write null)")
+
     try:
-        return json.loads(text)
+        return json.loads(text, parse_constant=no_constant)
     except json.JSONDecodeError as exc:
         raise InputError(f"invalid JSON: {exc.msg}", path=path, line=exc.lineno) from None
+    except (ValueError, RecursionError) as exc:
+        raise InputError(f"invalid JSON: {exc}", path=path) from None
 
 
 def save_calibration(path, result) -> None:
@@ -260,10 +340,149 @@ def load_calibration(path):
     """Read a calibration JSON into a :class:`~psdcal.calibration.core.CalibrationResult`."""
     from psdcal.calibration.core import CalibrationResult
 
-    d = read_json(path)
+    d = read_json(path, "calibration file")
     if not isinstance(d, dict) or "intrinsics" not in d:
         raise InputError("not a psdcal calibration: no 'intrinsics' key", path=path)
+    validate_calibration_dict(d, path)
     return CalibrationResult.from_dict(d, source=str(path))
+
+
+def _software_version_check(d, path):
+    """InputError for a calibration written by a newer major version of psdcal; a warning string for a newer minor."""
+    sw = d.get("software")
+    if sw is None:
+        return None
+    if not isinstance(sw, dict):
+        raise InputError("'software' must be an object", path=path, field="software")
+    v = sw.get("version")
+    if v is None:
+        return None
+    from psdcal import __version__
+
+    def parse(text):
+        out = []
+        for part in str(text).split(".")[:3]:
+            digits = "".join(ch for ch in part if ch.isdigit()) if part[:1].isdigit() else ""
+            out.append(int(digits) if digits else 0)
+        return tuple(out + [0] * (3 - len(out)))
+
+    if not isinstance(v, str):
+        raise InputError(f"'software.version' must be a string, got {v!r}", path=path, field="software.version")
+    theirs, ours = parse(v), parse(__version__)
+    if theirs[0] > ours[0]:
+        raise InputError(f"written by psdcal {v}, a newer major version than this psdcal {__version__}: upgrade psdcal",
+                         path=path, field="software.version")
+    if theirs > ours:
+        return f"{path}: written by psdcal {v}, newer than this psdcal {__version__}; fields it added are ignored"
+    return None
+
+
+def validate_calibration_dict(d: dict, path=None) -> None:
+    """Check a calibration JSON's types and ranges (docs/model.md#calibration-json); InputError naming the key.
+
+    A newer minor ``software.version`` is a warning (Python ``UserWarning``), a newer major one an error.
+    """
+    import warnings
+
+    def bad(msg, key):
+        return InputError(msg, path=path, field=key)
+
+    def is_num(v):
+        return isinstance(v, (int, float)) and not isinstance(v, bool)
+
+    def need_obj(key, required=False):
+        v = d.get(key)
+        if v is None:
+            if required:
+                raise bad(f"missing object '{key}'", key)
+            return {}
+        if not isinstance(v, dict):
+            raise bad(f"'{key}' must be an object, got {type(v).__name__}", key)
+        return v
+
+    intr = need_obj("intrinsics", True)
+    for k in ("f_mm", "cx_mm", "cy_mm"):
+        if k not in intr:
+            raise bad(f"missing number '{k}'", f"intrinsics.{k}")
+    for k, v in intr.items():
+        if v is None and k not in ("f_mm", "cx_mm", "cy_mm"):
+            continue
+        if not is_num(v) or not math.isfinite(v):
+            raise bad(f"must be a finite number, got {v!r}", f"intrinsics.{k}")
+    for k in ("f_mm", "fy_mm"):
+        if k in intr and intr[k] is not None and not intr[k] > 0:
+            raise bad(f"focal length must be positive, got {intr[k]!r}", f"intrinsics.{k}")
+    for k, v in need_obj("distortion").items():
+        if v is not None and (not is_num(v) or not math.isfinite(v)):
+            raise bad(f"must be a finite number, got {v!r}", f"distortion.{k}")
+    for k, v in need_obj("sensor").items():
+        if k in ("lx_mm", "ly_mm") and (not is_num(v) or not math.isfinite(v) or v <= 0):
+            raise bad(f"must be a positive number, got {v!r}", f"sensor.{k}")
+    res = need_obj("residuals")
+    if "points" in res and not isinstance(res["points"], dict):
+        raise bad("'residuals.points' must be an object", "residuals.points")
+    rows = res.get("points", {}).get("rows", []) if isinstance(res.get("points"), dict) else []
+    if not isinstance(rows, list) or not all(isinstance(r, list) and len(r) >= 4 for r in rows):
+        raise bad("'residuals.points.rows' must be a list of [image_id, point_id, dx_mm, dy_mm]", "residuals.points.rows")
+    ext = d.get("extrinsics", [])
+    if not isinstance(ext, list) or not all(isinstance(e, dict) and "image_id" in e for e in ext):
+        raise bad("'extrinsics' must be a list of objects with image_id, rvec, tvec_mm", "extrinsics")
+    for i, e in enumerate(ext):
+        for k, n in (("rvec", 3), ("tvec_mm", 3)):
+            v = e.get(k)
+            if not (isinstance(v, list) and len(v) == n and all(is_num(x) for x in v)):
+                raise bad(f"must be a list of {n} numbers", f"extrinsics[{i}].{k}")
+    g = d.get("gains")
+    if g is not None and not (isinstance(g, list) and len(g) == 4 and all(is_num(x) and x > 0 for x in g)):
+        raise bad(f"'gains' must be 4 positive numbers, got {g!r}", "gains")
+    std = need_obj("std")
+    for k, v in std.items():
+        if v is not None and (not is_num(v) or not v >= 0):
+            raise bad(f"a standard error must be a non-negative number or null, got {v!r}", f"std.{k}")
+    cov = d.get("covariance")
+    if cov is not None:
+        if not isinstance(cov, dict) or not isinstance(cov.get("names"), list) or not isinstance(cov.get("matrix"), list):
+            raise bad("'covariance' must be an object with a list 'names' and a list of lists 'matrix'", "covariance")
+        names = cov["names"]
+        if not all(isinstance(n, str) for n in names) or len(set(names)) != len(names):
+            raise bad("'covariance.names' must be distinct strings", "covariance.names")
+        try:
+            m = np.array(cov["matrix"], dtype=float)
+        except (TypeError, ValueError):
+            raise bad("'covariance.matrix' must be a list of lists of numbers", "covariance.matrix") from None
+        n = len(names)
+        if m.shape != (n, n) and not (n == 0 and m.size == 0):
+            raise bad(f"'covariance.matrix' must be {n}x{n}, got shape {m.shape}", "covariance.matrix")
+        check_covariance(m, path, "covariance.matrix")
+    if "sensor_id" in d and d["sensor_id"] is not None and not isinstance(d["sensor_id"], str):
+        raise bad(f"'sensor_id' must be a string, got {d['sensor_id']!r}", "sensor_id")
+    w = _software_version_check(d, path)
+    if w:
+        warnings.warn(w, UserWarning, stacklevel=3)
+
+
+def check_covariance(m, path=None, field="covariance.matrix") -> None:
+    """InputError unless ``m`` is a finite, symmetric, positive semi-definite matrix (relative tolerance 1e-9)."""
+    m = np.asarray(m, dtype=float)
+    if m.size == 0:
+        return
+    if not np.all(np.isfinite(m)):
+        raise InputError("has non-finite entries (NaN or infinity)", path=path, field=field)
+    with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+        scale = np.sqrt(np.abs(np.outer(np.diag(m), np.diag(m)))) + 1e-300
+        symmetric = bool(np.allclose(m / scale, m.T / scale, atol=1e-6))
+    if not symmetric:
+        raise InputError("is not symmetric", path=path, field=field)
+    if np.any(np.diag(m) < 0):
+        raise InputError("has a negative variance on its diagonal", path=path, field=field)
+    d = np.sqrt(np.diag(m))
+    ok = d > 0
+    if ok.any():
+        c = m[np.ix_(ok, ok)] / np.outer(d[ok], d[ok])
+        ev = np.linalg.eigvalsh(0.5 * (c + c.T))
+        if ev.min() < -1e-8:
+            raise InputError(f"is not positive semi-definite (smallest eigenvalue of the correlation {ev.min():.3g})",
+                             path=path, field=field)
 
 
 __all__ = [
@@ -271,6 +490,8 @@ __all__ = [
     "atomic_path",
     "load_calibration",
     "read_json",
+    "read_text_file",
+    "validate_calibration_dict",
     "read_points",
     "read_template",
     "save_calibration",

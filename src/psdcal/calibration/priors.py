@@ -181,13 +181,10 @@ def read_prior_file(path) -> GaussianPrior:
     - spread: ``covariance`` (k x k, or ``{"names": [...], "matrix": [[...]]}``, whose names then
       name the means), else ``std`` (a list, or a dict by name).
     """
+    from psdcal.io import read_json
+
     p = Path(path)
-    try:
-        d = json.loads(p.read_text())
-    except FileNotFoundError:
-        raise InputError("no such file", path=p) from None
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise InputError(f"not a JSON prior file ({type(exc).__name__}: {exc})", path=p) from None
+    d = read_json(p, "prior file")
     if not isinstance(d, dict):
         raise InputError("a prior file is a JSON object with names, values and covariance", path=p)
     values = next((d[k] for k in ("values", "mean", "gains") if k in d), None)

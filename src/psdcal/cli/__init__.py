@@ -13,8 +13,135 @@ import click
 
 from psdcal.errors import PsdcalError
 
+#: Parameters (by their Python name) that name files or folders a command writes.
+OUTPUT_PARAMS = frozenset({"output", "out", "out_dir", "csv_path", "json_out", "points_out", "track_path", "into"})
+#: Outputs updated in place (merged into): they may exist without --force.
+MERGE_PARAMS = frozenset({"into"})
+#: Files a command writes into its output folder, keyed by command name (an existing one needs --force).
+DIR_FILES = {
+    "simulate": ("template.csv", "points.csv", "truth.json"),
+    "template": ("template.csv", "truth.json"),
+    "room": ("sensors.json", "emitters.csv", "truth.json"),
+    "reproduce": ("report.md",),
+}
+#: Extensions an output must have where the writer's format is fixed: (command, param) -> suffixes.
+OUTPUT_SUFFIXES = {
+    ("errormap", "output"): (".png",),
+    ("plan", "output"): (".png",),
+    ("compare", "output"): (".png", ".svg", ".pdf"),
+    ("report", "output"): (".html", ".htm"),
+}
 
-@click.group(context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100})
+
+def _paths(value):
+    if value is None:
+        return []
+    if isinstance(value, (tuple, list)):
+        return [v for item in value for v in _paths(item)]
+    return [value]
+
+
+class PolicyCommand(click.Command):
+    """A command that follows the output policy (docs/guide/files-and-errors.md).
+
+    A command with an output gets ``--force``; before its body runs, outputs
+    that are inputs, exist (without --force), are folders, lie in a file or an
+    unwritable folder, or have the wrong extension are refused in one line.
+    """
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self._policy = any(p.name in OUTPUT_PARAMS for p in self.params)
+        if self._policy and not any(p.name == "force" for p in self.params):
+            self.params.append(click.Option(["--force"], is_flag=True, default=False,
+                                            help="Replace existing output files (an input is never overwritten)."))
+            self._added_force = True
+        else:
+            self._added_force = False
+
+    def invoke(self, ctx):
+        _check_values(ctx)
+        if self._policy:
+            force = ctx.params.pop("force", False) if self._added_force else bool(ctx.params.get("force"))
+            self._guard(ctx, force)
+        return super().invoke(ctx)
+
+    def _guard(self, ctx, force):
+        from pathlib import Path
+
+        from psdcal._atomic import guard_outputs
+
+        ins, outs, dirs = [], [], []
+        for p in self.params:
+            if not isinstance(p, click.Option | click.Argument) or not isinstance(p.type, click.Path):
+                continue
+            opt = p.opts[-1] if isinstance(p, click.Option) else p.human_readable_name
+            if isinstance(p, click.Option):
+                longs = [o for o in p.opts if o.startswith("--")]
+                opt = longs[0] if longs else p.opts[0]
+            for v in _paths(ctx.params.get(p.name)):
+                if not isinstance(v, (str, Path)) or str(v) == "-" or "://" in str(v):
+                    continue
+                if p.name in OUTPUT_PARAMS:
+                    if not p.type.file_okay:
+                        dirs.append((opt, Path(v)))
+                        for n in DIR_FILES.get(self.name, ()):
+                            outs.append((opt, Path(v) / n))
+                    else:
+                        outs.append((opt, Path(v)))
+                else:
+                    ins.append((opt, Path(v)))
+        suffixes = {opt: sfx for (cmd, name), sfx in OUTPUT_SUFFIXES.items() if cmd == self.name
+                    for p in self.params if p.name == name for opt in [
+                        ([o for o in p.opts if o.startswith("--")] or p.opts)[0]]}
+        merge = {([o for o in p.opts if o.startswith("--")] or p.opts)[0] for p in self.params if p.name in MERGE_PARAMS}
+        guard_outputs(ins, outs, force, suffixes=suffixes, dirs=dirs, merge=merge)
+
+
+#: Options that must be >= 0 / >= 1 wherever a command has them (by Python name).
+NON_NEGATIVE = frozenset({"seed", "sigma_d_mm", "noise_mm", "noise_um", "min_snr", "gap_s"})
+AT_LEAST_ONE = frozenset({"n_emitters", "images", "views", "trials", "grid", "workers", "chunk_samples"})
+#: Options written into CSV cells: no separator, quote or line break.
+CSV_CELL = frozenset({"image_id", "name"})
+
+
+def _check_values(ctx) -> None:
+    """Refuse NaN/infinite numbers, negative seeds and sigmas, zero counts, CSV-breaking ids (one line, exit 2)."""
+    import math
+
+    def fail(param, msg):
+        raise click.BadParameter(msg, ctx=ctx, param=param)
+
+    for p in ctx.command.params:
+        v = ctx.params.get(p.name)
+        if v is None or isinstance(v, bool):
+            continue
+        vals = v if isinstance(v, (tuple, list)) else (v,)
+        flat = [x for item in vals for x in (item if isinstance(item, (tuple, list)) else (item,))]
+        for x in flat:
+            if isinstance(x, float) and not math.isfinite(x):
+                fail(p, f"{x} is not a finite number")
+            if isinstance(x, (int, float)) and not isinstance(x, bool):
+                if p.name in NON_NEGATIVE and x < 0:
+                    fail(p, f"{x} is negative")
+                if p.name in AT_LEAST_ONE and x < 1:
+                    fail(p, f"{x} must be at least 1")
+            if p.name in CSV_CELL and isinstance(x, str) and any(c in x for c in ',"\r\n\t\x00'):
+                fail(p, f"{x!r} contains a comma, quote, tab or line break (it becomes a CSV cell)")
+        if p.name == "sensor_mm" and v is not None and any(x <= 0 for x in flat if isinstance(x, float)):
+            fail(p, "sensor lengths must be positive")
+
+
+class PolicyGroup(click.Group):
+    """A group whose commands and subgroups follow the output policy."""
+
+    command_class = PolicyCommand
+
+
+PolicyGroup.group_class = PolicyGroup
+
+
+@click.group(cls=PolicyGroup, context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100})
 @click.version_option(package_name="psdcal")
 def cli():
     """psdcal: model, calibrate and use PSD + lens angle-of-arrival sensors.
@@ -53,24 +180,70 @@ def _register() -> None:
                 raise
 
 
+def _one_line(msg) -> str:
+    return " ".join(str(msg).split())
+
+
+def _error(msg) -> int:
+    click.echo(f"psdcal: error: {_one_line(msg)}", err=True)
+    return 2
+
+
+def _quiet_libraries() -> None:
+    """numpy floating-point warnings and npTDMS log lines must not come before the one error line."""
+    import logging
+    import warnings
+
+    warnings.filterwarnings("ignore", category=RuntimeWarning, module="numpy")
+    warnings.filterwarnings("ignore", message=".*(overflow|invalid value|divide by zero).*", category=RuntimeWarning)
+    logging.getLogger("nptdms").setLevel(logging.CRITICAL)
+
+
 def main(argv=None) -> int:
-    """Entry point of the ``psdcal`` script; returns the exit status."""
+    """Entry point of the ``psdcal`` script; returns the exit status.
+
+    Every error a user can cause prints ONE line ``psdcal: error: ...`` on
+    stderr and exits 2; the outputs of a command are written as one set
+    (:func:`psdcal._atomic.output_set`), so a failed command changes nothing.
+    """
+    from psdcal._atomic import output_set
+
+    import logging
+
     _register()
+    _quiet_libraries()
+    logging.disable(logging.WARNING)  # npTDMS and friends: no log line before the one error line
     try:
-        cli.main(args=argv, standalone_mode=False, prog_name="psdcal")
+        with output_set():
+            cli.main(args=argv, standalone_mode=False, prog_name="psdcal")
     except click.exceptions.Abort:
         click.echo("psdcal: aborted", err=True)
         return 130
-    except click.ClickException as exc:
-        exc.show()
-        return exc.exit_code
-    except PsdcalError as exc:
-        msg = " ".join(str(exc).split())
-        click.echo(f"psdcal: error: {msg}", err=True)
+    except click.exceptions.NoArgsIsHelpError as exc:  # pragma: no cover - click >= 8.2
+        click.echo(exc.format_message(), err=True)
         return 2
+    except click.UsageError as exc:
+        hint = f" (see 'psdcal {exc.ctx.command_path.split(' ', 1)[1]} --help')" if exc.ctx is not None and " " in exc.ctx.command_path else ""
+        return _error(f"{exc.format_message()}{hint}")
+    except click.ClickException as exc:
+        return _error(exc.format_message())
+    except PsdcalError as exc:
+        return _error(exc)
     except KeyboardInterrupt:
         click.echo("psdcal: interrupted", err=True)
         return 130
+    except MemoryError:
+        return _error("out of memory: the input or the options ask for more than this machine has")
+    except OSError as exc:
+        where = f"{exc.filename}: " if getattr(exc, "filename", None) else ""
+        return _error(f"{where}{exc.strerror or exc}")
+    except RecursionError:
+        return _error("input nested too deeply")
+    except UnicodeDecodeError as exc:
+        return _error(f"an input file is not UTF-8 text (byte 0x{exc.object[exc.start]:02x} at offset {exc.start}); "
+                      "save it as UTF-8")
+    finally:
+        logging.disable(logging.NOTSET)
     return 0
 
 

@@ -32,6 +32,10 @@ def model_options(f):
     return f
 
 
+#: Most template points ``calibrate`` accepts (the line search costs O(M^2 log M)).
+MAX_TEMPLATE_POINTS = 2000
+
+
 @cli.command("calibrate")
 @click.argument("points", type=click.Path(dir_okay=False, path_type=Path))
 @click.option("--template", "-t", "template", required=True, type=click.Path(dir_okay=False, path_type=Path),
@@ -70,11 +74,14 @@ def model_options(f):
 @click.option("--gains", "gains_file", type=click.Path(dir_okay=False),
               help="Gains JSON from 'psdcal gains' (bench): the channel gains, held fixed (the start with "
                    "--fit-gains); kept in the calibration JSON.")
+@click.option("--sensor-id", "sensor_id", default=None, metavar="ID",
+              help="Identity of the calibrated sensor (serial number, lens): kept as sensor_id in the JSON, shown "
+                   "by report, checked by `locate/aoa --expect-sensor ID`.")
 @click.option("--quiet", "-q", is_flag=True, help="Print nothing but errors.")
 def calibrate_command(points, template, output, cost, radial, tangential, psd_radial, skew, aspect, preliminary,
                       normalize, sensor_mm, max_iterations, fit_gains, quiet, reject_k=None, f_guess_mm=None,
                       noise_um=None, strict=False, model_choice="manual", cv_k=None, fix_items=(),
-                      prior_items=(), prior_files=(), gains_file=None):
+                      prior_items=(), prior_files=(), gains_file=None, sensor_id=None):
     """Calibrate a PSD + lens sensor from views of a planar LED template.
 
     POINTS is a CSV of impact points, `image_id,point_id,x_mm,y_mm` (a missing
@@ -93,10 +100,19 @@ def calibrate_command(points, template, output, cost, radial, tangential, psd_ra
 
     from psdcal.calibration.priors import parse_fix, parse_prior, read_prior_file
 
+    if sensor_id is not None and (not sensor_id.strip() or any(c in sensor_id for c in "\r\n\x00")):
+        raise InputError(f"--sensor-id must be a non-empty single line, got {sensor_id!r}", field="--sensor-id")
     fix = parse_fix(fix_items) or None
     priors = [parse_prior(t) for t in prior_items] + [read_prior_file(f) for f in prior_files]
     tids, txy = read_template(template)
+    if len(tids) > MAX_TEMPLATE_POINTS:
+        raise InputError(f"{len(tids)} template points: more than the {MAX_TEMPLATE_POINTS} a calibration handles "
+                         "(the line search is quadratic in them); use a subset of the LEDs", path=template)
     pf = read_points(points, tids, sensor_mm=sensor_mm)
+    from psdcal._limits import check_bytes
+
+    n_img, n_pts = pf.points_mm.shape[:2]
+    check_bytes(2.0 * n_img * n_pts * (20 + 6 * n_img) * 8 * 3, f"{n_img} views of {n_pts} points", "POINTS")
     if fit_gains and pf.kind != "amplitudes":
         raise InputError("--fit-gains needs raw amplitudes (header image_id,point_id,vx1,vx2,vy1,vy2)", path=points, line=1)
     from psdcal.calibration._refine import SolverOptions
@@ -146,6 +162,7 @@ def calibrate_command(points, template, output, cost, radial, tangential, psd_ra
                            f"residual {p.residual_mm * 1e3:.2f} um = {p.ratio:.1f} sigma")
             for iid, pid in rej.kept_flagged:
                 click.echo(f"  kept (too few points left to remove it): image {iid}, point {pid}")
+    undetermined_parameters(res, points)
     res = with_verdict(res, noise_mm=noise_mm, points_kind=pf.kind)
     if cv_k is not None:
         import dataclasses
@@ -167,12 +184,55 @@ def calibrate_command(points, template, output, cost, radial, tangential, psd_ra
         v = Verdict.from_dict(res.verdict)
         raise VerdictError(f"--strict: the verdict is {v.verdict} ({'; '.join(v.reasons)}); nothing written")
     if output is not None:
-        save_calibration(output, res)
+        if sensor_id is not None:
+            from psdcal.io import write_json
+
+            write_json(output, {**res.to_dict(), "sensor_id": sensor_id})
+        else:
+            save_calibration(output, res)
     if not quiet:
+        if sensor_id is not None:
+            click.echo(f"sensor: {sensor_id}")
         print_calibration(res)
         _echo_constraints(res)
         if output is not None:
             click.echo(f"wrote {output}")
+
+
+def undetermined_parameters(res, points) -> None:
+    """DegenerateViewsError when the covariance shows parameters the views do not determine.
+
+    A negative or non-finite variance, or a covariance that is not positive
+    semi-definite, means the normal equations are singular (e.g. every view
+    parallel to the sensor: f and the distance trade off exactly). Writing
+    such a result would give a standard error of 0 -- a perfect-looking
+    calibration of a parameter the data do not fix.
+    """
+    import numpy as np
+
+    from psdcal.errors import DegenerateViewsError
+
+    C = np.asarray(res.covariance, dtype=float)
+    names = list(res.param_names)
+    if C.size == 0:
+        return
+    diag = np.diag(C)
+    bad = [n for n, v in zip(names, diag) if not (np.isfinite(v) and v >= 0)]
+    if not bad and np.all(np.isfinite(C)):
+        d = np.sqrt(diag)
+        ok = d > 0
+        if ok.sum() >= 2:
+            R = C[np.ix_(ok, ok)] / np.outer(d[ok], d[ok])
+            w, v = np.linalg.eigh(0.5 * (R + R.T))
+            if w.min() < -1e-6:
+                k = np.argsort(-np.abs(v[:, 0]))[:2]
+                sub = [n for n, o in zip(names, ok) if o]
+                bad = [sub[i] for i in k]
+    if bad:
+        raise DegenerateViewsError(
+            f"{points}: the views do not determine {', '.join(bad)} (their covariance is not a covariance: the "
+            "normal equations are singular, e.g. every view parallel to the sensor); tilt the template by "
+            "10-40 deg in different directions between views, or fix the parameter with --fix")
 
 
 def _diagnosis(result, noise_mm, points_kind) -> str:

@@ -20,7 +20,34 @@ def _channels(value):
                                  f"--channels {value}' (LEDs found, positions, angles with --calib)")
     if len(names) != 4 or not all(names):
         raise click.BadParameter("give 4 comma-separated names (for vx1,vx2,vy1,vy2)")
+    if len(set(names)) != 4:
+        raise click.BadParameter(f"the 4 channel names must differ, got {','.join(names)}")
     return tuple(names)
+
+
+def check_sensor(model, expect_sensor, allow_no_covariance) -> None:
+    """The calibration is of the expected sensor (``--expect-sensor``) and carries an uncertainty."""
+    from psdcal.errors import InputError
+
+    if expect_sensor is not None and model.sensor_id != expect_sensor:
+        got = "no sensor_id" if model.sensor_id is None else f"sensor_id {model.sensor_id!r}"
+        raise InputError(f"the calibration has {got}, not the expected {expect_sensor!r}", path=model.source,
+                         field="sensor_id")
+    model.require_uncertainty(allow_no_covariance)
+    if model.sensor_id is not None:
+        click.echo(f"calibration of sensor {model.sensor_id} ({model.source})")
+
+
+def _guard_window(config, recs) -> None:
+    """Refuse a --window-s whose buffers would not fit in memory (before demodulating)."""
+    from psdcal._limits import check_bytes
+
+    if config.window_s is None:
+        return
+    for rec in recs:
+        n = float(config.window_s) * rec.rate_hz
+        check_bytes(n * 8 * 4 * (2 * max(len(config.carriers_hz), 1) + 6), f"--window-s {config.window_s:g} at "
+                    f"{rec.rate_hz:g} Hz", "--window-s")
 
 
 def _demod_options(f):
@@ -80,10 +107,17 @@ def _demod_options(f):
 @click.option("--gains", "gains_file", type=click.Path(dir_okay=False),
               help="Gains JSON from 'psdcal gains': channel gains (per carrier when it has them) replace the "
                    "calibration's, their covariance enters the sigmas.")
+@click.option("--expect-sensor", "expect_sensor", default=None, metavar="ID",
+              help="Refuse a calibration whose sensor_id is not ID (or has none): catches the calibration of "
+                   "another sensor or lens.")
+@click.option("--allow-no-covariance", is_flag=True, default=False,
+              help="Accept a calibration without covariance or standard errors (its uncertainty is then left out "
+                   "of every sigma); refused otherwise.")
 @_demod_options
 def locate_command(recordings, calib, sensors, gains_file, rate_hz, carriers, emitters, distance_mm, window_s, tdm,
                    schedule, n_emitters, check_carriers, min_snr, channels, dataset, group, chunk_samples, progress,
-                   output, track_path=None, track_q=None, raw_dtype="float64", raw_scale=1.0, output_format="csv"):
+                   output, track_path=None, track_q=None, raw_dtype="float64", raw_scale=1.0, output_format="csv",
+                   expect_sensor=None, allow_no_covariance=False):
     """Demodulate RECORDING(s) and write angles of arrival and positions.
 
     \b
@@ -120,6 +154,11 @@ def locate_command(recordings, calib, sensors, gains_file, rate_hz, carriers, em
     if any(is_stream_source(str(r)) for r in recordings):  # live input: see `psdcal.cli.system_cmd.live_locate`
         from psdcal.cli.system_cmd import live_locate
 
+        if expect_sensor is not None and calib is not None:
+            from psdcal.measure.sensor_model import SensorModel
+
+            check_sensor(SensorModel.load(calib), expect_sensor, True)
+
         return live_locate(recordings, calib, rate_hz, carriers, emitters, distance_mm, window_s, tdm, schedule,
                            n_emitters, min_snr, output, raw_dtype, raw_scale, track_path, track_q)
     sched = load_schedule(schedule) if schedule else None
@@ -143,6 +182,7 @@ def locate_command(recordings, calib, sensors, gains_file, rate_hz, carriers, em
         if len(recordings) != 1:
             raise InputError(f"give one RECORDING with --calib, got {len(recordings)}", field="RECORDING")
         model = SensorModel.load(calib)
+        check_sensor(model, expect_sensor, allow_no_covariance)
         models = None
         if gains_file is not None:
             from psdcal.calibration.bench import load_gains, with_gains
@@ -164,6 +204,7 @@ def locate_command(recordings, calib, sensors, gains_file, rate_hz, carriers, em
                 f"{len(poses)} sensors need {len(poses)} recordings (give them in order, or a 'recording' "
                 "key per sensor)", path=sensors, field="recording")
         recs = [open_recording(p, rate_hz, **opts) for p in paths]
+    _guard_window(config, recs)
 
     total = recs[0].n_samples
     show = progress if progress is not None else (total is not None and total >= _PROGRESS_MIN_SAMPLES)
@@ -181,7 +222,9 @@ def locate_command(recordings, calib, sensors, gains_file, rate_hz, carriers, em
     if track_path:
         from psdcal.measure.tracking import track_csv
 
-        info = track_csv(output, track_path, q=track_q)
+        from psdcal._atomic import staged
+
+        info = track_csv(staged(output), track_path, q=track_q)
         click.echo(f"wrote {info['n_rows']} tracked rows to {track_path} ({info['n_gated']} gated, "
                    f"mean NIS {info['mean_nis']:.3g} for {info['dims']} dimensions)")
 
@@ -241,6 +284,7 @@ def amplitudes_command(recording, rate_hz, carriers, emitters, window_s, tdm, sc
                           n_emitters=n_emitters, chunk_samples=chunk_samples, check_carriers=check_carriers,
                           output_format=output_format)
     rec = open_recording(recording, rate_hz, channels=_channels(channels), dataset=dataset, group=group)
+    _guard_window(config, [rec])
     show = progress if progress is not None else (rec.n_samples is not None and rec.n_samples >= _PROGRESS_MIN_SAMPLES)
     bar = _Bar(rec.n_samples, rec.path) if show else None
     try:
@@ -261,11 +305,20 @@ def amplitudes_command(recording, rate_hz, carriers, emitters, window_s, tdm, sc
               help="Gains JSON from 'psdcal gains' (amplitude input): applied to the channels, covariance "
                    "in the sigmas.")
 @click.option("-o", "--output", required=True, type=click.Path(dir_okay=False), help="Output CSV.")
-def aoa_command(points, calib, distance_mm, sigma_d_mm, gains_file, output):
+@click.option("--expect-sensor", "expect_sensor", default=None, metavar="ID",
+              help="Refuse a calibration whose sensor_id is not ID (or has none).")
+@click.option("--allow-no-covariance", is_flag=True, default=False,
+              help="Accept a calibration without covariance or standard errors (its uncertainty is then left out "
+                   "of every sigma); refused otherwise.")
+def aoa_command(points, calib, distance_mm, sigma_d_mm, gains_file, output, expect_sensor=None,
+                allow_no_covariance=False):
     """Convert impact points (x_mm,y_mm) or amplitudes (vx1..vy2) in POINTS.csv to angles.
 
-    Other columns (image_id, point_id, ...) are copied.  Output adds
-    x_mm,y_mm,alpha_x_deg,alpha_y_deg[,X_mm,Y_mm],sigma_alpha_x_deg,sigma_alpha_y_deg[,sigma_X_mm,sigma_Y_mm].
+    Other columns (image_id, point_id, t_s, emitter, ...) are copied.  Output adds
+    x_mm,y_mm,alpha_x_deg,alpha_y_deg[,X_mm,Y_mm],sigma_alpha_x_deg,sigma_alpha_y_deg[,sigma_X_mm,sigma_Y_mm]
+    (replacing those columns when POINTS already has them, e.g. a `locate` output).  The input's
+    sigma_x_mm,sigma_y_mm or sigma_vx1..sigma_vy2 columns enter the angle sigmas; a point off
+    the sensor is an error; a sigma that cannot be computed is written empty.
 
     Signs: seen from behind the sensor with the chip's +y edge up, alpha_x > 0
     is an emitter right of the optical axis, alpha_y > 0 one below it (the lens
@@ -275,6 +328,11 @@ def aoa_command(points, calib, distance_mm, sigma_d_mm, gains_file, output):
     from psdcal.measure.sensor_model import SensorModel
 
     model = SensorModel.load(calib)
+    check_sensor(model, expect_sensor, allow_no_covariance)
+    if distance_mm is not None and not distance_mm > 0:
+        from psdcal.errors import InputError
+
+        raise InputError(f"--distance-mm must be positive, got {distance_mm}", field="--distance-mm")
     if gains_file is not None:
         from psdcal.calibration.bench import load_gains, with_gains
 
@@ -306,6 +364,9 @@ def errormap_command(calib, distance_mm, mode, grid, sigma_d_mm, csv_path, outpu
     if grid < 3:
         raise InputError(f"--grid must be at least 3, got {grid}", field="grid")
     model = SensorModel.load(calib)
+    from psdcal._limits import check_bytes
+
+    check_bytes(float(grid) ** 2 * 8 * (8 * max(len(model.names), 1) + 64), f"--grid {grid}", "--grid")
     emap = error_map(model, distance_mm, mode=mode, grid=grid, sigma_d_mm=sigma_d_mm)
     plot_error_map(emap, output)
     if csv_path:

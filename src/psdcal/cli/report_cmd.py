@@ -38,6 +38,12 @@ def report_command(calibration, points, template, output, k, cells, region_mm, t
     from psdcal.report.page import ReportInputs, write_report
 
     res = load_calibration(calibration)
+    from psdcal.io import read_json
+
+    sid = read_json(calibration).get("sensor_id")
+    if sid is not None:
+        click.echo(f"sensor: {sid}")
+        title = title or f"Calibration of sensor {sid}"
     inputs = ReportInputs(calibration=str(calibration), points=None if points is None else str(points),
                           template=None if template is None else str(template),
                           command="psdcal " + " ".join(sys.argv[1:]) if sys.argv and "psdcal" in Path(sys.argv[0]).name else None)

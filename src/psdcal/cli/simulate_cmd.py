@@ -50,6 +50,10 @@ def simulate_command(lens, f_mm, cx_mm, cy_mm, k1, k2, k3, p1, p2, l1, l2, image
     from psdcal.io import read_template, write_json, write_points, write_template
     from psdcal.study.simulate import LENSES, simulate_set
 
+    from psdcal.errors import InputError
+
+    if f_mm is not None and not f_mm > 0:
+        raise InputError(f"the focal length must be positive, got {f_mm}", field="--f-mm")
     intr, dist = LENSES[lens]
     intr = replace(intr, **{k: v for k, v in dict(f_mm=f_mm, cx_mm=cx_mm, cy_mm=cy_mm).items() if v is not None})
     dist = replace(dist, **{k: v for k, v in dict(k1=k1, k2=k2, k3=k3, p1=p1, p2=p2, l1=l1, l2=l2).items() if v is not None})

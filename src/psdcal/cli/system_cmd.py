@@ -87,6 +87,10 @@ def simulate_template_command(lens, psd_l1, views, mux, fmt, rate_hz, carrier_hz
     from psdcal.study.simulate import LENSES
 
     intr, dist = LENSES[lens]
+    from psdcal._limits import check_bytes
+
+    check_bytes(views * 14 * max(on_s + gap_s, 0.0) * rate_hz * 8 * 4 * 4, f"--on-s {on_s:g} x --views {views}",
+                "--on-s")
     tv = simulate_template_views((intr, dist), n_views=views, mux=mux, rate_hz=rate_hz, carrier_hz=carrier_hz,
                                  carrier_step_hz=carrier_step_hz, on_s=on_s, gap_s=gap_s,
                                  snr_db=None if no_noise else snr_db, gain_imbalance=gain_imbalance,
@@ -219,6 +223,10 @@ def simulate_room_command(lens, psd_l1, calib, room_m, n_sensors, anchors, senso
                                     carrier_step_hz=carrier_step_hz, seed=seed, survey_s=survey_s)
     if not emitters:
         raise InputError("no emitters: give --anchors > 0 or a --moving trajectory", field="anchors")
+    from psdcal._limits import check_bytes
+
+    check_bytes(max(duration_s, 0.0) * rate_hz * 8 * 4 * 4 * max(len(sensors), 1), f"--duration-s {duration_s:g}",
+                "--duration-s")
     rr = simulate_room(sensors, emitters, duration_s=duration_s, rate_hz=rate_hz, snr_db=snr_db, mux=mux,
                        slot_s=slot_s, gain_imbalance=gain_imbalance, seed=seed)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -285,8 +293,9 @@ def _read_table(path):
     """(header, rows) of a CSV whose header names 'emitter' (a locate or amplitudes output), else None."""
     import csv
 
-    with open(path, newline="", encoding="utf-8") as fh:
-        rows = list(csv.reader(fh))
+    from psdcal.io import csv_rows
+
+    rows = csv_rows(path, "table")
     if not rows or "emitter" not in [h.strip() for h in rows[0]]:
         return None
     return [h.strip() for h in rows[0]], [r for r in rows[1:] if r and any(c.strip() for c in r)]
@@ -452,7 +461,9 @@ def pose_command(source, calib, emitters_csv, rate_hz, carriers, emitter_names, 
         config = LocateConfig(carriers_hz=cs, window_s=window_s, emitters=ems, min_snr=min_snr, tdm=is_tdm,
                               schedule=sched)
         rec = open_recording(source, rate_hz)
-        with tempfile.TemporaryDirectory() as tmp:
+        from psdcal._atomic import immediate
+
+        with tempfile.TemporaryDirectory() as tmp, immediate():
             amp = Path(tmp) / "amp.csv"
             amplitudes_to_csv(rec, amp, config)
             header, rows = _read_table(amp)
@@ -723,12 +734,9 @@ def _read_candidates(path, calib):
         raise InputError("--candidates needs --calib (the sensors' calibration)", field="calib")
     model = SensorModel.load(calib)
     cols = ["X_m", "Y_m", "Z_m", "aim_X_m", "aim_Y_m", "aim_Z_m"]
-    try:
-        fh = open(path, newline="", encoding="utf-8")
-    except FileNotFoundError:
-        raise InputError("candidates file not found", path=path) from None
-    with fh:
-        rows = list(csv.reader(fh))
+    from psdcal.io import csv_rows
+
+    rows = csv_rows(path, "candidates file")
     header = [h.strip() for h in rows[0]] if rows else []
     for c in ["name"] + cols:
         if c not in header:
@@ -792,6 +800,12 @@ def plan_command(sensors_json, candidates, calib, room_m, height_m, grid_mm, sig
         raise InputError("give exactly one of --sensors or --candidates", field="sensors")
     sensors = load_sensors(sensors_json) if sensors_json is not None else _read_candidates(candidates, calib)
     name = (sensors_json or candidates).name
+    from psdcal._limits import check_bytes
+
+    if not grid_mm > 0:
+        raise InputError(f"--grid-mm must be positive, got {grid_mm}", field="--grid-mm")
+    n_cells = (room_m[0] * 1000.0 / grid_mm + 1) * (room_m[1] * 1000.0 / grid_mm + 1)
+    check_bytes(n_cells * 8 * (64 + 16 * len(sensors)), f"--grid-mm {grid_mm:g} over the room", "--grid-mm")
     pm = plan_map(sensors, np.array(room_m) * 1000.0, z_mm=height_m * 1000.0, grid_mm=grid_mm, sigma_d_mm=sigma_d_mm)
     plot_plan(pm, output, title=f"{name}: {len(sensors)} sensors, plane Z = {height_m:g} m")
     if csv_path:
@@ -834,5 +848,7 @@ def live_locate(recordings, calib, rate_hz, carriers, emitters, distance_mm, win
 
         if str(output) == "-":
             raise InputError("--track needs -o FILE (not stdout) with live input", field="track")
-        info = track_csv(output, track_path, q=track_q)
+        from psdcal._atomic import staged
+
+        info = track_csv(staged(output), track_path, q=track_q)
         click.echo(f"wrote {info['n_rows']} tracked rows to {track_path} ({info['n_gated']} gated)")

@@ -532,14 +532,26 @@ def locate_multi_to_csv(recordings, sensors, out_path, config: LocateConfig,
 
 
 # --------------------------------------------------------------------------- impact points -> angles
+#: Columns ``aoa`` computes: on an input (e.g. a ``locate`` output) they are replaced, never duplicated.
+AOA_COMPUTED = ("x_mm", "y_mm", "alpha_x_deg", "alpha_y_deg", "X_mm", "Y_mm", "sigma_alpha_x_deg",
+                "sigma_alpha_y_deg", "sigma_X_mm", "sigma_Y_mm", "sigma_x_mm", "sigma_y_mm")
+#: Rows of an ``aoa`` input converted at once (bounds memory on large files).
+AOA_CHUNK_ROWS = 65536
+
+
 def aoa_csv(points_path, model: SensorModel, out_path, *, distance_mm: float | None = None,
-            sigma_d_mm: float = 0.0) -> int:
-    """Convert a points CSV to angles (``psdcal aoa``).
+            sigma_d_mm: float = 0.0, chunk_rows: int = AOA_CHUNK_ROWS) -> int:
+    """Convert a points CSV to angles (``psdcal aoa``), streaming ``chunk_rows`` rows at a time.
 
     The input has ``x_mm,y_mm`` (measured impact points) or
     ``vx1,vx2,vy1,vy2`` (amplitudes; the sensor's gains are applied); other
-    columns (``image_id``, ``point_id``, ...) are copied to the output, then
-    ``x_mm,y_mm,alpha_x_deg,alpha_y_deg[,X_mm,Y_mm]`` and the sigma columns.
+    columns (``image_id``, ``point_id``, ``t_s``, ``emitter``...) are copied to
+    the output, then ``x_mm,y_mm,alpha_x_deg,alpha_y_deg[,X_mm,Y_mm]`` and the
+    sigma columns (columns the input already had among those are replaced).
+    The input's own uncertainties are used: ``sigma_x_mm,sigma_y_mm`` (a
+    ``locate`` output) or ``sigma_vx1..sigma_vy2`` (an ``amplitudes`` output),
+    added to ``sigma_d_mm``. A point off the sensor's active area is an error
+    naming the line; a sigma that cannot be computed is written empty.
 
     Parameters
     ----------
@@ -547,81 +559,151 @@ def aoa_csv(points_path, model: SensorModel, out_path, *, distance_mm: float | N
     model : SensorModel
     distance_mm : float, optional
     sigma_d_mm : float
-        1-sigma noise of the impact points (isotropic), mm.
+        1-sigma noise of the impact points (isotropic), mm, added to the input's.
 
     Returns
     -------
     int, the number of rows written.
     """
-    path = Path(points_path)
+    from psdcal.io import check_regular_file
+
+    path = check_regular_file(points_path, "points file")
+    if not (math.isfinite(sigma_d_mm) and sigma_d_mm >= 0):
+        raise InputError(f"sigma_d_mm must be a non-negative number, got {sigma_d_mm}", field="sigma_d_mm")
     try:
-        fh = open(path, newline="", encoding="utf-8")
-    except FileNotFoundError:
-        raise InputError("points file not found", path=path) from None
+        fh = open(path, newline="", encoding="utf-8-sig")
+    except OSError as exc:
+        raise InputError(f"cannot read the points file: {exc.strerror or exc}", path=path) from None
+    n = 0
     with fh:
-        rows = list(csv.reader(fh))
-    if not rows:
-        raise InputError("empty file", path=path)
-    header = [h.strip() for h in rows[0]]
-    amp_cols = ("vx1", "vx2", "vy1", "vy2")
-    if all(c in header for c in ("x_mm", "y_mm")):
-        use = ("x_mm", "y_mm")
-    elif all(c in header for c in amp_cols):
-        use = amp_cols
-    else:
-        raise InputError("the header must name x_mm,y_mm or vx1,vx2,vy1,vy2", path=path, line=1)
-    idx = [header.index(c) for c in use]
-    keep_cols = [c for c in header if c not in ("x_mm", "y_mm", *amp_cols)]
-    keep_idx = [header.index(c) for c in keep_cols]
-    vals = np.empty((len(rows) - 1, len(use)))
+        reader = csv.reader(fh)
+
+        def rows():
+            while True:
+                try:
+                    row = next(reader)
+                except StopIteration:
+                    return
+                except csv.Error as exc:
+                    raise InputError(f"malformed CSV: {exc}", path=path, line=reader.line_num) from None
+                except UnicodeDecodeError:
+                    raise InputError("not UTF-8 text", path=path, line=reader.line_num + 1) from None
+                yield reader.line_num, row
+
+        it = rows()
+        first = next(it, None)
+        if first is None:
+            raise InputError("empty file", path=path)
+        header = [h.strip() for h in first[1]]
+        if len(set(header)) != len(header):
+            dup = sorted({h for h in header if header.count(h) > 1})
+            raise InputError(f"repeated column(s) {dup}", path=path, line=1)
+        amp_cols = ("vx1", "vx2", "vy1", "vy2")
+        if all(c in header for c in ("x_mm", "y_mm")):
+            use = ("x_mm", "y_mm")
+        elif all(c in header for c in amp_cols):
+            use = amp_cols
+        else:
+            raise InputError("the header must name x_mm,y_mm or vx1,vx2,vy1,vy2", path=path, line=1)
+        sig_cols = ("sigma_x_mm", "sigma_y_mm") if use == ("x_mm", "y_mm") else tuple(f"sigma_{c}" for c in amp_cols)
+        if not all(c in header for c in sig_cols):
+            sig_cols = ()
+        idx = [header.index(c) for c in use]
+        sidx = [header.index(c) for c in sig_cols]
+        keep_cols = [c for c in header if c not in (*AOA_COMPUTED, *amp_cols, *sig_cols)]
+        keep_idx = [header.index(c) for c in keep_cols]
+        order = [*keep_cols, "x_mm", "y_mm", "alpha_x_deg", "alpha_y_deg"]
+        if distance_mm is not None:
+            order += ["X_mm", "Y_mm"]
+        order += ["sigma_alpha_x_deg", "sigma_alpha_y_deg"]
+        if distance_mm is not None:
+            order += ["sigma_X_mm", "sigma_Y_mm"]
+        with atomic_path(out_path, suffix=".csv") as tmp:
+            with open(tmp, "w", encoding="utf-8", newline="") as out:
+                out.write(",".join(order) + "\n")
+                while True:
+                    chunk = []
+                    for item in it:
+                        if item[1] and any(c.strip() for c in item[1]):
+                            chunk.append(item)
+                            if len(chunk) >= chunk_rows:
+                                break
+                    if not chunk:
+                        break
+                    n += _aoa_chunk(chunk, out, path, header, use, idx, sig_cols, sidx, keep_cols, keep_idx, order,
+                                    model, distance_mm, sigma_d_mm)
+                    if len(chunk) < chunk_rows:
+                        break
+    return n
+
+
+def _aoa_chunk(chunk, out, path, header, use, idx, sig_cols, sidx, keep_cols, keep_idx, order, model, distance_mm,
+               sigma_d_mm) -> int:
+    """Convert and write one block of ``aoa`` rows; returns the number written."""
+    m = len(chunk)
+    vals = np.empty((m, len(use)))
+    sig = np.zeros((m, len(sig_cols)))
     extra = []
     body = []
-    for lineno, row in enumerate(rows[1:], start=2):
-        if not row or not any(c.strip() for c in row):
-            continue
+    for k, (lineno, row) in enumerate(chunk):
         if len(row) != len(header):
             raise InputError(f"expected {len(header)} fields, found {len(row)}", path=path, line=lineno)
         for j, (c, i) in enumerate(zip(use, idx)):
             try:
                 v = float(row[i])
             except ValueError:
-                raise InputError(f"not a number: {row[i]!r}", path=path, line=lineno, field=c) from None
+                raise InputError(f"not a number: {row[i][:40]!r}", path=path, line=lineno, field=c) from None
             if not math.isfinite(v):
                 raise InputError("not a finite number", path=path, line=lineno, field=c)
-            vals[len(body), j] = v
+            vals[k, j] = v
+        for j, (c, i) in enumerate(zip(sig_cols, sidx)):
+            try:
+                v = float(row[i]) if row[i].strip() else 0.0
+            except ValueError:
+                raise InputError(f"not a number: {row[i][:40]!r}", path=path, line=lineno, field=c) from None
+            if not (math.isfinite(v) and v >= 0):
+                raise InputError(f"a sigma must be a non-negative number, got {row[i]!r}", path=path, line=lineno,
+                                 field=c)
+            sig[k, j] = v
         body.append(lineno)
         extra.append([row[i] for i in keep_idx])
-    vals = vals[: len(body)]
-    if use == amp_cols:
+    if use == ("x_mm", "y_mm"):
+        d, dd_dg = vals, None
+        var = sig ** 2 if sig_cols else np.zeros((m, 2))
+        cov_d = np.zeros((m, 2, 2))
+        cov_d[:, 0, 0] = var[:, 0] + sigma_d_mm ** 2
+        cov_d[:, 1, 1] = var[:, 1] + sigma_d_mm ** 2
+    else:
         try:
-            imp = impact_from_amplitudes(vals, model)
+            imp = impact_from_amplitudes(vals, model, sig ** 2 if sig_cols else None)
         except ZeroSignalError:
             bad = np.flatnonzero(~((vals / model.gains).sum(-1) > 0))
             line = body[int(bad[0])] if bad.size else None
             raise InputError("the sum of the four amplitudes is not positive", path=path, line=line) from None
         d, dd_dg = imp.d_mm, imp.dd_dgains
-    else:
-        d, dd_dg = vals, None
-    cov_d = np.broadcast_to(float(sigma_d_mm) ** 2 * np.eye(2), d.shape + (2,))
+        cov_d = sigma_d_mm ** 2 * np.eye(2) + (imp.cov_d_mm2 if getattr(imp, "cov_d_mm2", None) is not None
+                                                else np.zeros((m, 2, 2)))
+    off = (np.abs(d[:, 0]) > model.lx_mm / 2 * (1 + 1e-9)) | (np.abs(d[:, 1]) > model.ly_mm / 2 * (1 + 1e-9))
+    if off.any():
+        k = int(np.flatnonzero(off)[0])
+        raise InputError(f"point ({d[k, 0]:.4g}, {d[k, 1]:.4g}) mm is off the {model.lx_mm:g} x {model.ly_mm:g} mm "
+                         "sensor: no light reaches it there", path=path, line=body[k], field=use[0])
     res = angles_from_points(d, model, cov_d, dd_dg)
     alpha = res.alpha_rad * _DEG
     sa = res.sigma_alpha_rad * _DEG
     cols = {c: np.array([e[j] for e in extra], dtype=object) for j, c in enumerate(keep_cols)}
     cols.update({"x_mm": d[:, 0], "y_mm": d[:, 1], "alpha_x_deg": alpha[:, 0], "alpha_y_deg": alpha[:, 1]})
-    order = [*keep_cols, "x_mm", "y_mm", "alpha_x_deg", "alpha_y_deg"]
     if distance_mm is not None:
         pos = plane_position(res, distance_mm)
         cols["X_mm"], cols["Y_mm"] = pos.xy_mm[:, 0], pos.xy_mm[:, 1]
-        order += ["X_mm", "Y_mm"]
+        cols["sigma_X_mm"], cols["sigma_Y_mm"] = pos.sigma_xy_mm[:, 0], pos.sigma_xy_mm[:, 1]
     cols["sigma_alpha_x_deg"], cols["sigma_alpha_y_deg"] = sa[:, 0], sa[:, 1]
-    order += ["sigma_alpha_x_deg", "sigma_alpha_y_deg"]
-    if distance_mm is not None:
-        sp = pos.sigma_xy_mm
-        cols["sigma_X_mm"], cols["sigma_Y_mm"] = sp[:, 0], sp[:, 1]
-        order += ["sigma_X_mm", "sigma_Y_mm"]
-    cols["t_s"] = np.zeros(len(body))  # _write_rows counts rows from t_s
-    with atomic_path(out_path, suffix=".csv") as tmp:
-        with open(tmp, "w", encoding="utf-8", newline="") as out:
-            out.write(",".join(order) + "\n")
-            n = _write_rows(out, cols, order)
-    return n
+    lists = []
+    for c in order:
+        a = cols[c]
+        if isinstance(a, np.ndarray) and a.dtype.kind == "f":
+            lists.append(["%.10g" % v if math.isfinite(v) else "" for v in a.tolist()])
+        else:
+            lists.append([str(v) for v in np.asarray(a).tolist()])
+    out.write("\n".join(",".join(r) for r in zip(*lists)) + "\n")
+    return m

@@ -536,12 +536,9 @@ def read_emitters(path) -> tuple[list[str], np.ndarray, np.ndarray | None]:
     from pathlib import Path
 
     path = Path(path)
-    try:
-        fh = open(path, newline="", encoding="utf-8")
-    except FileNotFoundError:
-        raise InputError("emitters file not found", path=path) from None
-    with fh:
-        rows = list(csv.reader(fh))
+    from psdcal.io import csv_rows
+
+    rows = csv_rows(path, "emitters file")
     if not rows:
         raise InputError("empty file", path=path)
     header = [h.strip() for h in rows[0]]

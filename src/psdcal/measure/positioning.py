@@ -103,13 +103,10 @@ def load_sensors(path) -> list[SensorPose]:
     InputError
         Naming the file and the key (``sensors[i].key``).
     """
+    from psdcal.io import read_json
+
     path = Path(path)
-    try:
-        data = json.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise InputError("sensors file not found", path=path) from None
-    except json.JSONDecodeError as exc:
-        raise InputError(f"not valid JSON: {exc.msg}", path=path, line=exc.lineno) from None
+    data = read_json(path, "sensors file")
     if isinstance(data, dict):
         data = data.get("sensors")
     if not isinstance(data, list) or len(data) < 2:
@@ -150,6 +147,12 @@ def load_sensors(path) -> list[SensorPose]:
                 pose_calib=_pose_calibration(item.get("pose_calibration"), model, path, f"{where}.pose_calibration"),
             )
         )
+    centres = [-R_from_r(sp.rvec).T @ sp.tvec_mm for sp in out]
+    for i in range(len(out)):
+        for j in range(i):
+            if np.linalg.norm(centres[i] - centres[j]) < 1e-6 * max(1.0, np.linalg.norm(centres[i])):
+                raise InputError(f"sensors {out[j].name!r} and {out[i].name!r} are at the same position: "
+                                 "triangulation needs a baseline between sensors", path=path, field=f"sensors[{i}].tvec_mm")
     return out
 
 

@@ -67,6 +67,8 @@ class SensorModel:
         PSD active lengths.
     source : str or None
         The file it was read from.
+    sensor_id : str or None
+        The calibrated sensor's identity (calibration JSON ``sensor_id``), when recorded.
     """
 
     intrinsics: Intrinsics
@@ -77,6 +79,7 @@ class SensorModel:
     lx_mm: float = 9.0
     ly_mm: float = 9.0
     source: str | None = None
+    sensor_id: str | None = None
 
     def __post_init__(self):
         cov = np.array(self.covariance, dtype=float).reshape(len(self.names), len(self.names))
@@ -86,6 +89,19 @@ class SensorModel:
         object.__setattr__(self, "covariance", cov)
         object.__setattr__(self, "gains", g)
         object.__setattr__(self, "names", tuple(self.names))
+
+    @property
+    def has_uncertainty(self) -> bool:
+        """True when the calibration carries a covariance or standard errors (some variance > 0)."""
+        return bool(self.covariance.size and np.any(np.diag(self.covariance) > 0))
+
+    def require_uncertainty(self, allow: bool = False, option: str = "--allow-no-covariance") -> None:
+        """InputError when the calibration has no uncertainty (sigmas would read 0) unless ``allow``."""
+        if allow or self.has_uncertainty:
+            return
+        raise InputError("the calibration has no covariance and no standard errors: every sigma would omit its "
+                         f"uncertainty (a calibration's truth.json?); give {option} to accept that",
+                         path=self.source, field="covariance")
 
     @property
     def has_gains(self) -> bool:
@@ -132,6 +148,7 @@ class SensorModel:
             lx_mm=self.lx_mm,
             ly_mm=self.ly_mm,
             source=self.source,
+            sensor_id=self.sensor_id,
         )
 
     # ------------------------------------------------------------------ I/O
@@ -229,6 +246,9 @@ class SensorModel:
             if np.any(np.diag(cov) < 0) or not np.allclose(cov, cov.T, rtol=1e-6, atol=1e-300):
                 raise bad("'covariance.matrix' must be symmetric with a non-negative diagonal", "covariance.matrix")
             cov = 0.5 * (cov + cov.T)
+            from psdcal.io import check_covariance
+
+            check_covariance(cov, src, "covariance.matrix")
         else:
             # Fall back to the standard errors alone (no correlations).
             std_d = data.get("std", {}) or {}
@@ -254,22 +274,18 @@ class SensorModel:
             lx_mm=lx,
             ly_mm=ly,
             source=src,
+            sensor_id=_sensor_id(data, src),
         )
 
     @classmethod
     def load(cls, path) -> "SensorModel":
         """Read a calibration JSON file; errors name the file and the key."""
+        from psdcal.io import read_json, validate_calibration_dict
+
         path = Path(path)
-        try:
-            text = path.read_text(encoding="utf-8")
-        except FileNotFoundError:
-            raise InputError("calibration file not found", path=path) from None
-        except OSError as exc:
-            raise InputError(f"cannot read calibration file: {exc.strerror}", path=path) from None
-        try:
-            data = json.loads(text)
-        except json.JSONDecodeError as exc:
-            raise InputError(f"not valid JSON: {exc.msg}", path=path, line=exc.lineno) from None
+        data = read_json(path, "calibration file")
+        if isinstance(data, dict) and isinstance(data.get("intrinsics"), dict):
+            validate_calibration_dict(data, path)
         return cls.from_dict(data, source=path)
 
     def to_dict(self) -> dict:
@@ -281,3 +297,12 @@ class SensorModel:
             "sensor": {"lx_mm": self.lx_mm, "ly_mm": self.ly_mm},
             "gains": self.gains.tolist(),
         }
+
+
+def _sensor_id(data: dict, src):
+    v = data.get("sensor_id")
+    if v is None:
+        return None
+    if not isinstance(v, str) or not v.strip():
+        raise InputError(f"'sensor_id' must be a non-empty string, got {v!r}", path=src, field="sensor_id")
+    return v

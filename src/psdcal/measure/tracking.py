@@ -234,12 +234,9 @@ def track_csv(in_path, out_path, *, q: float | None = None, gate_p: float = 0.99
     from psdcal._atomic import atomic_path
 
     path = Path(in_path)
-    try:
-        fh = open(path, newline="", encoding="utf-8")
-    except FileNotFoundError:
-        raise InputError("locate output not found", path=path) from None
-    with fh:
-        rows = list(csv.reader(fh))
+    from psdcal.io import csv_rows
+
+    rows = csv_rows(path, "locate output")
     if not rows:
         raise InputError("empty file", path=path)
     header = [h.strip() for h in rows[0]]

@@ -240,6 +240,9 @@ class Comparison:
         s = self.summary()
         if s["max_deg"] == 0.0:
             return "identical: the two calibrations give the same angle everywhere"
+        if not np.isfinite(s["max_sigma"]):
+            return (f"undecided: the rays differ by up to {s['max_deg']:.3g} deg but the combined uncertainty is "
+                    "unknown (a calibration without covariance, or a singular one); compare the angles themselves")
         if self.visible:
             return (f"different: up to {s['max_sigma']:.1f} combined standard deviations apart "
                     f"(threshold {VISIBLE_SIGMA:g}); the sensor or its lens changed, or one calibration is wrong")

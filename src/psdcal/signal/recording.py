@@ -33,6 +33,7 @@ from __future__ import annotations
 import csv
 import io
 import math
+import struct
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Iterator
@@ -143,23 +144,35 @@ def open_recording(path, rate_hz: float | None = None, *, channels=None, dataset
     path = Path(path)
     if not path.exists():
         raise InputError("recording not found", path=path)
+    from psdcal.io import check_regular_file
+
+    check_regular_file(path, "recording")
     names = tuple(channels) if channels is not None else CHANNELS
     if len(names) != 4:
         raise InputError(f"give exactly 4 channel names (vx1, vx2, vy1, vy2), got {list(names)}", field="channels")
+    if len(set(names)) != 4:
+        raise InputError(f"the 4 channel names must differ, got {list(names)}", field="channels")
+    if rate_hz is not None and not (math.isfinite(float(rate_hz)) and float(rate_hz) > 0):
+        raise InputError(f"sampling rate must be a positive finite number, got {rate_hz}", field="rate_hz")
     ext = path.suffix.lower()
     opts = {"channels": names, "dataset": dataset, "group": group}
-    if ext == ".npy":
-        rec = _open_npy(path, opts)
-    elif ext == ".csv":
-        rec = _open_csv(path, opts)
-    elif ext in (".h5", ".hdf5"):
-        rec = _open_hdf5(path, opts)
-    elif ext == ".tdms":
-        rec = _open_tdms(path, opts)
-    else:
+    openers = {".npy": _open_npy, ".csv": _open_csv, ".h5": _open_hdf5, ".hdf5": _open_hdf5, ".tdms": _open_tdms}
+    if ext not in openers:
         raise InputError(
             f"unknown recording format '{ext or '(no extension)'}'; use .npy, .csv, .h5/.hdf5 or .tdms", path=path
         )
+    try:
+        rec = openers[ext](path, opts)
+    except InputError:
+        raise
+    except UnicodeDecodeError:
+        raise InputError("not UTF-8 text (save the CSV recording as UTF-8)", path=path) from None
+    except MemoryError:
+        raise InputError("the file's header asks for more memory than there is: a corrupt recording", path=path) from None
+    except (OSError, ValueError, TypeError, KeyError, AttributeError, IndexError, OverflowError, EOFError,
+            csv.Error, struct.error, SyntaxError) as exc:
+        raise InputError(f"not a readable {ext[1:].upper()} recording ({type(exc).__name__}: "
+                         f"{' '.join(str(exc).split())[:200]})", path=path) from None
     file_rate = rec.rate_hz
     if file_rate is None or not np.isfinite(file_rate):
         if rate_hz is None:
@@ -183,8 +196,11 @@ def open_recording(path, rate_hz: float | None = None, *, channels=None, dataset
 def _npy_array(path):
     try:
         arr = np.load(path, mmap_mode="r", allow_pickle=False)
-    except (ValueError, OSError) as exc:
-        raise InputError(f"not a readable .npy array: {exc}", path=path) from None
+    except Exception as exc:  # numpy's header parser raises ValueError, SyntaxError, tokenize.TokenError...
+        raise InputError(f"not a readable .npy array ({type(exc).__name__}: {' '.join(str(exc).split())[:200]})",
+                         path=path) from None
+    if np.issubdtype(arr.dtype, np.complexfloating):
+        raise InputError(f"complex samples ({arr.dtype}): expected real voltages", path=path)
     if arr.ndim != 2 or 4 not in arr.shape or not np.issubdtype(arr.dtype, np.number):
         raise InputError(
             f"expected a numeric (n, 4) array of channels vx1, vx2, vy1, vy2, got shape {arr.shape} {arr.dtype}",
@@ -214,7 +230,7 @@ def _chunks_npy(rec: Recording, chunk: int):
 
 # --------------------------------------------------------------------------- csv
 def _csv_header(path, names):
-    with open(path, newline="", encoding="utf-8") as fh:
+    with open(path, newline="", encoding="utf-8-sig") as fh:
         first = fh.readline()
     header = [h.strip() for h in next(csv.reader([first]), [])]
     missing = [c for c in names if c not in header]
@@ -248,7 +264,7 @@ def _open_csv(path, opts):
     rate, t0 = None, 0.0
     if tcol is not None:
         # the rate from the span of the first rows (robust to rounded time stamps)
-        with open(path, newline="", encoding="utf-8") as fh:
+        with open(path, newline="", encoding="utf-8-sig") as fh:
             fh.readline()
             lines = []
             for ln in fh:
@@ -307,7 +323,16 @@ def _rate_attr(*objs):
     for obj in objs:
         for key in ("rate_hz", "sample_rate", "sampling_rate_hz"):
             if key in obj.attrs:
-                return float(np.asarray(obj.attrs[key]).ravel()[0])
+                v = np.asarray(obj.attrs[key]).ravel()
+                try:
+                    rate = float(v[0])
+                except (IndexError, TypeError, ValueError):
+                    raise InputError(f"attribute '{key}' must be a number, got {obj.attrs[key]!r}", path=obj.file.filename,
+                                     field=key) from None
+                if not (math.isfinite(rate) and rate > 0):
+                    raise InputError(f"attribute '{key}' must be a positive sampling rate, got {rate}",
+                                     path=obj.file.filename, field=key)
+                return rate
     return None
 
 
@@ -324,11 +349,16 @@ def _h5_locate(f, rec_path, opts):
         if opts["dataset"] not in grp:
             raise InputError(f"no dataset '{opts['dataset']}'", path=rec_path, field=opts["dataset"])
         ds = grp[opts["dataset"]]
+        if not isinstance(ds, h5py.Dataset):
+            raise InputError(f"'{opts['dataset']}' is a group, expected a dataset", path=rec_path, field=opts["dataset"])
         if ds.ndim != 2 or 4 not in ds.shape:
             raise InputError(f"dataset must be (n, 4), got shape {ds.shape}", path=rec_path, field=opts["dataset"])
         return [ds], True, _rate_attr(ds, grp, f)
     if all(n in grp for n in names):
         dss = [grp[n] for n in names]
+        for n, d in zip(names, dss):
+            if not isinstance(d, h5py.Dataset):
+                raise InputError(f"'{n}' is a group, expected a dataset of samples", path=rec_path, field=n)
         lens = {d.shape for d in dss}
         if len(lens) != 1 or dss[0].ndim != 1:
             raise InputError(f"datasets {list(names)} must be 1-D and of equal length", path=rec_path)
@@ -352,6 +382,10 @@ def _open_hdf5(path, opts):
         with h5py.File(path, "r") as f:
             dss, matrix, rate = _h5_locate(f, path, opts)
             ds = dss[0]
+            for d in dss:
+                if not (np.issubdtype(d.dtype, np.integer) or np.issubdtype(d.dtype, np.floating)):
+                    raise InputError(f"dataset '{d.name}' holds {d.dtype}, expected real numbers", path=path,
+                                     field=d.name)
             n = (ds.shape[0] if ds.shape[1] == 4 else ds.shape[1]) if matrix else ds.shape[0]
     except OSError as exc:
         raise InputError(f"not a readable HDF5 file: {exc}", path=path) from None

@@ -254,14 +254,15 @@ def load_schedule(path) -> tuple[ScheduleEntry, ...]:
     InputError
         Naming the file, the line and the field.
     """
+    import io as _io
+
+    from psdcal.io import read_text_file
+
     path = Path(path)
-    try:
-        fh = open(path, newline="", encoding="utf-8")
-    except FileNotFoundError:
-        raise InputError("schedule file not found", path=path) from None
+    fh = _io.StringIO(read_text_file(path, "schedule file"), newline="")
     out = []
     with fh:
-        rows = csv.reader(fh)
+        rows = _csv_checked(csv.reader(fh), path)
         header = [h.strip() for h in next(rows, [])]
         for col in ("emitter", "t_start_s", "t_end_s"):
             if col not in header:
@@ -286,7 +287,24 @@ def load_schedule(path) -> tuple[ScheduleEntry, ...]:
             out.append(ScheduleEntry(row[ie].strip(), vals["t_start_s"], vals["t_end_s"]))
     if not out:
         raise InputError("the schedule has no entries", path=path)
-    return tuple(sorted(out, key=lambda e: e.t_start_s))
+    out = sorted(out, key=lambda e: e.t_start_s)
+    for a, b in zip(out, out[1:]):
+        if b.t_start_s < a.t_end_s:
+            raise InputError(f"{b.emitter!r} starts at {b.t_start_s:g} s before {a.emitter!r} ends at {a.t_end_s:g} s: "
+                             "schedule entries must not overlap", path=path, field="t_start_s")
+    return tuple(out)
+
+
+def _csv_checked(reader, path):
+    """Rows of ``reader``; a malformed CSV (e.g. a field over the csv module's limit) as InputError."""
+    while True:
+        try:
+            row = next(reader)
+        except StopIteration:
+            return
+        except csv.Error as exc:
+            raise InputError(f"malformed CSV: {exc}", path=path, line=reader.line_num) from None
+        yield row
 
 
 @dataclass(frozen=True)

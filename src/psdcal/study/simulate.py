@@ -118,7 +118,7 @@ def random_poses(
     tries = 0
     while len(rv) < n_images:
         tries += 1
-        if tries > max_tries:
+        if tries > max(max_tries, 20 * n_images):  # the budget grows with the views asked for
             raise InputError(f"could not place {n_images} template views on the sensor; relax fill or tilt")
         tilt = np.deg2rad(rng.uniform(5.0, max_tilt_deg))
         phi = rng.uniform(0, 2 * np.pi)
