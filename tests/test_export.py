@@ -123,9 +123,9 @@ def test_cli_opencv_and_ros_files(calibs, tmp_path, capsys):
     cal2 = tmp_path / "c2.json"
     cal2.write_text(json.dumps(calibs[("lens2", 0)].to_dict()))
     before = ros.read_bytes()
-    assert main(["export", str(cal2), "--format", "ros", "-o", str(ros)]) == 2
+    assert main(["export", str(cal2), "--format", "ros", "-o", str(ros), "--force"]) == 2  # refused: folds over
     assert ros.read_bytes() == before
-    assert main(["export", str(cal2), "--format", "ros", "--coeffs", "8", "-o", str(ros)]) == 0
+    assert main(["export", str(cal2), "--format", "ros", "--coeffs", "8", "-o", str(ros), "--force"]) == 0
     assert yaml.safe_load(ros.read_text())["distortion_model"] == "rational_polynomial"
 
 

@@ -226,7 +226,9 @@ def main(argv=None) -> int:
         hint = f" (see 'psdcal {exc.ctx.command_path.split(' ', 1)[1]} --help')" if exc.ctx is not None and " " in exc.ctx.command_path else ""
         return _error(f"{exc.format_message()}{hint}")
     except click.ClickException as exc:
-        return _error(exc.format_message())
+        _error(exc.format_message())
+        # a psdcal command's own status is kept (`inspect`: 1, a carrier is off); click's own errors exit 2
+        return exc.exit_code if type(exc).__module__.startswith("psdcal.") else 2
     except PsdcalError as exc:
         return _error(exc)
     except KeyboardInterrupt:
