@@ -84,7 +84,7 @@ def csv_rows(path, what: str = "CSV file") -> list:
     path = Path(path)
     text = read_text_file(path, what)
     reader = csv.reader(text.splitlines())
-    rows = list(_csv_rows(reader, path))
+    rows = list(csv_rows_checked(reader, path))
     for k, row in enumerate(rows, start=1):
         for c in row:
             if len(c) > MAX_FIELD_CHARS:
@@ -103,7 +103,7 @@ def _read_rows(path):
         if len(ln) > MAX_FIELD_CHARS * 8:
             raise InputError(f"line of {len(ln)} characters: not a psdcal CSV line", path=path, line=lineno)
     reader = csv.reader(lines)
-    for lineno, row in enumerate(_csv_rows(reader, path), start=1):
+    for lineno, row in enumerate(csv_rows_checked(reader, path), start=1):
         if not row or all(not c.strip() for c in row):
             continue  # blank line
         if row[0].lstrip().startswith("#"):
@@ -119,8 +119,9 @@ def _read_rows(path):
     return path, rows
 
 
-def _csv_rows(reader, path):
-    lineno = 0
+def csv_rows_checked(reader, path, *, line_numbers: bool = False):
+    """Rows of a ``csv.reader``; a malformed CSV (e.g. a field over the csv module's limit) or bytes that
+    are not UTF-8 raise :class:`InputError` naming the line. With ``line_numbers``: ``(line, row)`` pairs."""
     while True:
         try:
             row = next(reader)
@@ -128,8 +129,9 @@ def _csv_rows(reader, path):
             return
         except csv.Error as exc:
             raise InputError(f"malformed CSV: {exc}", path=path, line=reader.line_num) from None
-        lineno += 1
-        yield row
+        except UnicodeDecodeError:
+            raise InputError("not UTF-8 text", path=path, line=reader.line_num + 1) from None
+        yield (reader.line_num, row) if line_numbers else row
 
 
 def _header(path, rows, expected_options):

@@ -576,21 +576,9 @@ def aoa_csv(points_path, model: SensorModel, out_path, *, distance_mm: float | N
         raise InputError(f"cannot read the points file: {exc.strerror or exc}", path=path) from None
     n = 0
     with fh:
-        reader = csv.reader(fh)
+        from psdcal.io import csv_rows_checked
 
-        def rows():
-            while True:
-                try:
-                    row = next(reader)
-                except StopIteration:
-                    return
-                except csv.Error as exc:
-                    raise InputError(f"malformed CSV: {exc}", path=path, line=reader.line_num) from None
-                except UnicodeDecodeError:
-                    raise InputError("not UTF-8 text", path=path, line=reader.line_num + 1) from None
-                yield reader.line_num, row
-
-        it = rows()
+        it = csv_rows_checked(csv.reader(fh), path, line_numbers=True)
         first = next(it, None)
         if first is None:
             raise InputError("empty file", path=path)

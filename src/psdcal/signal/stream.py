@@ -33,6 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from psdcal.errors import InputError
+from psdcal.io import csv_rows_checked
 
 #: A window must hold at least this many periods of the lowest carrier.
 MIN_PERIODS = 3.0
@@ -262,7 +263,7 @@ def load_schedule(path) -> tuple[ScheduleEntry, ...]:
     fh = _io.StringIO(read_text_file(path, "schedule file"), newline="")
     out = []
     with fh:
-        rows = _csv_checked(csv.reader(fh), path)
+        rows = csv_rows_checked(csv.reader(fh), path)
         header = [h.strip() for h in next(rows, [])]
         for col in ("emitter", "t_start_s", "t_end_s"):
             if col not in header:
@@ -293,18 +294,6 @@ def load_schedule(path) -> tuple[ScheduleEntry, ...]:
             raise InputError(f"{b.emitter!r} starts at {b.t_start_s:g} s before {a.emitter!r} ends at {a.t_end_s:g} s: "
                              "schedule entries must not overlap", path=path, field="t_start_s")
     return tuple(out)
-
-
-def _csv_checked(reader, path):
-    """Rows of ``reader``; a malformed CSV (e.g. a field over the csv module's limit) as InputError."""
-    while True:
-        try:
-            row = next(reader)
-        except StopIteration:
-            return
-        except csv.Error as exc:
-            raise InputError(f"malformed CSV: {exc}", path=path, line=reader.line_num) from None
-        yield row
 
 
 @dataclass(frozen=True)
