@@ -82,7 +82,7 @@ def _plant(work, case):
 
 
 def test_corpus_is_large_and_covers_every_command():
-    from psdcal.cli import _register, cli
+    from psdcal.cli import _register
 
     assert len(CASE_IDS) >= 400
     _register()

@@ -1019,7 +1019,6 @@ def _make_result(prob, ref, start, ids, pids, spec, cost, g0, preliminary, norma
     n_valid = valid.sum()
     rms = float(np.sqrt(sq.sum() / max(n_valid, 1)))
     per_image = np.sqrt(sq.sum(axis=1) / np.maximum(valid.sum(axis=1), 1))
-    n_glob = prob.n_global
     cov = ref.covariance_global  # the reduced (Schur) system's inverse: no matrix of all poses
     std = {n: None for n in ("f_mm", "cx_mm", "cy_mm", "skew", *DISTORTION_NAMES)}
     if spec.aspect:

@@ -505,7 +505,6 @@ def _result(model, fit, az, el, X, ids, spec, g0, gains_arg, fit_gains, fix, pri
         pred = gain_map(pred, g0, *sensor_mm)
         gains = g0
     res = X - pred
-    N = X.shape[0]
     sq = np.sum(res**2, axis=1)
     rms = float(np.sqrt(np.mean(sq)))
     ng = len(model.global_names)

@@ -28,7 +28,6 @@ an infinite variance is no prior at all.
 """
 from __future__ import annotations
 
-import json
 import math
 from dataclasses import dataclass, replace
 from pathlib import Path

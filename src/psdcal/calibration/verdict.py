@@ -327,8 +327,6 @@ class _Chi2:
 
 
 def _assess(result, *, noise_mm, points_kind, diagnose) -> Verdict:
-    chi2, fdist = _Chi2, _F
-
     checks = []
     sensor = np.asarray(result.sensor_mm, dtype=float)
     half = sensor / 2
@@ -336,7 +334,6 @@ def _assess(result, *, noise_mm, points_kind, diagnose) -> Verdict:
     m = lin.e.size
     dof = m - lin.n
     ssr = float(lin.e @ lin.e)
-    rms_um = np.sqrt(ssr / max(m, 1)) * 1e3
 
     checks.append(_noise_check(ssr, dof, noise_mm))
     sc = _structure_check(result, lin, ssr, dof, half)

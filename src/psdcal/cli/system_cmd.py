@@ -291,7 +291,6 @@ def _merge_sensors_file(path: Path, entry: dict) -> None:
 
 def _read_table(path):
     """(header, rows) of a CSV whose header names 'emitter' (a locate or amplitudes output), else None."""
-    import csv
 
     from psdcal.io import csv_rows
 
@@ -720,7 +719,6 @@ def bundle_command(located, calibs, known_csv, wands, points_out, output):
 # --------------------------------------------------------------------------- plan
 def _read_candidates(path, calib):
     """Sensors from a CSV ``name,X_m,Y_m,Z_m,aim_X_m,aim_Y_m,aim_Z_m`` (centre and aim point) and one calibration."""
-    import csv
     import math
 
     import numpy as np

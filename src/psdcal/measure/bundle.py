@@ -148,7 +148,7 @@ def bundle_adjust(sensors, points, obs_sensor, obs_point, n, cov_n, known_mm: di
     if len(kp) < 3 or np.linalg.svd(kp - kp.mean(0), compute_uv=False)[1] <= 1e-3 * np.ptp(kp, 0).max():
         raise DegenerateViewsError("the world frame needs at least three known points, not collinear")
     W = np.linalg.inv(np.asarray(cov_n, dtype=float))
-    L = np.linalg.cholesky(W)  # W = L L^T: whitened residual L^T r
+    np.linalg.cholesky(W)  # refuses a measurement covariance that is not positive definite (LinAlgError)
     Rs = np.stack([R_from_r(r) for r in np.asarray(init_rvecs, dtype=float)])
     cs = np.asarray(init_centers_mm, dtype=float).copy()
     seen = np.zeros((M, S), bool)

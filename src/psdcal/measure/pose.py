@@ -532,7 +532,6 @@ def read_emitters(path) -> tuple[list[str], np.ndarray, np.ndarray | None]:
     points_w_mm : (k, 3) ndarray, mm
     carriers_hz : (k,) ndarray or None
     """
-    import csv
     from pathlib import Path
 
     path = Path(path)

@@ -14,7 +14,6 @@ projection centre is at ``-R^T tvec`` in the world frame.
 """
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from pathlib import Path
 

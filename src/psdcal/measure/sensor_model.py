@@ -20,7 +20,6 @@ it (they are marginalised out by the calibration).
 """
 from __future__ import annotations
 
-import json
 import math
 from dataclasses import dataclass, field
 from pathlib import Path

@@ -228,7 +228,6 @@ def track_csv(in_path, out_path, *, q: float | None = None, gate_p: float = 0.99
     -------
     dict with ``n_rows``, ``n_gated``, ``columns``, ``mean_nis``.
     """
-    import csv
     from pathlib import Path
 
     from psdcal._atomic import atomic_path
