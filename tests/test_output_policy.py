@@ -185,3 +185,24 @@ def test_atomic_path_outside_a_set_is_immediate(tmp_path):
         assert tmp.name.startswith(TMP_PREFIX)
         tmp.write_text("1")
     assert p.read_text() == "1"
+
+
+def test_demo_replaces_its_own_output_and_never_the_bundled_data(tmp_path, monkeypatch, capsys):
+    """`python3 tasks.py demo` runs again and again (its output is replaced), but an --out that names a
+    bundled input file is refused and the file stays byte-identical."""
+    from importlib.resources import files
+
+    from psdcal.cli import main
+
+    monkeypatch.chdir(tmp_path)
+    assert main(["demo"]) == 0
+    first = (tmp_path / "demo_out" / "calibration.json").read_bytes()
+    assert main(["demo"]) == 0
+    assert (tmp_path / "demo_out" / "calibration.json").exists() and first
+    bundled = files("psdcal") / "data" / "default_points.csv"
+    before = bundled.read_bytes()
+    capsys.readouterr()
+    assert main(["demo", "-o", str(bundled)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "would overwrite the input" in err[0]
+    assert bundled.read_bytes() == before

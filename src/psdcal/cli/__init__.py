@@ -24,6 +24,9 @@ DIR_FILES = {
     "room": ("sensors.json", "emitters.csv", "truth.json"),
     "reproduce": ("report.md",),
 }
+#: Commands whose output is their own scratch result and is replaced on every run (`psdcal demo`, run by
+#: `python3 tasks.py demo` again and again); an input is still never overwritten.
+REPLACING_COMMANDS = frozenset({"demo"})
 #: Extensions an output must have where the writer's format is fixed: (command, param) -> suffixes.
 OUTPUT_SUFFIXES = {
     ("errormap", "output"): (".png",),
@@ -63,7 +66,7 @@ class PolicyCommand(click.Command):
         _check_values(ctx)
         if self._policy:
             force = ctx.params.pop("force", False) if self._added_force else bool(ctx.params.get("force"))
-            self._guard(ctx, force)
+            self._guard(ctx, force or self.name in REPLACING_COMMANDS)
         return super().invoke(ctx)
 
     def _guard(self, ctx, force):

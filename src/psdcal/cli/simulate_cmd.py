@@ -88,7 +88,7 @@ def simulate_command(lens, f_mm, cx_mm, cy_mm, k1, k2, k3, p1, p2, l1, l2, image
 @cli.command("demo")
 @click.option("--cost", type=click.Choice(["image", "template"]), default="image", show_default=True)
 @click.option("--out", "-o", type=click.Path(dir_okay=False, path_type=Path), default=Path("demo_out/calibration.json"),
-              show_default=True, help="Where to write the calibration JSON.")
+              show_default=True, help="Where to write the calibration JSON (replaced on every run).")
 def demo_command(cost, out):
     """Calibrate the bundled default data and show the truth beside the estimate.
 
@@ -104,6 +104,11 @@ def demo_command(cost, out):
     from psdcal.report.text import print_calibration
 
     data = files("psdcal") / "data"
+    from psdcal._atomic import guard_outputs
+
+    # the bundled files are this command's inputs: never overwritten, whatever --out says
+    guard_outputs([("bundled data", data / n) for n in ("default_template.csv", "default_points.csv",
+                                                         "default_truth.json")], [("--out", out)], force=True)
     tids, txy = read_template(data / "default_template.csv")
     pf = read_points(data / "default_points.csv", tids)
     truth_d = json.loads((data / "default_truth.json").read_text())
