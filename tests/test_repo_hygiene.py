@@ -108,3 +108,11 @@ def test_the_rule_itself(tmp_path, line, ok):
         assert offending_lines(g, tmp_path)
         f.write_text(line + "\n")
         assert offending_lines(f, tmp_path)
+
+
+def test_readme_is_a_front_door():
+    """The README stays short (<= 250 lines): the details live in docs/."""
+    text = (ROOT / "README.md").read_text(encoding="utf-8")
+    assert len(text.splitlines()) <= 250
+    for needle in ("python3 tasks.py demo", "python3 tasks.py test", "docs/tutorial.md", "docs/model.md"):
+        assert needle in text
