@@ -132,7 +132,7 @@ def test_cli_bundle_with_wand(tmp_path):
     a5 = [e["p0_mm"] for e in truth["emitters"] if e["name"] == "a5"][0]
     assert np.linalg.norm(pts["a5"] - a5) < 2.0
     # the estimated sensors file works for locate --sensors
-    assert main(["locate", "--sensors", str(tmp_path / "sensors.json"), str(room / "s1.npy"), str(room / "s2.npy"),
+    assert main(["locate", "--allow-no-covariance", "--sensors", str(tmp_path / "sensors.json"), str(room / "s1.npy"), str(room / "s2.npy"),
                  str(room / "s3.npy"), "--rate-hz", "20000", "--carrier-hz", "1000", "--emitter", "a1",
                  "-o", str(tmp_path / "xyz.csv")]) == 0
 

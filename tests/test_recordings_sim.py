@@ -123,7 +123,7 @@ def test_locate_moving_emitter_within_3_sigma(tmp_path):
                         "recording": f"{s.name}.npy"})
     (tmp_path / "sensors.json").write_text(json.dumps(entries))
     out = tmp_path / "xyz.csv"
-    _run(["locate", "--sensors", tmp_path / "sensors.json", "--rate-hz", rr.rate_hz, "--carrier-hz",
+    _run(["locate", "--allow-no-covariance", "--sensors", tmp_path / "sensors.json", "--rate-hz", rr.rate_hz, "--carrier-hz",
           emitters[0].carrier_hz, "--emitter", "tag", "-o", out])
     with open(out) as fh:
         rows = list(csv.DictReader(fh))

@@ -212,3 +212,21 @@ def test_tilted_noiseless_views_still_calibrate(tmp_path, capsys):
     code, _, err = run(["calibrate", tmp_path / "p.csv", "-t", tmp_path / "t.csv", "-o", tmp_path / "c.json", "-q"],
                        capsys)
     assert code == 0, err
+
+
+def test_several_sensors_without_calibration_uncertainty_are_refused(made, capsys, tmp_path):
+    """`locate --sensors` with a sensor whose calibration has no covariance (a truth.json): one error line
+    naming the file and the switch that accepts it, nothing written."""
+    (tmp_path / "t.json").write_text((made / "s/truth.json").read_text())
+    (tmp_path / "c.json").write_text((made / "c.json").read_text())
+    s = {"sensors": [{"name": "a", "calib": "c.json", "rvec": [0, 0, 0], "tvec_mm": [0, 0, 0]},
+                     {"name": "b", "calib": "t.json", "rvec": [0, 0.5, 0], "tvec_mm": [500, 0, 0]}]}
+    (tmp_path / "s.json").write_text(json.dumps(s))
+    rec = tmp_path / "r.npy"
+    np.save(rec, np.ones((1000, 4)))
+    out = tmp_path / "xyz.csv"
+    code, _, err = run(["locate", "--sensors", tmp_path / "s.json", rec, rec, "--rate-hz", "20000",
+                        "--carrier-hz", "1000", "-o", out], capsys)
+    lines = err.strip().splitlines()
+    assert code == 2 and len(lines) == 1 and "t.json" in lines[0] and "--allow-no-covariance" in lines[0]
+    assert not out.exists()

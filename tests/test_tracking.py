@@ -100,7 +100,7 @@ def test_locate_track_cli(tmp_path):
     assert main(["simulate-recording", "room", "--anchors", "0", "--moving", "circle", "--speed-mm-s", "300",
                  "--duration-s", "2", "--snr-db", "40", "--seed", "4", "-o", str(room)]) == 0
     out, trk = tmp_path / "xyz.csv", tmp_path / "track.csv"
-    assert main(["locate", "--sensors", str(room / "sensors.json"), "--rate-hz", "20000", "--carrier-hz", "1600",
+    assert main(["locate", "--allow-no-covariance", "--sensors", str(room / "sensors.json"), "--rate-hz", "20000", "--carrier-hz", "1600",
                  "--emitter", "tag", "-o", str(out), "--track", str(trk), "--track-q", "2e5"]) == 0
     with open(trk) as fh:
         rows = list(csv.DictReader(fh))

@@ -154,10 +154,10 @@ def locate_command(recordings, calib, sensors, gains_file, rate_hz, carriers, em
     if any(is_stream_source(str(r)) for r in recordings):  # live input: see `psdcal.cli.system_cmd.live_locate`
         from psdcal.cli.system_cmd import live_locate
 
-        if expect_sensor is not None and calib is not None:
+        if calib is not None:
             from psdcal.measure.sensor_model import SensorModel
 
-            check_sensor(SensorModel.load(calib), expect_sensor, True)
+            check_sensor(SensorModel.load(calib), expect_sensor, allow_no_covariance)
 
         return live_locate(recordings, calib, rate_hz, carriers, emitters, distance_mm, window_s, tdm, schedule,
                            n_emitters, min_snr, output, raw_dtype, raw_scale, track_path, track_q)
@@ -198,6 +198,8 @@ def locate_command(recordings, calib, sensors, gains_file, rate_hz, carriers, em
             raise InputError("--gains applies to one sensor (--calib); put the gains in each sensor's calibration",
                              field="gains")
         poses = load_sensors(sensors)
+        for p in poses:  # every sensor's calibration carries its uncertainty (or the user said it need not)
+            check_sensor(p.model, None, allow_no_covariance)
         paths = list(recordings) or [p.recording for p in poses]
         if len(paths) != len(poses) or any(p is None for p in paths):
             raise InputError(
