@@ -272,7 +272,8 @@ def _explained(lin: _Linear, B) -> tuple[float, int]:
 
 
 def _group_f(lin: _Linear, groups, n_groups, ssr, dof):
-    """Per-group F statistics and p-values of the residual variance against the other groups'."""
+    """Per-group F statistics of the residual variance against the other groups', and the p-value of the
+    largest (``pv`` is NaN for the other groups)."""
     q = lin.e.reshape(-1, 2)
     lev = np.bincount(groups, weights=(1.0 - lin.h).reshape(-1, 2).sum(axis=1), minlength=n_groups)
     sq = np.bincount(groups, weights=np.sum(q * q, axis=1), minlength=n_groups)
@@ -280,8 +281,10 @@ def _group_f(lin: _Linear, groups, n_groups, ssr, dof):
     d_g = np.where(usable, lev, 1.0)
     d_r = np.where(usable, dof - lev, 1.0)
     F = np.where(usable, (sq / d_g) / (np.maximum(ssr - sq, 1e-300) / d_r), np.nan)
-    Fz = np.nan_to_num(F)
-    pv = np.array([_stats.f_sf(f, a, b) if u else 1.0 for f, a, b, u in zip(Fz, d_g, d_r, usable)])
+    # the checks test the worst group only (largest F): its p-value is the one computed (the others are NaN)
+    worst = int(np.argmax(np.where(np.isfinite(F), F, -np.inf)))
+    pv = np.full(n_groups, np.nan)
+    pv[worst] = _stats.f_sf(F[worst], d_g[worst], d_r[worst]) if usable[worst] else 1.0
     return F, pv
 
 
