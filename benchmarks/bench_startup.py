@@ -78,9 +78,9 @@ def main(argv=None) -> int:
         t_cv = _median_seconds([sys.executable, "-c", _OPENCV, tpl, pts, out], a.repeats, env)
         rows = [
             ("psdcal --help", _median_seconds([psdcal, "--help"], a.repeats, env)),
-            ("psdcal calibrate (bundled data)", _median_seconds([psdcal, "calibrate", pts, "-t", tpl, "-o", out, "-q"], a.repeats, env)),
+            ("psdcal calibrate (bundled data)", _median_seconds([psdcal, "calibrate", pts, "-t", tpl, "-o", out, "-q", "--force"], a.repeats, env)),
             ("psdcal calibrate, compiled kernels forced", _median_seconds(
-                [sys.executable, "-c", _FORCED, "calibrate", pts, "-t", tpl, "-o", out, "-q"], a.repeats, env)),
+                [sys.executable, "-c", _FORCED, "calibrate", pts, "-t", tpl, "-o", out, "-q", "--force"], a.repeats, env)),
             ("OpenCV script (same data, reads CSV, writes JSON)", t_cv),
         ]
     print(f"fresh processes, median of {a.repeats}; ratio to the OpenCV script")
