@@ -322,3 +322,56 @@ def test_cli_signal_noise(capsys):
     assert main(["signal-noise", "--rate-hz", "1500"]) == 2
     assert "Nyquist" in capsys.readouterr().err
     assert main(["signal-noise", "--method", "bandpass", "--x-mm", "9"]) == 2
+
+
+@pytest.mark.parametrize("method", METHODS)
+def test_closed_form_noise_has_the_law_of_the_sampled_records(method):
+    """noise="closed-form" draws what demodulating sampled records gives: same mean and std.
+
+    Low SNR (10 dB) and a spot on the diamond's edge, where one channel's
+    amplitude is near zero, so the magnitude's bias and the sign's flips
+    (the non-Gaussian parts of the law) are in play; within 5 Monte Carlo
+    standard errors for every channel.
+    """
+    s = replace(sc.ChainSettings(method=method, snr_db=10.0), duration_s=0.01)
+    spots = np.array([[0.4, -0.6], [2.2, 2.3], [-3.5, 1.0]])
+    n = 3000
+    xy = np.broadcast_to(spots, (n,) + spots.shape)
+    ref = sc.measure_amplitudes(xy, s, rng=11)
+    fast = sc.measure_amplitudes(xy, s, rng=12, noise="closed-form")
+    assert fast.shape == ref.shape and np.all(np.isfinite(fast))
+    m_r, m_f = ref.mean(0), fast.mean(0)
+    s_r, s_f = ref.std(0), fast.std(0)
+    assert np.all(np.abs(m_f - m_r) <= 5 * np.sqrt((s_r**2 + s_f**2) / n))
+    # std of a std: sqrt((kurtosis - 1) / (4 n)) relative; kurtosis from the reference draws
+    kurt = np.mean((ref - m_r) ** 4, 0) / s_r**4
+    assert np.all(np.abs(s_f / s_r - 1) <= 5 * np.sqrt(2 * (kurt - 1) / (4 * n)))
+    # the low SNR really reaches the non-Gaussian regime: the near-zero channel changes sign
+    assert np.any(np.sign(ref) != np.sign(ref[0])) and np.any(np.sign(fast) != np.sign(fast[0]))
+
+
+def test_closed_form_noise_variance_matches_the_noise_factor():
+    """Its amplitude variance at high SNR is amplitude_noise_factor's first-order value."""
+    for method in METHODS:
+        s = replace(sc.ChainSettings(method=method, snr_db=60.0), duration_s=0.01)
+        xy = np.zeros((20000, 2))
+        a = sc.measure_amplitudes(xy, s, rng=3, noise="closed-form")
+        sigma = sc.noise_sigma(a.mean(0), 60.0)
+        want = sigma * np.sqrt(sc.amplitude_noise_factor(s))
+        assert np.allclose(a.std(0), want, rtol=5 / np.sqrt(2 * 20000))
+
+
+def test_closed_form_noise_rejects_unknown_mode_and_ignores_no_noise():
+    s = sc.ChainSettings(snr_db=None)
+    xy = np.array([[0.5, 0.5]])
+    assert np.array_equal(sc.measure_amplitudes(xy, s, noise="closed-form"), sc.measure_amplitudes(xy, s))
+    with pytest.raises(ValueError):
+        sc.measure_amplitudes(xy, sc.ChainSettings(snr_db=40.0), rng=0, noise="fft")
+
+
+def test_closed_form_noise_falls_back_to_records_when_long(monkeypatch):
+    """Above the closed form's record length the sampled path runs (the same draws as noise="sampled")."""
+    monkeypatch.setattr(sc, "_CLOSED_FORM_MAX_SAMPLES", 100)
+    s = sc.ChainSettings(snr_db=30.0)
+    xy = np.array([[0.5, -1.0], [2.0, 2.0]])
+    assert np.array_equal(sc.measure_amplitudes(xy, s, rng=4, noise="closed-form"), sc.measure_amplitudes(xy, s, rng=4))

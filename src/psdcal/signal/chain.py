@@ -40,6 +40,7 @@ of spots so that the sampled records never take more than about 16 MiB.
 """
 from __future__ import annotations
 
+import contextlib
 import functools
 from dataclasses import dataclass, replace
 
@@ -497,6 +498,7 @@ def measure_amplitudes(
     l1: float = 0.0,
     *,
     block_points: int | None = None,
+    noise: str = "sampled",
 ):
     """Estimated channel amplitudes of each spot through the whole chain.
 
@@ -520,6 +522,15 @@ def measure_amplitudes(
         PSD distortion, mm^-2.
     block_points : int, optional
         Spots per block (default: from the memory budget).
+    noise : "sampled" | "closed-form"
+        ``"sampled"`` (the reference) draws the records and demodulates them.
+        ``"closed-form"`` draws the demodulator's outputs directly from their
+        exact law: every estimate is a function of linear maps of the record
+        (lock-in ``i, q``; band-pass output on its window), whose noise is
+        Gaussian with a covariance computed once per settings and reduced to
+        its few significant dimensions (all but ``1e-12`` of the variance);
+        same distribution, other draws, about 30x faster (no records, no filter).
+        Records longer than 4096 samples are sampled either way.
 
     Returns
     -------
@@ -533,6 +544,11 @@ def measure_amplitudes(
     out = np.full_like(flat, np.nan)
     valid = np.flatnonzero(np.all(np.isfinite(flat), axis=-1))
     gen = np.random.default_rng(rng) if s.snr_db is not None else None
+    if noise not in ("sampled", "closed-form"):
+        raise ValueError(f"noise must be 'sampled' or 'closed-form', got {noise!r}")
+    if noise == "closed-form" and gen is not None and s.n_samples <= _CLOSED_FORM_MAX_SAMPLES:
+        out[valid] = _closed_form_amplitudes(flat[valid], s, gen)
+        return out.reshape(amps.shape)
     step = _block_points(s, block_points)
     for start in range(0, valid.size, step):
         idx = valid[start:start + step]
@@ -820,3 +836,90 @@ def measure_point_trial(rng, *, x_mm: float = 0.0, y_mm: float = 0.0, snr_db: fl
         s = replace(s, **changes)
     x, y = measure_points(np.array([x_mm, y_mm]), s, gains, rng, l1)
     return {"x_mm": float(x), "y_mm": float(y)}
+
+
+# ---------------------------------------------------------------------------
+# Closed-form noise (exact in distribution, no records)
+# ---------------------------------------------------------------------------
+
+#: Fraction of the demodulator's output noise variance the closed form may drop.
+_CLOSED_FORM_DROP = 1e-12
+#: Longest record the closed form handles (its set-up is n^2 memory, n^3 time); longer ones are sampled.
+_CLOSED_FORM_MAX_SAMPLES = 4096
+
+
+@functools.lru_cache(maxsize=8)
+def _closed_form_basis(s: ChainSettings):
+    """What the demodulator makes of a record, reduced to its ``r`` noise dimensions.
+
+    Every estimate :func:`estimate_amplitudes` takes is a function of linear
+    maps of the record: the lock-in ``(i, q)`` = ``P v`` and, for the
+    band-pass, the kept filter output ``y_W = F_W v``.  For
+    ``v = A c + sigma n`` (``c`` the unit carrier, ``n ~ N(0, I)``) the noise
+    part ``M n`` of ``M = [F_W; P]`` has the law of ``B z``, ``z ~ N(0, I_r)``,
+    ``B B^T = M M^T`` (eigenvectors of ``M M^T`` with eigenvalues above
+    ``_CLOSED_FORM_DROP`` of the total dropped); ``B`` is then rotated so that
+    ``|y_W noise|^2 = sum_k lam_k z_k^2`` is diagonal.
+
+    Returns
+    -------
+    dict with ``i0, q0`` (lock-in of the unit carrier), ``c0 = |F_W c|^2``,
+    ``a`` (r,) = ``B_W^T F_W c``, ``lam`` (r,), ``pi, pq`` (r,) the lock-in
+    rows of ``B``, ``m`` samples kept, ``g`` the filter's power gain, ``r``.
+    """
+    n = s.n_samples
+    eye = np.eye(n)
+    pi_rows = np.stack(demod.lockin_iq(eye, s.rate_hz, s.carrier_hz))  # (2, n): (i, q) = P v
+    unit = s.carrier()
+    i0, q0 = (float(v) for v in pi_rows @ unit)
+    if s.method == "lockin":
+        mat = pi_rows
+        m = 0
+        g = 1.0
+        y0 = np.zeros(0)
+    else:
+        sos = demod.butterworth_bandpass(s.rate_hz, s.carrier_hz, s.bandwidth_hz, int(s.filter_order))
+        win = demod.bandpass_window(n, s.rate_hz, s.carrier_hz, s.settle_periods)
+        fw = _sig.sosfiltfilt(sos, eye, axis=-1)[:, win].T  # (m, n): column j is F e_j on the window
+        m = fw.shape[0]
+        g = demod._filter_gain(sos, s.rate_hz, s.carrier_hz)
+        y0 = fw @ unit
+        mat = np.concatenate([fw, pi_rows])
+    try:  # one BLAS thread: a 500 x 500 eigh is 100x slower on threads fighting other processes
+        from threadpoolctl import threadpool_limits
+
+        limit = threadpool_limits(limits=1, user_api="blas")
+    except Exception:  # threadpoolctl missing or unable to introspect: run as is
+        limit = contextlib.nullcontext()
+    with limit:
+        lam_all, vec = np.linalg.eigh(mat @ mat.T)
+        order = np.argsort(lam_all)[::-1]
+        lam_all, vec = np.clip(lam_all[order], 0.0, None), vec[:, order]
+        tail = np.cumsum(lam_all[::-1])[::-1]  # tail[k] = variance from k on
+        r = int(np.count_nonzero(tail > _CLOSED_FORM_DROP * tail[0]))
+        b = vec[:, :r] * np.sqrt(lam_all[:r])  # (m + 2, r), B B^T ~ M M^T
+        bw, bp = b[:m], b[m:]
+        if m:
+            lam, rot = np.linalg.eigh(bw.T @ bw)  # z^T B_W^T B_W z diagonal in z' = rot^T z
+            bw, bp = bw @ rot, bp @ rot
+        else:
+            lam = np.zeros(r)
+    return {"i0": i0, "q0": q0, "c0": float(y0 @ y0), "a": bw.T @ y0, "lam": lam,
+            "pi": bp[0].copy(), "pq": bp[1].copy(), "m": m, "g": g, "r": r}
+
+
+def _closed_form_amplitudes(amplitudes: np.ndarray, s: ChainSettings, gen) -> np.ndarray:
+    """:func:`estimate_amplitudes` of :func:`_records` without the records (same law)."""
+    k = _closed_form_basis(replace(s, snr_db=None))  # the basis does not depend on the SNR
+    sigma = noise_sigma(amplitudes, s.snr_db)[..., None]  # (m, 1)
+    z = gen.standard_normal(amplitudes.shape + (k["r"],))
+    amp = amplitudes
+    i = amp * k["i0"] + sigma * (z @ k["pi"])
+    q = amp * k["q0"] + sigma * (z @ k["pq"])
+    if s.method == "lockin":
+        mag = np.hypot(i, q)
+    else:
+        ss = amp * amp * k["c0"] + 2.0 * amp * sigma * (z @ k["a"]) + sigma * sigma * ((z * z) @ k["lam"])
+        mag = np.sqrt(2.0 * np.maximum(ss, 0.0) / k["m"]) / k["g"]
+    sign = np.where(i * np.cos(s.phase_rad) + q * np.sin(s.phase_rad) < 0.0, -1.0, 1.0)
+    return sign * mag

@@ -108,6 +108,84 @@ def random_poses(
     -------
     rvecs, tvecs_mm : (n_images, 3) arrays.
     """
+    from psdcal.model.projection import R_from_r, pinhole, r_from_R
+
+    P = np.asarray(template_mm, dtype=float)
+    P3 = np.concatenate([P - P.mean(0), np.zeros((len(P), 1))], axis=1)
+    Pfull = np.concatenate([P, np.zeros((len(P), 1))], axis=1)
+    mean3 = np.concatenate([P.mean(0), [0.0]])
+    width = float(np.ptp(P, axis=0).max())
+    half = np.array(sensor_mm) / 2 - margin_mm
+    rv, tv = [], []
+    tries = 0
+    # Candidates are screened in batches (one vectorised projection + distortion);
+    # each try consumes the same 7 uniform draws, in the same order, as
+    # _random_poses_reference, and the generator is left where the accepted tries
+    # end, so both give the same poses and leave ``rng`` in the same state.
+    while len(rv) < n_images:
+        if tries >= max_tries:
+            raise InputError(f"could not place {n_images} template views on the sensor; relax fill or tilt")
+        batch = min(max_tries - tries, max(16, 6 * (n_images - len(rv))))
+        state = rng.bit_generator.state
+        u = rng.random((batch, 7))
+        tilt = np.deg2rad(5.0 + (max_tilt_deg - 5.0) * u[:, 0])
+        phi = 2 * np.pi * u[:, 1]
+        spin = -np.pi + 2 * np.pi * u[:, 2]
+        scale = (fill[0] + (fill[1] - fill[0]) * u[:, 3]) * sensor_mm[0]
+        off = (-1.0 + 2.0 * u[:, 4:6]) * half * (1 - (fill[0] + (fill[1] - fill[0]) * u[:, 6:7]) * 0.8)
+        R = _rodrigues(np.stack([np.cos(phi), np.sin(phi), np.zeros(batch)], axis=1) * tilt[:, None]) @ _rodrigues(
+            np.stack([np.zeros(batch), np.zeros(batch), spin], axis=1))
+        Z = intr.f_mm * width / scale
+        t = np.stack([(off[:, 0] - intr.cx_mm) * Z / intr.f_mm, (off[:, 1] - intr.cy_mm) * Z / intr.f_mm, Z], axis=1)
+        front = np.all(np.einsum("mj,bij->bmi", P3, R)[..., 2] + t[:, None, 2] > 0, axis=1)
+        tvec = t - R @ mean3
+        with np.errstate(all="ignore"):
+            d = distort(pinhole(np.einsum("mj,bij->bmi", Pfull, R) + tvec[:, None, :], intr), dist, intr.c).d_mm
+        ok = front & np.all(np.isfinite(d) & (np.abs(d) <= half), axis=(1, 2))
+        used = batch
+        for k in np.flatnonzero(ok):
+            # the accepted pose exactly as the reference computes it
+            Rk = R_from_r(np.array([np.cos(phi[k]), np.sin(phi[k]), 0.0]) * tilt[k]) @ R_from_r(
+                np.array([0, 0, spin[k]]))
+            rvec = r_from_R(Rk)
+            rv.append(rvec)
+            tv.append(t[k] - Rk @ mean3)
+            if len(rv) == n_images:
+                used = k + 1
+                break
+        if used < batch:
+            rng.bit_generator.state = state
+            rng.random(7 * used)
+        tries += used
+    return np.array(rv), np.array(tv)
+
+
+def _rodrigues(r: np.ndarray) -> np.ndarray:
+    """Rotation matrices (B, 3, 3) of rotation vectors (B, 3) (Rodrigues' formula, batched)."""
+    theta = np.linalg.norm(r, axis=1)
+    K = np.zeros((len(r), 3, 3))
+    K[:, 0, 1], K[:, 0, 2], K[:, 1, 2] = -r[:, 2], r[:, 1], -r[:, 0]
+    K[:, 1, 0], K[:, 2, 0], K[:, 2, 1] = r[:, 2], -r[:, 1], r[:, 0]
+    safe = np.where(theta < 1e-12, 1.0, theta)
+    a = np.where(theta < 1e-12, 1.0, np.sin(theta) / safe)
+    b = np.where(theta < 1e-12, 0.0, (1 - np.cos(theta)) / safe**2)
+    return np.eye(3) + a[:, None, None] * K + b[:, None, None] * (K @ K)
+
+
+def _random_poses_reference(
+    template_mm,
+    intr: Intrinsics,
+    dist: Distortion,
+    n_images: int,
+    rng: np.random.Generator,
+    *,
+    max_tilt_deg: float = 35.0,
+    fill: tuple[float, float] = (0.45, 0.85),
+    margin_mm: float = 0.25,
+    sensor_mm: tuple[float, float] = (LX_MM, LY_MM),
+    max_tries: int = 2000,
+):
+    """:func:`random_poses`, one candidate at a time (the tested reference)."""
     from psdcal.model.projection import R_from_r, r_from_R
 
     P = np.asarray(template_mm, dtype=float)

@@ -85,7 +85,8 @@ def simulate_trial(rng, lens: str, snr_db: float | None, gains, psd: bool, *, n_
         # the four channels, which cancels in Eq 1-2 (docs/guide/signal-chain.md); skip the records
         amps = signal_amplitudes(spots, s, gains, l1)
     else:
-        amps = measure_amplitudes(spots, s, gains, rng, l1)
+        # the demodulator's outputs drawn from their exact law (chain.measure_amplitudes, noise=)
+        amps = measure_amplitudes(spots, s, gains, rng, l1, noise="closed-form")
     ok = np.all(np.isfinite(amps), axis=-1)
     pts = np.full(spots.shape, np.nan)
     pts[ok] = impact_point(amps[ok], s.lx_mm, s.ly_mm)
