@@ -122,10 +122,11 @@ def random_poses(
     # each try consumes the same 7 uniform draws, in the same order, as
     # _random_poses_reference, and the generator is left where the accepted tries
     # end, so both give the same poses and leave ``rng`` in the same state.
+    budget = max(max_tries, 20 * n_images)  # the budget grows with the views asked for (as the reference's)
     while len(rv) < n_images:
-        if tries >= max_tries:
+        if tries >= budget:
             raise InputError(f"could not place {n_images} template views on the sensor; relax fill or tilt")
-        batch = min(max_tries - tries, max(16, 6 * (n_images - len(rv))))
+        batch = min(budget - tries, max(16, 6 * (n_images - len(rv))))
         state = rng.bit_generator.state
         u = rng.random((batch, 7))
         tilt = np.deg2rad(5.0 + (max_tilt_deg - 5.0) * u[:, 0])
