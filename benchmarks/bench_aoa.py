@@ -82,7 +82,7 @@ def main(argv=None) -> int:
         ("angles_from_points + both covariances (compiled)",
          _rate(_chunked(lambda dd, cc: angles_from_points(dd, m, cc), d, cov), a.points)),
         ("angles only (kernel, no parameters)",
-         _rate(_chunked(lambda dd: angles_kernel(dd, vals, True, coef, np.zeros(0, np.int64), np.zeros((0, 0)),
+         _rate(_chunked(lambda dd: angles_kernel(dd, vals, True, coef, np.zeros(0, np.int64), np.zeros((0, 0)), True,
                                                  np.zeros((0, 2, 2)), np.zeros((0, 2, 3))), d), a.points)),
         ("angles_from_points, all points in one call", _rate(lambda: angles_from_points(d, m, cov), a.points)),
         ("numpy reference (angles_from_points_reference)", _rate(lambda: angles_from_points_reference(d[:nref], m, cov[:nref]), nref)),

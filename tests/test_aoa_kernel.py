@@ -39,3 +39,27 @@ def test_kernel_equals_reference(kw, with_noise):
         assert a_.shape == b_.shape, name
         _check(a_, b_, name)
     assert fast.names == ref.names
+
+
+def test_kernel_with_a_semidefinite_covariance_equals_reference():
+    """A rank-deficient calibration covariance (e.g. two parameters exactly correlated) has no Cholesky
+    factor: the kernel's eigen-decomposition factor gives the reference's dn/dp C dn/dp^T all the same."""
+    import dataclasses
+
+    from psdcal.measure._aoa_kernel import covariance_factor
+
+    m = model()
+    C = np.array(m.covariance, dtype=float)
+    u = np.sqrt(np.diag(C))
+    C[0, 1] = C[1, 0] = u[0] * u[1]  # f and cx perfectly correlated: rank deficient
+    C[1:, 0] = C[0, 1:] = C[1, 1:] * u[0] / u[1]
+    w = np.linalg.eigvalsh(C)
+    assert w.min() > -1e-12 * w.max()
+    m2 = dataclasses.replace(m, covariance=C)
+    B, lower = covariance_factor(C)
+    assert not lower  # the eigen-decomposition path
+    np.testing.assert_allclose(B @ B.T, C, rtol=0, atol=1e-12 * np.abs(C).max())
+    d = np.random.default_rng(4).uniform(-4, 4, (50, 2))
+    fast = _angles_compiled(d, m2, None, None)
+    ref = angles_from_points_reference(d, m2, None, None)
+    _check(fast.cov_n_calib, ref.cov_n_calib, "cov_n_calib")

@@ -6,8 +6,9 @@ reference): ``x = undistort(d)`` (Eq 7-16, explicit, no iteration),
 ``yn = (y - cy) / fy``, ``xn = (x - cx - s yn) / f`` (inverse of Eq 4),
 ``alpha = atan(n)`` (Eq 39), with the analytic derivatives of ``n`` by the
 calibration parameters and by ``d``, and both covariances
-``dn/dp C dn/dp^T`` and ``dn/dd Sigma_d dn/dd^T`` formed per point from
-scalars (no (N, 2, n_params) temporaries).
+``dn/dp C dn/dp^T`` (as ``|B^T dn/dp^T|^2`` with a Cholesky factor ``B`` of
+``C``) and ``dn/dd Sigma_d dn/dd^T`` formed per point from scalars (no
+(N, 2, n_params) temporaries).
 """
 from __future__ import annotations
 
@@ -23,8 +24,21 @@ PARAM_CODES = ("f_mm", "cx_mm", "cy_mm", "skew", "fy_mm", "k1", "k2", "k3", "p1"
                "g_x2", "g_y1", "g_y2")
 
 
+def covariance_factor(C):
+    """``(B, lower)`` with ``C = B B^T``: the Cholesky factor of a positive-definite covariance (lower
+    triangular), else ``Q sqrt(max(lambda, 0))`` from its eigen-decomposition (a semi-definite one)."""
+    C = np.asarray(C, dtype=float)
+    if C.size == 0:
+        return np.zeros((0, 0)), True
+    try:
+        return np.linalg.cholesky(C), True
+    except np.linalg.LinAlgError:
+        lam, Q = np.linalg.eigh(0.5 * (C + C.T))
+        return np.ascontiguousarray(Q * np.sqrt(np.clip(lam, 0.0, None))), False
+
+
 @njit
-def angles_kernel(d, intr, separate_fy, coef, codes, C, cov_d, dd_dg):
+def angles_kernel(d, intr, separate_fy, coef, codes, B, lower, cov_d, dd_dg):
     """Angles, normalised coordinates and covariances of impact points.
 
     Parameters
@@ -33,7 +47,8 @@ def angles_kernel(d, intr, separate_fy, coef, codes, C, cov_d, dd_dg):
     intr : (5,) f, cx, cy, skew, fy (mm; fy used when ``separate_fy``)
     coef : (7,) k1, k2, k3, p1, p2, l1, l2
     codes : (P,) int, :data:`PARAM_CODES` index of each calibration parameter (covariance order)
-    C : (P, P) calibration covariance
+    B : (P, P) a factor of the calibration covariance, C = B B^T (:func:`covariance_factor`)
+    lower : bool, B is lower triangular (a Cholesky factor)
     cov_d : (N, 2, 2) impact-point noise covariance, or (0, 2, 2) for none
     dd_dg : (N, 2, 3) derivative of d by (g_x2, g_y1, g_y2), or (0, 2, 3) for none
 
@@ -113,18 +128,18 @@ def angles_kernel(d, intr, separate_fy, coef, codes, C, cov_d, dd_dg):
             V1[k] = A1[codes[k]]
             dn_dp[i, 0, k] = V0[k]
             dn_dp[i, 1, k] = V1[k]
-        # cov_calib = dn_dp C dn_dp^T
+        # cov_calib = dn_dp C dn_dp^T = |B^T v|^2 with C = B B^T (B lower triangular: half the products)
         c00 = c01 = c11 = 0.0
-        for k in range(P):
-            t0 = 0.0
-            t1 = 0.0
-            for m in range(P):
-                ckm = C[k, m]
-                t0 += V0[m] * ckm
-                t1 += V1[m] * ckm
-            c00 += t0 * V0[k]
-            c01 += t0 * V1[k]
-            c11 += t1 * V1[k]
+        for j in range(P):
+            w0 = 0.0
+            w1 = 0.0
+            for k in range(j if lower else 0, P):
+                bkj = B[k, j]
+                w0 += V0[k] * bkj
+                w1 += V1[k] * bkj
+            c00 += w0 * w0
+            c01 += w0 * w1
+            c11 += w1 * w1
         covc[i, 0, 0], covc[i, 0, 1], covc[i, 1, 0], covc[i, 1, 1] = c00, c01, c01, c11
         if has_noise:
             s00, s01, s10, s11 = cov_d[i, 0, 0], cov_d[i, 0, 1], cov_d[i, 1, 0], cov_d[i, 1, 1]

@@ -202,9 +202,19 @@ def angles_from_points(d_mm, model: SensorModel, cov_d_mm2=None, dd_dgains=None)
     return angles_from_points_reference(d, model, cov_d_mm2, dd_dgains)
 
 
+def _factor_of(model: SensorModel, covariance_factor):
+    """The covariance factor of ``model`` (computed once per model: models are frozen)."""
+    key = "_aoa_covariance_factor"
+    got = model.__dict__.get(key)
+    if got is None:
+        got = covariance_factor(model.covariance)
+        object.__setattr__(model, key, got)
+    return got
+
+
 def _angles_compiled(d, model: SensorModel, cov_d_mm2, dd_dgains) -> AoAResult:
     """:func:`angles_from_points` by the compiled kernel (psdcal.measure._aoa_kernel)."""
-    from psdcal.measure._aoa_kernel import PARAM_CODES, angles_kernel
+    from psdcal.measure._aoa_kernel import PARAM_CODES, angles_kernel, covariance_factor
 
     intr = model.intrinsics
     shape = d.shape[:-1]
@@ -223,7 +233,7 @@ def _angles_compiled(d, model: SensorModel, cov_d_mm2, dd_dgains) -> AoAResult:
     vals = np.array([intr.f_mm, intr.cx_mm, intr.cy_mm, intr.skew, intr.fy], dtype=float)
     x, n, alpha, covc, covn, dn_dp, dn_dd = angles_kernel(
         dd, vals, intr.fy_mm is not None, np.ascontiguousarray(model.distortion.as_array(), dtype=float), codes,
-        np.ascontiguousarray(model.covariance, dtype=float), cov_d, ddg)
+        *_factor_of(model, covariance_factor), cov_d, ddg)
     return AoAResult(
         x_mm=x.reshape(shape + (2,)),
         n=n.reshape(shape + (2,)),
