@@ -115,7 +115,8 @@ def synthetic_rows(cv2, sizes, repeats, scipy_max_views):
     for n, m in sizes:
         s = simulate_set("lens2", n_images=n, noise_mm=0.002, seed=0, template_mm=None if m == 14 else grid_template(m))
         objs, imgs = _opencv_inputs(s.template_mm, s.points_mm, np.array([450.0, 450.0]))
-        t_p = _timed(lambda: calibrate(s.template_mm, s.points_mm, cost="image", radial=2, tangential=False), repeats)
+        t_p = _timed(lambda: calibrate(s.template_mm, s.points_mm, cost="image", radial=2, tangential=False,
+                                       verdict=False), repeats)
         t_o = _timed(lambda: cv2.calibrateCamera(objs, imgs, (900, 900), np.eye(3), np.zeros(5), flags=flags), repeats)
         t_s = _timed(lambda: scipy_reference(s.template_mm, s.points_mm), max(1, repeats // 2)) if n <= scipy_max_views and m <= 256 else None
         rows.append({"set": "synthetic", "views": n, "points": len(s.template_mm), "model": "f, C, k1, k2",
@@ -135,11 +136,13 @@ def zhang_row(cv2, repeats):
         sel = px[px[:, 0] == i]
         objs.append(obj[sel[:, 1].astype(int)])
         imgs.append(sel[:, 2:4].astype(np.float32).reshape(-1, 1, 2))
-    t_p = _timed(lambda: calibrate(T, pts, cost="image", radial=2, tangential=True, aspect=True, sensor_mm=(6.4, 4.8)), repeats)
+    kw = dict(cost="image", radial=2, tangential=True, aspect=True, sensor_mm=(6.4, 4.8))
+    t_p = _timed(lambda: calibrate(T, pts, verdict=False, **kw), repeats)
+    t_v = _timed(lambda: calibrate(T, pts, **kw), repeats)
     t_o = _timed(lambda: cv2.calibrateCamera(objs, imgs, (640, 480), np.eye(3), np.zeros(5), flags=cv2.CALIB_FIX_K3), repeats)
     t_s = _timed(lambda: scipy_reference(T, pts, general=True, sensor_mm=(6.4, 4.8)), max(1, repeats // 2))
     return {"set": "zhang1998 (real)", "views": len(objs), "points": len(T), "model": "fx, fy, C, k1, k2, p1, p2",
-            "psdcal": t_p, "opencv": t_o, "scipy": t_s}
+            "psdcal": t_p, "opencv": t_o, "scipy": t_s, "psdcal_verdict": t_v}
 
 
 def chessboard_rows(cv2, repeats):
@@ -167,10 +170,11 @@ def chessboard_rows(cv2, repeats):
         imgs = [np.array([[r[1], r[2]] for r in rr], dtype=np.float32).reshape(-1, 1, 2) for rr in by_view.values()]
         size = tuple(meta["image_size_px"])
         flags = cv2.CALIB_FIX_ASPECT_RATIO | cv2.CALIB_FIX_K3
-        t_p = _timed(lambda: calibrate(T, pts.points_mm, image_ids=pts.image_ids), repeats)
+        t_p = _timed(lambda: calibrate(T, pts.points_mm, image_ids=pts.image_ids, verdict=False), repeats)
+        t_v = _timed(lambda: calibrate(T, pts.points_mm, image_ids=pts.image_ids), repeats)
         t_o = _timed(lambda: cv2.calibrateCamera(objs, imgs, size, np.eye(3), np.zeros(5), flags=flags), repeats)
         rows.append({"set": d.name + " (real)", "views": len(objs), "points": len(T), "model": "f, C, k1, k2, p1, p2",
-                     "psdcal": t_p, "opencv": t_o, "scipy": None})
+                     "psdcal": t_p, "opencv": t_o, "scipy": None, "psdcal_verdict": t_v})
     return rows
 
 
@@ -207,6 +211,10 @@ def main(argv=None) -> int:
               "-" if r["scipy"] is None else f"{1e3 * r['scipy']:.1f}",
               "-" if r["scipy"] is None else f"{r['psdcal'] / r['scipy']:.3f}") for r in rows]
     print_table(head, lines, a.markdown)
+    for r in rows:
+        if r.get("psdcal_verdict") is not None:
+            print(f"{r['set']}: with the verdict (its self-checks) {1e3 * r['psdcal_verdict']:.2f} ms = "
+                  f"{r['psdcal_verdict'] / r['opencv']:.2f} x OpenCV")
     print(f"\ngrowth exponent of psdcal's time in views (14 points, 30 views and up): {growth_exponent(rows):.2f}")
     return 0
 
