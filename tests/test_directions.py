@@ -20,7 +20,6 @@ from psdcal.calibration.directions import (
     direction_warnings,
     predict_directions,
     read_directions,
-    rotation_vector,
     simulate_sweep,
     stage_directions,
     sweep_grid,
@@ -29,6 +28,7 @@ from psdcal.calibration.directions import (
 from psdcal.cli import main
 from psdcal.errors import DegenerateViewsError, InputError
 from psdcal.model.params import Distortion, Intrinsics, ModelSpec
+from psdcal.model.projection import r_from_R
 
 INTR = Intrinsics(8.0, 0.5, -0.7)
 DIST = Distortion(k1=1e-2, k2=3e-5, p1=2e-4, p2=-1e-4)
@@ -54,14 +54,14 @@ def test_stage_convention_closed_form():
     np.testing.assert_allclose(d[2], [8 * t10, 8 * t15 / np.cos(np.radians(10))], atol=1e-13)
 
 
-def test_rotation_vector_inverts_rodrigues():
+def test_r_from_R_inverts_rodrigues_as_the_stage_start_needs():
     from psdcal.calibration._refine import rodrigues_batch
 
     rng = np.random.default_rng(0)
     for r in [*rng.normal(size=(20, 3)), np.zeros(3), np.array([0, 0, np.pi - 1e-9])]:
         r = r if np.linalg.norm(r) < np.pi else r / np.linalg.norm(r) * (np.pi - 0.1)
         R = rodrigues_batch(r[None], derivatives=False)[0][0]
-        np.testing.assert_allclose(rotation_vector(R), r, atol=1e-7)
+        np.testing.assert_allclose(r_from_R(R), r, atol=1e-7)
 
 
 @pytest.mark.parametrize("case", ["infinity", "finite", "aspect_psd"])

@@ -38,6 +38,7 @@ import numpy as np
 from psdcal.errors import ConvergenceError, DegenerateViewsError, InputError
 from psdcal.model.params import DISTORTION_NAMES, Distortion, Intrinsics, ModelSpec
 from psdcal.model.readout import LX_MM, LY_MM
+from psdcal.model.projection import r_from_R
 
 STAGE_NAMES = ("stage_rx", "stage_ry", "stage_rz")
 OFFSET_NAMES = ("offset_x_mm", "offset_y_mm", "offset_z_mm")
@@ -60,24 +61,6 @@ def angles_from_directions(u) -> tuple[np.ndarray, np.ndarray]:
     u = np.asarray(u, dtype=float)
     u = u / np.linalg.norm(u, axis=-1, keepdims=True)
     return np.degrees(np.arctan2(u[..., 0], u[..., 2])), np.degrees(np.arcsin(np.clip(u[..., 1], -1, 1)))
-
-
-def rotation_vector(R) -> np.ndarray:
-    """Rotation vector (3,) of a rotation matrix (3, 3) (the inverse of Rodrigues' formula)."""
-    R = np.asarray(R, dtype=float)
-    c = np.clip((np.trace(R) - 1) / 2, -1.0, 1.0)
-    th = math.acos(c)
-    w = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
-    if th < 1e-8:
-        return w / 2
-    if th > math.pi - 1e-6:  # near pi: axis from the symmetric part
-        B = (R + np.eye(3)) / 2
-        axis = B[np.argmax(np.diag(B))]
-        axis = axis / np.linalg.norm(axis)
-        if w @ axis < 0:
-            axis = -axis
-        return axis * th
-    return w * th / (2 * math.sin(th))
 
 
 # -- input ------------------------------------------------------------------------------------
@@ -348,7 +331,7 @@ def linear_start(u, points_mm, *, skew: bool = False, aspect: bool = False):
     intr = Intrinsics(f_mm=f, cx_mm=float(K[0, 2]), cy_mm=float(K[1, 2]), skew=float(K[0, 1]) if skew else 0.0,
                       fy_mm=float(K[1, 1]) if aspect else None)
     R = Rm @ Q
-    return intr, rotation_vector(R)
+    return intr, r_from_R(R)
 
 
 # -- the front door -------------------------------------------------------------------------------
