@@ -106,6 +106,19 @@ def spectrum(x, rate_hz: float):
     return np.fft.rfftfreq(n, 1.0 / rate_hz), p, float(w.sum()), float((w * w).sum())
 
 
+def _spectrum_and_floor(x, rate_hz: float):
+    """:func:`spectrum` of a (4, n) block with its bin width, per-channel noise floor (median power)
+    and the power summed over the channels; at least 64 samples."""
+    x = np.asarray(x, dtype=float)
+    n = x.shape[1]
+    if n < 64:
+        raise InputError(f"too few samples to find carriers ({n}; at least 64)", field="samples")
+    freq, p, wsum, w2sum = spectrum(x, rate_hz)
+    floor = np.median(p[:, 1:], axis=1)  # (4,)
+    floor = np.where(floor > 0, floor, np.finfo(float).tiny)
+    return freq, p, wsum, w2sum, rate_hz / n, floor, p.sum(axis=0)
+
+
 def find_carriers(x, rate_hz: float, *, min_snr_db: float = MIN_CARRIER_SNR_DB, max_carriers: int = 8,
                   min_hz: float = 1.0) -> list[Carrier]:
     """Carriers in a record, strongest first.
@@ -129,15 +142,7 @@ def find_carriers(x, rate_hz: float, *, min_snr_db: float = MIN_CARRIER_SNR_DB, 
     -------
     list of Carrier
     """
-    x = np.asarray(x, dtype=float)
-    n = x.shape[1]
-    if n < 64:
-        raise InputError(f"too few samples to find carriers ({n}; at least 64)", field="samples")
-    freq, p, wsum, w2sum = spectrum(x, rate_hz)
-    df = rate_hz / n
-    floor = np.median(p[:, 1:], axis=1)  # (4,)
-    floor = np.where(floor > 0, floor, np.finfo(float).tiny)
-    ptot = p.sum(axis=0)
+    freq, p, wsum, w2sum, df, floor, ptot = _spectrum_and_floor(x, rate_hz)
     ftot = floor.sum()
     lo = max(2, int(math.ceil(min_hz / df)))
     cand = np.flatnonzero((ptot[lo:-1] > ftot * 10 ** (min_snr_db / 10))
@@ -190,15 +195,7 @@ def carrier_near(x, rate_hz: float, asked_hz: float, *, rel: float = 0.05,
     Unlike :func:`find_carriers` no side-band rule applies: a weak emitter
     near a strong one is still measured.
     """
-    x = np.asarray(x, dtype=float)
-    n = x.shape[1]
-    if n < 64:
-        raise InputError(f"too few samples to find carriers ({n}; at least 64)", field="samples")
-    freq, p, wsum, w2sum = spectrum(x, rate_hz)
-    df = rate_hz / n
-    floor = np.median(p[:, 1:], axis=1)
-    floor = np.where(floor > 0, floor, np.finfo(float).tiny)
-    ptot = p.sum(axis=0)
+    freq, p, wsum, w2sum, df, floor, ptot = _spectrum_and_floor(x, rate_hz)
     lo = max(1, int(math.floor(asked_hz * (1 - rel) / df)))
     hi = min(len(freq) - 2, int(math.ceil(asked_hz * (1 + rel) / df)))
     if hi < lo:
