@@ -102,27 +102,23 @@ def calibration_schema() -> dict:
         },
         ("rms_mm", "per_image_rms_mm"),
     )
+    switches = {  # the model switches, in `model` and in the problem record's `options`
+        "radial": {"type": "integer", "minimum": 0, "maximum": 3},
+        "tangential": {"type": "boolean"},
+        "psd_radial": {"type": "integer", "minimum": 0, "maximum": 2},
+        "skew": {"type": "boolean"},
+        "aspect": {"type": "boolean"},
+        "fit_gains": {"type": "boolean"},
+    }
     model = _obj(
-        {
-            "radial": {"type": "integer", "minimum": 0, "maximum": 3},
-            "tangential": {"type": "boolean"},
-            "psd_radial": {"type": "integer", "minimum": 0, "maximum": 2},
-            "skew": {"type": "boolean"},
-            "aspect": {"type": "boolean"},
-            "fit_gains": {"type": "boolean"},
-        },
+        dict(switches),
         ("radial", "tangential", "psd_radial", "skew"),
         description="the model switches: which parameters were estimated",
     )
     options = _obj(
         {
             "cost": {"enum": ["image", "template"]},
-            "radial": {"type": "integer", "minimum": 0, "maximum": 3},
-            "tangential": {"type": "boolean"},
-            "psd_radial": {"type": "integer", "minimum": 0, "maximum": 2},
-            "skew": {"type": "boolean"},
-            "aspect": {"type": "boolean"},
-            "fit_gains": {"type": "boolean"},
+            **switches,
             "preliminary": {"type": "boolean"},
             "normalize": {"type": "boolean"},
             "gains": {"type": ["array", "null"], "items": {"type": "number", "exclusiveMinimum": 0}, "minItems": 4,
