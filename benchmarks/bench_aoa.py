@@ -2,7 +2,8 @@
 """Impact points -> angles with their uncertainty: points per second on one core.
 
 ``angles_from_points`` (compiled kernel, angles + calibration and noise
-covariances + derivatives) against its numpy reference, the bare
+covariances, with the derivatives dn/dp (the default) and without them,
+``derivatives=False``) against its numpy reference, the bare
 undistortion (``psdcal.model.distortion.undistort``) and OpenCV's
 ``cv2.undistortPoints`` (default, inexact iterations) on the same points.
 "Angles only" runs the kernel with an empty parameter list (no covariance):
@@ -79,11 +80,13 @@ def main(argv=None) -> int:
     vals = np.array([intr.f_mm, intr.cx_mm, intr.cy_mm, intr.skew, intr.fy])
     nref = min(a.points, 200_000)
     rows = [
-        ("angles_from_points + both covariances (compiled)",
+        ("angles_from_points + both covariances + derivatives (compiled)",
          _rate(_chunked(lambda dd, cc: angles_from_points(dd, m, cc), d, cov), a.points)),
+        ("angles_from_points + both covariances, derivatives=False",
+         _rate(_chunked(lambda dd, cc: angles_from_points(dd, m, cc, derivatives=False), d, cov), a.points)),
         ("angles only (kernel, no parameters)",
          _rate(_chunked(lambda dd: angles_kernel(dd, vals, True, coef, np.zeros(0, np.int64), np.zeros((0, 0)), True,
-                                                 np.zeros((0, 2, 2)), np.zeros((0, 2, 3))), d), a.points)),
+                                                 np.zeros((0, 2, 2)), np.zeros((0, 2, 3)), False), d), a.points)),
         ("angles_from_points, all points in one call", _rate(lambda: angles_from_points(d, m, cov), a.points)),
         ("numpy reference (angles_from_points_reference)", _rate(lambda: angles_from_points_reference(d[:nref], m, cov[:nref]), nref)),
         ("bare undistort (numpy)", _rate(lambda: undistort(d, m.distortion, intr.c), a.points)),

@@ -63,3 +63,86 @@ def test_kernel_with_a_semidefinite_covariance_equals_reference():
     fast = _angles_compiled(d, m2, None, None)
     ref = angles_from_points_reference(d, m2, None, None)
     _check(fast.cov_n_calib, ref.cov_n_calib, "cov_n_calib")
+
+
+FIELDS = ("x_mm", "n", "alpha_rad", "cov_n_calib", "cov_n_noise", "dn_dp", "dn_dd")
+
+
+def _several_blocks():
+    """A model with fitted gains and points over several kernel blocks plus a partial one."""
+    from psdcal.measure._aoa_kernel import BLOCK
+
+    m = model(skew=-0.01, fy=7.9, gains=[1.0, 1.03, 0.97, 1.01])
+    n_pts = 3 * BLOCK + 5
+    d_true = np.random.default_rng(5).uniform(-4, 4, (n_pts, 2))
+    a = amplitudes(SensorModel.from_dict({"intrinsics": {"f_mm": 8, "cx_mm": 0, "cy_mm": 0}}), d_true)
+    imp = impact_from_amplitudes(a, m, var_a=np.full(4, 1e-6))
+    shape = (n_pts // 7, 7) if n_pts % 7 == 0 else (n_pts,)
+    return (m, imp.d_mm.reshape(shape + (2,)), imp.cov_d_mm2.reshape(shape + (2, 2)),
+            imp.dd_dgains.reshape(shape + (2, 3)))
+
+
+def test_kernel_over_several_blocks_equals_reference():
+    """Points beyond one block of the kernel (and a last, partial block) get the reference's values."""
+    m, d, cov, ddg = _several_blocks()
+    fast = _angles_compiled(d, m, cov, ddg)
+    ref = angles_from_points_reference(d, m, cov, ddg)
+    for name in FIELDS:
+        a_, b_ = getattr(fast, name), getattr(ref, name)
+        assert a_.shape == b_.shape, name
+        _check(a_, b_, name)
+
+
+@pytest.mark.parametrize("compiled", [True, False])
+def test_without_derivatives_every_other_field_is_the_same(compiled):
+    """derivatives=False leaves out dn_dp only: the angles and both covariances are those of the default call."""
+    from psdcal.measure.aoa import angles_from_points
+
+    m, d, cov, ddg = _several_blocks()
+    with _jit_mode(compiled):
+        full = angles_from_points(d, m, cov, ddg)
+        lean = angles_from_points(d, m, cov, ddg, derivatives=False)
+    assert lean.dn_dp is None
+    assert full.dn_dp.shape == d.shape[:-1] + (2, len(m.names))
+    for name in FIELDS:
+        if name != "dn_dp":
+            np.testing.assert_array_equal(getattr(lean, name), getattr(full, name), err_msg=name)
+    np.testing.assert_array_equal(lean.sigma_alpha_rad, full.sigma_alpha_rad)
+    from psdcal.measure.aoa import angles_from_amplitudes
+
+    a = amplitudes(m, d.reshape(-1, 2)[:20])
+    with _jit_mode(compiled):
+        assert angles_from_amplitudes(a, m, derivatives=False).dn_dp is None
+        assert angles_from_amplitudes(a, m).dn_dp.shape == (20, 2, len(m.names))
+
+
+def test_fields_are_separate_contiguous_arrays():
+    """The kernel's outputs share one allocation: each field is C-contiguous and overlaps no other, so
+    writing into one leaves the others unchanged."""
+    m, d, cov, ddg = _several_blocks()
+    res = _angles_compiled(d, m, cov, ddg)
+    arrays = [getattr(res, name) for name in FIELDS]
+    for a_ in arrays:
+        assert a_.flags.c_contiguous
+    for i, a_ in enumerate(arrays):
+        for b_ in arrays[i + 1:]:
+            assert not np.shares_memory(a_, b_)
+    before = res.n.copy()
+    res.dn_dp[...] = np.nan
+    res.cov_n_noise[...] = np.nan
+    np.testing.assert_array_equal(res.n, before)
+    assert np.isfinite(res.cov_n_calib).all()
+
+
+class _jit_mode:
+    """Run with the compiled kernels (True) or the numpy reference (False)."""
+
+    def __init__(self, compiled):
+        self.compiled = compiled
+
+    def __enter__(self):
+        self.saved = _jit.AVAILABLE
+        _jit.AVAILABLE = bool(self.compiled and self.saved)
+
+    def __exit__(self, *exc):
+        _jit.AVAILABLE = self.saved

@@ -126,9 +126,10 @@ class AoAResult:
         Covariance of ``n`` from the calibration covariance (systematic).
     cov_n_noise : (..., 2, 2) ndarray
         Covariance of ``n`` from the impact-point noise (random).
-    dn_dp : (..., 2, n_params) ndarray
+    dn_dp : (..., 2, n_params) ndarray or None
         Derivative of ``n`` with respect to the calibration parameters
-        ``names`` (the order of the model's covariance).
+        ``names`` (the order of the model's covariance); None when asked
+        for without (``derivatives=False``: the covariances do not need it).
     dn_dd : (..., 2, 2) ndarray
         Derivative of ``n`` with respect to the measured impact point.
     names : tuple of str
@@ -171,7 +172,8 @@ class AoAResult:
         return r / np.linalg.norm(r, axis=-1, keepdims=True)
 
 
-def angles_from_points(d_mm, model: SensorModel, cov_d_mm2=None, dd_dgains=None) -> AoAResult:
+def angles_from_points(d_mm, model: SensorModel, cov_d_mm2=None, dd_dgains=None, *,
+                       derivatives: bool = True) -> AoAResult:
     """Angles of arrival of measured impact points, with their covariance.
 
     ``x = undistort(d)`` (Eq 7-16), ``yn = (y - cy) / fy``,
@@ -189,6 +191,10 @@ def angles_from_points(d_mm, model: SensorModel, cov_d_mm2=None, dd_dgains=None)
         Derivative of ``d_mm`` with respect to ``(g_x2, g_y1, g_y2)``; needed
         for the gain part of the calibration covariance (zero when omitted,
         e.g. for impact points that did not come from raw amplitudes).
+    derivatives : bool
+        Also return ``dn_dp`` (N x 2 x n_params numbers, what a triangulation
+        with correlated calibration errors needs). ``False`` leaves it out
+        (``dn_dp`` is None) and saves its cost; every other field is the same.
 
     Returns
     -------
@@ -198,8 +204,8 @@ def angles_from_points(d_mm, model: SensorModel, cov_d_mm2=None, dd_dgains=None)
     from psdcal import _jit
 
     if d.ndim >= 1 and d.shape[-1] == 2 and _jit.use_compiled(d.size // 2):
-        return _angles_compiled(d, model, cov_d_mm2, dd_dgains)
-    return angles_from_points_reference(d, model, cov_d_mm2, dd_dgains)
+        return _angles_compiled(d, model, cov_d_mm2, dd_dgains, derivatives)
+    return angles_from_points_reference(d, model, cov_d_mm2, dd_dgains, derivatives=derivatives)
 
 
 def _factor_of(model: SensorModel, covariance_factor):
@@ -212,7 +218,7 @@ def _factor_of(model: SensorModel, covariance_factor):
     return got
 
 
-def _angles_compiled(d, model: SensorModel, cov_d_mm2, dd_dgains) -> AoAResult:
+def _angles_compiled(d, model: SensorModel, cov_d_mm2, dd_dgains, derivatives: bool = True) -> AoAResult:
     """:func:`angles_from_points` by the compiled kernel (psdcal.measure._aoa_kernel)."""
     from psdcal.measure._aoa_kernel import PARAM_CODES, angles_kernel, covariance_factor
 
@@ -233,20 +239,21 @@ def _angles_compiled(d, model: SensorModel, cov_d_mm2, dd_dgains) -> AoAResult:
     vals = np.array([intr.f_mm, intr.cx_mm, intr.cy_mm, intr.skew, intr.fy], dtype=float)
     x, n, alpha, covc, covn, dn_dp, dn_dd = angles_kernel(
         dd, vals, intr.fy_mm is not None, np.ascontiguousarray(model.distortion.as_array(), dtype=float), codes,
-        *_factor_of(model, covariance_factor), cov_d, ddg)
+        *_factor_of(model, covariance_factor), cov_d, ddg, bool(derivatives))
     return AoAResult(
         x_mm=x.reshape(shape + (2,)),
         n=n.reshape(shape + (2,)),
         alpha_rad=alpha.reshape(shape + (2,)),
         cov_n_calib=covc.reshape(shape + (2, 2)),
         cov_n_noise=covn.reshape(shape + (2, 2)),
-        dn_dp=dn_dp.reshape(shape + (2, len(names))),
+        dn_dp=dn_dp.reshape(shape + (2, len(names))) if derivatives else None,
         dn_dd=dn_dd.reshape(shape + (2, 2)),
         names=names,
     )
 
 
-def angles_from_points_reference(d_mm, model: SensorModel, cov_d_mm2=None, dd_dgains=None) -> AoAResult:
+def angles_from_points_reference(d_mm, model: SensorModel, cov_d_mm2=None, dd_dgains=None, *,
+                                 derivatives: bool = True) -> AoAResult:
     """Numpy reference of :func:`angles_from_points` (the compiled kernel is tested against it)."""
     d = np.asarray(d_mm, dtype=float)
     intr = model.intrinsics
@@ -298,13 +305,14 @@ def angles_from_points_reference(d_mm, model: SensorModel, cov_d_mm2=None, dd_dg
         alpha_rad=alpha,
         cov_n_calib=cov_calib,
         cov_n_noise=cov_noise,
-        dn_dp=dn_dp,
+        dn_dp=dn_dp if derivatives else None,
         dn_dd=dn_dd,
         names=names,
     )
 
 
-def angles_from_amplitudes(a, model: SensorModel, var_a=None, *, on_zero: str = "raise") -> AoAResult:
+def angles_from_amplitudes(a, model: SensorModel, var_a=None, *, on_zero: str = "raise",
+                           derivatives: bool = True) -> AoAResult:
     """Angles of arrival from the four carrier amplitudes (Eq 1-2, 7-16, 39).
 
     Parameters
@@ -316,10 +324,12 @@ def angles_from_amplitudes(a, model: SensorModel, var_a=None, *, on_zero: str = 
         Amplitude variances (independent channels).
     on_zero : {"raise", "nan"}
         See :func:`impact_from_amplitudes`.
+    derivatives : bool
+        Also return ``dn_dp`` (see :func:`angles_from_points`).
 
     Returns
     -------
     AoAResult
     """
     imp = impact_from_amplitudes(a, model, var_a, on_zero=on_zero)
-    return angles_from_points(imp.d_mm, model, imp.cov_d_mm2, imp.dd_dgains)
+    return angles_from_points(imp.d_mm, model, imp.cov_d_mm2, imp.dd_dgains, derivatives=derivatives)

@@ -244,7 +244,7 @@ def _rows_single(t_s, names, a, var_a, model: SensorModel, distance_mm, min_snr)
     keep &= np.all(np.isfinite(a), axis=-1)
     t_s, names, a, var_a = t_s[keep], names[keep], a[keep], var_a[keep]
     imp = impact_from_amplitudes(a, model, var_a, on_zero="nan")
-    res = angles_from_points(imp.d_mm, model, imp.cov_d_mm2, imp.dd_dgains)
+    res = angles_from_points(imp.d_mm, model, imp.cov_d_mm2, imp.dd_dgains, derivatives=False)
     d = imp.d_mm
     res_d = np.sqrt(np.clip(np.diagonal(imp.cov_d_mm2, axis1=-2, axis2=-1), 0.0, None))
     alpha = res.alpha_rad * _DEG
@@ -675,7 +675,7 @@ def _aoa_chunk(chunk, out, path, header, use, idx, sig_cols, sidx, keep_cols, ke
         k = int(np.flatnonzero(off)[0])
         raise InputError(f"point ({d[k, 0]:.4g}, {d[k, 1]:.4g}) mm is off the {model.lx_mm:g} x {model.ly_mm:g} mm "
                          "sensor: no light reaches it there", path=path, line=body[k], field=use[0])
-    res = angles_from_points(d, model, cov_d, dd_dg)
+    res = angles_from_points(d, model, cov_d, dd_dg, derivatives=False)
     alpha = res.alpha_rad * _DEG
     sa = res.sigma_alpha_rad * _DEG
     cols = {c: np.array([e[j] for e in extra], dtype=object) for j, c in enumerate(keep_cols)}
