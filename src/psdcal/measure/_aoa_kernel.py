@@ -1,4 +1,4 @@
-"""Compiled angles of arrival with their covariance, one pass over the points.
+"""Compiled angles of arrival with their covariance, in blocks of points.
 
 The same mathematics as the numpy reference
 :func:`psdcal.measure.aoa.angles_from_points` (which stays the tested
@@ -7,8 +7,14 @@ reference): ``x = undistort(d)`` (Eq 7-16, explicit, no iteration),
 ``alpha = atan(n)`` (Eq 39), with the analytic derivatives of ``n`` by the
 calibration parameters and by ``d``, and both covariances
 ``dn/dp C dn/dp^T`` (as ``|B^T dn/dp^T|^2`` with a Cholesky factor ``B`` of
-``C``) and ``dn/dd Sigma_d dn/dd^T`` formed per point from scalars (no
-(N, 2, n_params) temporaries).
+``C``) and ``dn/dd Sigma_d dn/dd^T`` (no (N, 2, n_params) temporaries).
+
+The points go in blocks of :data:`BLOCK`: a block's model terms and
+derivative columns are written point-contiguous into one small scratch
+array (L1 cache), so that each step is a loop over the points of the block,
+which the compiler vectorises (SIMD) without fastmath: the same operations
+in the same order as per point, only several points at a time. The
+derivatives ``dn/dp`` are copied out only when asked for.
 """
 from __future__ import annotations
 
@@ -17,7 +23,6 @@ import math
 import numpy as np
 
 from psdcal._jit import njit
-from psdcal.calibration._image_kernel import _model_terms
 
 #: parameter codes of :func:`angles_kernel` (index into this tuple)
 PARAM_CODES = ("f_mm", "cx_mm", "cy_mm", "skew", "fy_mm", "k1", "k2", "k3", "p1", "p2", "l1", "l2",
@@ -84,9 +89,12 @@ def angles_kernel(d, intr, separate_fy, coef, codes, B, lower, cov_d, dd_dg, der
     if not has_noise:
         covn[:] = 0.0
     has_gain = dd_dg.shape[0] == N
-    # the 15 derivative columns of a block in PARAM_CODES order, point-contiguous: S[code, row, point]
-    S = np.zeros((15, 2, BLOCK))
-    D = np.empty((4, BLOCK))
+    k1, k2, k3, p1, p2, l1, l2 = coef[0], coef[1], coef[2], coef[3], coef[4], coef[5], coef[6]
+    # One scratch block W[row, point] (point-contiguous, a single array so that the compiler sees that
+    # its rows do not overlap and vectorises the loops over the points): rows 0-1 x, 2-3 n,
+    # 4-7 dn/dd, then the 15 derivative columns in PARAM_CODES order, row 8 + 2 code + (0 for xn, 1 for yn),
+    # rows 38-39 the points d of the block (copied first: reading d itself kept the main loop scalar)
+    W = np.zeros((8 + 2 * 15 + 2, BLOCK))
     w0 = np.empty(BLOCK)
     w1 = np.empty(BLOCK)
     c00 = np.empty(BLOCK)
@@ -95,59 +103,83 @@ def angles_kernel(d, intr, separate_fy, coef, codes, B, lower, cov_d, dd_dg, der
     for i0 in range(0, N, BLOCK):
         m = min(BLOCK, N - i0)
         for t in range(m):
-            i = i0 + t
-            d0, d1 = d[i, 0], d[i, 1]
-            x0, x1, h2, ex, ey, r2, G00, G01, G10, G11, U00, U01, U11 = _model_terms(d0, d1, coef, cx, cy)
+            W[38, t] = d[i0 + t, 0]
+            W[39, t] = d[i0 + t, 1]
+        for t in range(m):
+            d0, d1 = W[38, t], W[39, t]
+            # the undistortion model at d (Eq 7-16), as psdcal.calibration._image_kernel._model_terms
+            h2 = d0 * d0 + d1 * d1
+            sp = 1.0 + l1 * h2 + l2 * h2 * h2
+            ux, uy = d0 * sp, d1 * sp
+            ex, ey = ux - cx, uy - cy
+            r2 = ex * ex + ey * ey
+            rad = r2 * (k1 + r2 * (k2 + r2 * k3))
+            x0 = ux + ex * rad + p1 * (r2 + 2 * ex * ex) + 2 * p2 * ex * ey
+            x1 = uy + ey * rad + p2 * (r2 + 2 * ey * ey) + 2 * p1 * ex * ey
+            g = 2 * (k1 + r2 * (2 * k2 + 3 * k3 * r2))
+            G00 = rad + g * ex * ex + 6 * p1 * ex + 2 * p2 * ey
+            G01 = g * ex * ey + 2 * p1 * ey + 2 * p2 * ex
+            G10 = g * ex * ey + 2 * p2 * ex + 2 * p1 * ey
+            G11 = rad + g * ey * ey + 6 * p2 * ey + 2 * p1 * ex
+            ds = 2 * (l1 + 2 * l2 * h2)
+            U00 = sp + ds * d0 * d0
+            U01 = ds * d0 * d1
+            U11 = sp + ds * d1 * d1
             yn = (x1 - cy) / fy
             xn = (x0 - cx - s * yn) / f
-            x[i, 0], x[i, 1] = x0, x1
-            n[i, 0], n[i, 1] = xn, yn
+            W[0, t], W[1, t], W[2, t], W[3, t] = x0, x1, xn, yn
             # dx/dd = (I + G) U
             X00 = (1 + G00) * U00 + G01 * U01
             X01 = (1 + G00) * U01 + G01 * U11
             X10 = G10 * U00 + (1 + G11) * U01
             X11 = G10 * U01 + (1 + G11) * U11
-            D00 = a00 * X00 + a01 * X10
-            D01 = a00 * X01 + a01 * X11
-            D10 = a11 * X10
-            D11 = a11 * X11
-            D[0, t], D[1, t], D[2, t], D[3, t] = D00, D01, D10, D11
+            W[4, t] = a00 * X00 + a01 * X10
+            W[5, t] = a00 * X01 + a01 * X11
+            W[6, t] = a11 * X10
+            W[7, t] = a11 * X11
             r4 = r2 * r2
             # every derivative column, branch-free, in PARAM_CODES order
             if separate_fy:
-                S[0, 0, t], S[0, 1, t] = -xn / f, 0.0
+                W[8, t], W[9, t] = -xn / f, 0.0
             else:
-                S[0, 0, t], S[0, 1, t] = -xn / f + s * yn / (f * f), -yn / f
-            S[1, 0, t], S[1, 1, t] = a00 * -G00 + a01 * -G10 - 1.0 / f, a11 * -G10  # cx: dx/dc = -G
-            S[2, 0, t], S[2, 1, t] = a00 * -G01 + a01 * -G11 + s / (f * fy), a11 * -G11 - 1.0 / fy  # cy
-            S[3, 0, t], S[3, 1, t] = -yn / f, 0.0  # skew
+                W[8, t], W[9, t] = -xn / f + s * yn / (f * f), -yn / f
+            W[10, t], W[11, t] = a00 * -G00 + a01 * -G10 - 1.0 / f, a11 * -G10  # cx: dx/dc = -G
+            W[12, t], W[13, t] = a00 * -G01 + a01 * -G11 + s / (f * fy), a11 * -G11 - 1.0 / fy  # cy
+            W[14, t], W[15, t] = -yn / f, 0.0  # skew
             dyn = -yn / fy
-            S[4, 0, t], S[4, 1, t] = -s * dyn / f, dyn  # fy
+            W[16, t], W[17, t] = -s * dyn / f, dyn  # fy
             # distortion coefficients: n moves by A^-1 dx/dcoef
             u0, u1 = ex * r2, ey * r2  # k1
-            S[5, 0, t], S[5, 1, t] = a00 * u0 + a01 * u1, a11 * u1
+            W[18, t], W[19, t] = a00 * u0 + a01 * u1, a11 * u1
             u0, u1 = ex * r4, ey * r4  # k2
-            S[6, 0, t], S[6, 1, t] = a00 * u0 + a01 * u1, a11 * u1
+            W[20, t], W[21, t] = a00 * u0 + a01 * u1, a11 * u1
             u0, u1 = ex * r4 * r2, ey * r4 * r2  # k3
-            S[7, 0, t], S[7, 1, t] = a00 * u0 + a01 * u1, a11 * u1
+            W[22, t], W[23, t] = a00 * u0 + a01 * u1, a11 * u1
             u0, u1 = r2 + 2 * ex * ex, 2 * ex * ey  # p1
-            S[8, 0, t], S[8, 1, t] = a00 * u0 + a01 * u1, a11 * u1
+            W[24, t], W[25, t] = a00 * u0 + a01 * u1, a11 * u1
             u0, u1 = 2 * ex * ey, r2 + 2 * ey * ey  # p2
-            S[9, 0, t], S[9, 1, t] = a00 * u0 + a01 * u1, a11 * u1
+            W[26, t], W[27, t] = a00 * u0 + a01 * u1, a11 * u1
             # PSD terms act through u = d s: dx/dl = (I + G) d h2^(j+1)
             u0, u1 = (1 + G00) * d0 * h2 + G01 * d1 * h2, G10 * d0 * h2 + (1 + G11) * d1 * h2  # l1
-            S[10, 0, t], S[10, 1, t] = a00 * u0 + a01 * u1, a11 * u1
+            W[28, t], W[29, t] = a00 * u0 + a01 * u1, a11 * u1
             hp = h2 * h2
             u0, u1 = (1 + G00) * d0 * hp + G01 * d1 * hp, G10 * d0 * hp + (1 + G11) * d1 * hp  # l2
-            S[11, 0, t], S[11, 1, t] = a00 * u0 + a01 * u1, a11 * u1
-            if has_gain:  # gains act through d
-                for j in range(3):
-                    g0, g1 = dd_dg[i, 0, j], dd_dg[i, 1, j]
-                    S[12 + j, 0, t], S[12 + j, 1, t] = D00 * g0 + D01 * g1, D10 * g0 + D11 * g1
+            W[30, t], W[31, t] = a00 * u0 + a01 * u1, a11 * u1
+        if has_gain:  # gains act through d: dn/dg = dn/dd dd/dg
+            gb = dd_dg[i0:i0 + m]
+            for j in range(3):
+                for t in range(m):
+                    g0, g1 = gb[t, 0, j], gb[t, 1, j]
+                    W[32 + 2 * j, t] = W[4, t] * g0 + W[5, t] * g1
+                    W[33 + 2 * j, t] = W[6, t] * g0 + W[7, t] * g1
         for t in range(m):
             i = i0 + t
-            alpha[i, 0], alpha[i, 1] = math.atan(n[i, 0]), math.atan(n[i, 1])  # Eq 39
-            dn_dd[i, 0, 0], dn_dd[i, 0, 1], dn_dd[i, 1, 0], dn_dd[i, 1, 1] = D[0, t], D[1, t], D[2, t], D[3, t]
+            x[i, 0], x[i, 1] = W[0, t], W[1, t]
+            n[i, 0], n[i, 1] = W[2, t], W[3, t]
+            dn_dd[i, 0, 0], dn_dd[i, 0, 1], dn_dd[i, 1, 0], dn_dd[i, 1, 1] = W[4, t], W[5, t], W[6, t], W[7, t]
+        for t in range(m):
+            i = i0 + t
+            alpha[i, 0], alpha[i, 1] = math.atan(W[2, t]), math.atan(W[3, t])  # Eq 39
         # cov_calib = dn_dp C dn_dp^T = |B^T v|^2 with C = B B^T (B lower triangular: half the products),
         # over the points of the block
         for t in range(m):
@@ -160,10 +192,10 @@ def angles_kernel(d, intr, separate_fy, coef, codes, B, lower, cov_d, dd_dg, der
                 w1[t] = 0.0
             for k in range(j if lower else 0, P):
                 bkj = B[k, j]
-                r = codes[k]
+                r = 8 + 2 * codes[k]
                 for t in range(m):
-                    w0[t] += S[r, 0, t] * bkj
-                    w1[t] += S[r, 1, t] * bkj
+                    w0[t] += W[r, t] * bkj
+                    w1[t] += W[r + 1, t] * bkj
             for t in range(m):
                 c00[t] += w0[t] * w0[t]
                 c01[t] += w0[t] * w1[t]
@@ -174,7 +206,7 @@ def angles_kernel(d, intr, separate_fy, coef, codes, B, lower, cov_d, dd_dg, der
         if has_noise:
             for t in range(m):
                 i = i0 + t
-                D00, D01, D10, D11 = D[0, t], D[1, t], D[2, t], D[3, t]
+                D00, D01, D10, D11 = W[4, t], W[5, t], W[6, t], W[7, t]
                 s00, s01, s10, s11 = cov_d[i, 0, 0], cov_d[i, 0, 1], cov_d[i, 1, 0], cov_d[i, 1, 1]
                 m00, m01 = D00 * s00 + D01 * s10, D00 * s01 + D01 * s11
                 m10, m11 = D10 * s00 + D11 * s10, D10 * s01 + D11 * s11
@@ -186,6 +218,7 @@ def angles_kernel(d, intr, separate_fy, coef, codes, B, lower, cov_d, dd_dg, der
             for t in range(m):
                 i = i0 + t
                 for k in range(P):
-                    dn_dp[i, 0, k] = S[codes[k], 0, t]
-                    dn_dp[i, 1, k] = S[codes[k], 1, t]
+                    r = 8 + 2 * codes[k]
+                    dn_dp[i, 0, k] = W[r, t]
+                    dn_dp[i, 1, k] = W[r + 1, t]
     return x, n, alpha, covc, covn, dn_dp, dn_dd
