@@ -215,10 +215,9 @@ def angles_kernel(d, intr, separate_fy, coef, codes, B, lower, cov_d, dd_dg, der
                 covn[i, 1, 0] = m10 * D00 + m11 * D01
                 covn[i, 1, 1] = m10 * D10 + m11 * D11
         if derivatives:
-            for t in range(m):
-                i = i0 + t
-                for k in range(P):
-                    r = 8 + 2 * codes[k]
-                    dn_dp[i, 0, k] = W[r, t]
-                    dn_dp[i, 1, k] = W[r + 1, t]
+            for k in range(P):
+                r = 8 + 2 * codes[k]
+                for t in range(m):
+                    dn_dp[i0 + t, 0, k] = W[r, t]
+                    dn_dp[i0 + t, 1, k] = W[r + 1, t]
     return x, n, alpha, covc, covn, dn_dp, dn_dd
