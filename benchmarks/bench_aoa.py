@@ -7,11 +7,13 @@ covariances, with the derivatives dn/dp (the default) and without them,
 undistortion (``psdcal.model.distortion.undistort``) and OpenCV's
 ``cv2.undistortPoints`` (default, inexact iterations) on the same points.
 "Angles only" runs the kernel with an empty parameter list (no covariance):
-the covariance part's cost is the difference.
+the covariance part's cost is the difference. The whole table is measured
+``--runs`` times; the rates and the ratios (each taken within one run) are
+medians over the runs.
 
 Usage::
 
-    .venv/bin/python benchmarks/bench_aoa.py [--points 1000000] [--markdown]
+    .venv/bin/python benchmarks/bench_aoa.py [--points 1000000] [--runs 3] [--markdown]
 """
 from __future__ import annotations
 
@@ -59,6 +61,7 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--points", type=int, default=1_000_000)
     ap.add_argument("--markdown", action="store_true")
+    ap.add_argument("--runs", type=int, default=3, help="repeats of the whole table (medians reported)")
     a = ap.parse_args(argv)
     import cv2
 
@@ -79,22 +82,32 @@ def main(argv=None) -> int:
     coef = np.ascontiguousarray(m.distortion.as_array())
     vals = np.array([intr.f_mm, intr.cx_mm, intr.cy_mm, intr.skew, intr.fy])
     nref = min(a.points, 200_000)
-    rows = [
-        ("angles_from_points + both covariances + derivatives (compiled)",
-         _rate(_chunked(lambda dd, cc: angles_from_points(dd, m, cc), d, cov), a.points)),
+    cases = [
+        ("angles_from_points + both covariances + derivatives dn/dp (default)",
+         _chunked(lambda dd, cc: angles_from_points(dd, m, cc), d, cov), a.points),
         ("angles_from_points + both covariances, derivatives=False",
-         _rate(_chunked(lambda dd, cc: angles_from_points(dd, m, cc, derivatives=False), d, cov), a.points)),
+         _chunked(lambda dd, cc: angles_from_points(dd, m, cc, derivatives=False), d, cov), a.points),
         ("angles only (kernel, no parameters)",
-         _rate(_chunked(lambda dd: angles_kernel(dd, vals, True, coef, np.zeros(0, np.int64), np.zeros((0, 0)), True,
-                                                 np.zeros((0, 2, 2)), np.zeros((0, 2, 3)), False), d), a.points)),
-        ("angles_from_points, all points in one call", _rate(lambda: angles_from_points(d, m, cov), a.points)),
-        ("numpy reference (angles_from_points_reference)", _rate(lambda: angles_from_points_reference(d[:nref], m, cov[:nref]), nref)),
-        ("bare undistort (numpy)", _rate(lambda: undistort(d, m.distortion, intr.c), a.points)),
-        ("cv2.undistortPoints (default iterations)", _rate(lambda: cv2.undistortPoints(px, K, np.array([-0.1, 0.01, 0, 0, 0])), a.points)),
+         _chunked(lambda dd: angles_kernel(dd, vals, True, coef, np.zeros(0, np.int64), np.zeros((0, 0)), True,
+                                           np.zeros((0, 2, 2)), np.zeros((0, 2, 3)), False), d), a.points),
+        ("angles_from_points (default), all points in one call", lambda: angles_from_points(d, m, cov), a.points),
+        ("numpy reference (angles_from_points_reference)",
+         lambda: angles_from_points_reference(d[:nref], m, cov[:nref]), nref),
+        ("bare undistort (numpy)", lambda: undistort(d, m.distortion, intr.c), a.points),
+        ("cv2.undistortPoints (default iterations)",
+         lambda: cv2.undistortPoints(px, K, np.array([-0.1, 0.01, 0, 0, 0])), a.points),
     ]
-    ref = rows[0][1]
-    print(f"{a.points} points in calls of {CHUNK} (unless stated), one core; model {', '.join(m.names)}")
-    print_table(("what", "M points/s", "relative to psdcal"), [(w, f"{r / 1e6:.2f}", f"{r / ref:.2f}") for w, r in rows], a.markdown)
+    # whole table `runs` times; each ratio is taken within one run, then the medians are reported
+    rates = np.array([[_rate(fn, npts) for _, fn, npts in cases] for _ in range(a.runs)])
+    i_ang, i_cv = 2, len(cases) - 1
+    med = np.median(rates, axis=0)
+    vs_ang = np.median(rates / rates[:, i_ang:i_ang + 1], axis=0)
+    vs_cv = np.median(rates / rates[:, i_cv:i_cv + 1], axis=0)
+    print(f"{a.points} points in calls of {CHUNK} (unless stated), one core; model {', '.join(m.names)}; "
+          f"median of {a.runs} runs")
+    print_table(("what", "M points/s", "/ angles only", "/ cv2.undistortPoints"),
+                [(w, f"{r / 1e6:.2f}", f"{x:.2f}", f"{y:.2f}") for (w, _, _), r, x, y in zip(cases, med, vs_ang, vs_cv)],
+                a.markdown)
     return 0
 
 
