@@ -44,7 +44,7 @@ def covariance_factor(C):
 
 #: points per block: the derivative columns of a block stay in L1 cache, point-contiguous, so that the
 #: quadratic form and the covariance loops run over the points of a block (SIMD, no fastmath needed)
-BLOCK = 64
+BLOCK = 128
 
 
 @njit
