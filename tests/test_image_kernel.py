@@ -19,6 +19,13 @@ from psdcal.study.simulate import simulate_set
 
 pytestmark = pytest.mark.skipif(not _jit.enabled(), reason="numba not available or PSDCAL_JIT=0")
 
+
+@pytest.fixture(autouse=True)
+def _compiled_always(monkeypatch):
+    """The library's default mode: an in-process `psdcal calibrate` of an earlier test leaves "auto", where
+    these small problems go to the numpy path unless another module happened to load the kernels."""
+    monkeypatch.setattr(_jit, "_MODE", "always")
+
 SPECS = [
     ModelSpec(radial=3, tangential=True, psd_radial=2, skew=True),
     ModelSpec(radial=2, tangential=False, aspect=True),
