@@ -19,6 +19,7 @@ cross-check, see the tests).
 """
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -189,6 +190,10 @@ class Evaluator:
         self._kernel = self._tkernel = self._normal = None  # compiled image / template cost
         self._blocks = None  # compiled block normal equations
         self._ckey = self._cval = None
+        #: with the compiled image cost, evaluate the Jacobian with the residuals of every trial point
+        #: (set by :func:`refine`): most LM steps are accepted, and the Jacobian at an accepted point then
+        #: costs nothing more than its residuals did, instead of a second pass over the points
+        self.trial_jacobians = False
         if prob.cost == "image" or not prob.spec.fit_gains:
             from psdcal import _jit
 
@@ -221,6 +226,8 @@ class Evaluator:
         key = z.tobytes()
         if key == self._key:
             return self._val[0]
+        if self.trial_jacobians and self._kernel is not None:
+            return self.evaluate_compact(z)[0]
         if self.prob.cost == "image":
             r = (self.model_points(z) - self.d_meas).ravel()
         elif self._tkernel is not None:
@@ -291,7 +298,11 @@ class Evaluator:
 
     def jacobian_compact(self, z):
         """The compact block Jacobian (2N, n_global + 6) at ``z`` (see :meth:`evaluate_compact`)."""
-        return self.evaluate_compact(z)[1]
+        Jc = self.evaluate_compact(z)[1]
+        if self.trial_jacobians and self._kernel is not None and self._dkey == z.tobytes():
+            # LM asks for the Jacobian at accepted points only: the next Newton inverses start from here
+            self._anchor = self._dval
+        return Jc
 
     def block_system(self, Jc, r):
         """The normal equations ``J^T J``, ``J^T r`` of a compact Jacobian as a :class:`BlockNormal`."""
@@ -372,7 +383,7 @@ class Evaluator:
             self._gmap, want_jac, 1e-13, 50, self._gain_basis,
         )
         self._dkey, self._dval, self._yval = key, d, y
-        if want_jac:
+        if want_jac and not self.trial_jacobians:  # with trial Jacobians: only at accepted points (jacobian_compact)
             self._anchor = d
         return y, J
 
@@ -752,6 +763,7 @@ def refine(prob: Problem, intr0: Intrinsics, dist0: Distortion, gains0, rvecs0, 
         from psdcal.errors import DegenerateViewsError
 
         raise DegenerateViewsError(f"{m // 2} observed points give {m} equations for {n} unknowns: add images or points")
+    ev.trial_jacobians = True
     with _single_threaded_blas():
         sol = levenberg_marquardt(ev.residuals, ev.jacobian_compact, z0, options, normal=ev.block_system)
         r, Jc = ev.evaluate_compact(sol.x)
@@ -760,18 +772,43 @@ def refine(prob: Problem, intr0: Intrinsics, dist0: Distortion, gains0, rvecs0, 
 
 def _single_threaded_blas():
     """Small dense problems run fastest on one BLAS thread (and do not fight
-    other processes of a Monte Carlo run for cores)."""
+    other processes of a Monte Carlo run for cores).
+
+    Nested uses (a refinement inside a calibration) cost nothing: only the
+    outermost one asks threadpoolctl (about 50 us per call when the limit is
+    already set)."""
+    import contextlib
+
     global _CONTROLLER
+    if getattr(_DEPTH, "n", 0) > 0:
+        return _counted(contextlib.nullcontext())
     try:
         if _CONTROLLER is None:
             from threadpoolctl import ThreadpoolController
 
             _CONTROLLER = ThreadpoolController()
-        return _CONTROLLER.limit(limits=1, user_api="blas")
+        return _counted(_CONTROLLER.limit(limits=1, user_api="blas"))
     except Exception:  # threadpoolctl missing or unable to introspect: run as is
-        import contextlib
+        return _counted(contextlib.nullcontext())
 
-        return contextlib.nullcontext()
+
+_DEPTH = threading.local()  # .n: how many _single_threaded_blas contexts this thread has open
+
+
+class _counted:
+    """A context that counts itself in :data:`_DEPTH` around another one."""
+
+    def __init__(self, inner):
+        self.inner = inner
+
+    def __enter__(self):
+        self.inner.__enter__()
+        _DEPTH.n = getattr(_DEPTH, "n", 0) + 1
+        return self
+
+    def __exit__(self, *exc):
+        _DEPTH.n -= 1
+        return self.inner.__exit__(*exc)
 
 
 _CONTROLLER = None

@@ -341,6 +341,30 @@ def _plain(v):
     return v.item() if isinstance(v, np.generic) else v
 
 
+def _plain_ids(ids) -> tuple:
+    """``ids`` as a tuple of plain Python values (numpy scalars converted)."""
+    ids = tuple(ids)
+    return tuple(_plain(v) for v in ids) if any(isinstance(v, np.generic) for v in ids) else ids
+
+
+def _frozen(a) -> np.ndarray:
+    """A read-only float copy of ``a``."""
+    out = np.array(a, dtype=float)
+    out.flags.writeable = False
+    return out
+
+
+def points_from_record(xy) -> np.ndarray:
+    """The measured points (n_images, M, 2) of a problem record's ``points.xy_mm``, mm, NaN where missing.
+
+    Accepts the array kept in a :class:`CalibrationResult` and the nested lists
+    (``null`` for a missing coordinate) of its JSON file.
+    """
+    if isinstance(xy, np.ndarray):
+        return np.array(xy, dtype=float)
+    return np.array([[[np.nan if v is None else v for v in pt] for pt in img] for img in xy], dtype=float)
+
+
 def _jsonable(obj):
     if isinstance(obj, dict):
         return {str(k): _jsonable(v) for k, v in obj.items()}
@@ -580,10 +604,14 @@ def _calibrate(template_mm, points_mm, *, cost, radial, tangential, psd_radial, 
     # Every start is refined on the image cost with the core model (or the model itself
     # when it has nothing beyond the core); the lowest cost wins (global minimum).
     first = staged if staged is not None else spec
-    pfirst = Problem(T, X, first, cost="image", sensor_mm=tuple(sensor_mm))
+    # Many points per view (a chessboard): the starts are compared on a spread subset of each view's points
+    # (the basins of the cost are those of the whole set), and the final refinement takes every point.
+    Xs = subsample_views(T, X)
+    sub = Xs is not None
+    pfirst = Problem(T, X if Xs is None else Xs, first, cost="image", sensor_mm=tuple(sensor_mm))
     # a start stage only seeds the final refinement: looser tolerances (_stage_solver) unless it is the final one
-    tried = _refine_starts(pfirst, first, cands, g0_start,
-                           solver if (staged is None and cost == "image") else _stage_solver(solver))
+    final_start = staged is None and cost == "image" and not sub
+    tried = _refine_starts(pfirst, first, cands, g0_start, solver if final_start else _stage_solver(solver))
     good = [t for t in tried if t[2]]
     if not good:
         good = [t for t in tried if np.isfinite(t[1].cost_rms)]
@@ -596,12 +624,14 @@ def _calibrate(template_mm, points_mm, *, cost, radial, tangential, psd_radial, 
     start_record = {"starts": [{"start": lb, "cost_rms": float(r.cost_rms), "converged": bool(r.converged), "f_mm": float(r.intrinsics.f_mm),
                                 "cx_mm": float(r.intrinsics.cx_mm), "cy_mm": float(r.intrinsics.cy_mm)} for lb, r, _ in tried],
                     "chosen": label}
+    if sub:
+        start_record["points_per_view"] = SUBSAMPLE_POINTS
     intr0 = best0.intrinsics
     if aspect and intr0.fy_mm is None:
         intr0 = replace(intr0, fy_mm=intr0.f_mm)
     dist0 = Distortion.from_array(best0.coeffs)
     rv0, tv0 = best0.rvecs, best0.tvecs
-    final_done = best0 if (staged is None and cost == "image") else None
+    final_done = best0 if final_start else None
     if spec.psd_radial > 0:
         best = _psd_multistart(T, X, spec, sensor_mm, start, intr0, dist0, g0, rv0, tv0, solver)
         if best is not None:
@@ -637,6 +667,48 @@ def _calibrate(template_mm, points_mm, *, cost, radial, tangential, psd_radial, 
             result=result,
         )
     return result
+
+
+#: Points per view on which the starts of the refinement are compared when a view has more than twice as
+#: many (:func:`subsample_views`); the final refinement always takes every point.
+SUBSAMPLE_POINTS = 32
+
+
+def subsample_views(T, X, k: int = SUBSAMPLE_POINTS):
+    """``X`` with all but about ``k`` spread points of each view set to NaN; None when no view has more than ``2 k``.
+
+    The points are chosen once on the template: the one nearest the centre of
+    each cell of a ``g x g`` grid over the plate, ``g = ceil(sqrt(k))``, so they
+    cover the whole plate, corners included (where distortion shows most). A
+    view that keeps fewer than ``k / 2`` of them (a partly seen template)
+    keeps all its points.
+
+    Parameters
+    ----------
+    T : (M, 2) template points, mm
+    X : (n_images, M, 2) measured points, mm, NaN where missing
+    """
+    T = np.asarray(T, dtype=float)
+    valid = np.all(np.isfinite(X), axis=-1)  # (n_images, M)
+    if T.shape[0] <= 2 * k or not np.any(valid.sum(axis=1) > 2 * k):
+        return None
+    # one point per cell of a g x g grid over the plate (the one nearest the cell's centre)
+    g = int(np.ceil(np.sqrt(k)))
+    lo, hi = T.min(axis=0), T.max(axis=0)
+    size = np.where(hi > lo, (hi - lo) / g, 1.0)
+    cell = np.minimum(((T - lo) / size).astype(np.int64), g - 1)
+    off = np.sum(((T - lo) / size - cell - 0.5) ** 2, axis=1)
+    key = cell[:, 0] * g + cell[:, 1]
+    order = np.lexsort((off, key))
+    first = np.ones(order.size, dtype=bool)
+    first[1:] = key[order[1:]] != key[order[:-1]]
+    chosen = np.zeros(T.shape[0], dtype=bool)
+    chosen[order[first]] = True
+    keep = valid & chosen[None, :]
+    few = (keep.sum(axis=1) < k // 2) | (valid.sum(axis=1) <= 2 * k)
+    keep[few] = valid[few]
+    Xs = np.where(keep[..., None], X, np.nan)
+    return Xs
 
 
 #: LM iterations a further start runs before it is compared with the best solution so far
@@ -1034,9 +1106,11 @@ def _make_result(prob, ref, start, ids, pids, spec, cost, g0, preliminary, norma
         "closed_form": {**start.intrinsics.to_dict(), "normalized": bool(normalize)},
         "initial_extrinsics": [{"image_id": _plain(i), "rvec": r.tolist(), "tvec_mm": t.tolist()} for i, r, t in zip(ids, start.rvecs, start.tvecs_mm)],
     }
+    pids = _plain_ids(pids)
+    # the inputs are kept as (read-only) arrays; to_dict() writes them as lists, NaN as null
     problem = {
-        "template": {"point_ids": [_plain(p) for p in pids], "xy_mm": prob.template_mm.tolist()},
-        "points": {"image_ids": [_plain(i) for i in ids], "xy_mm": _jsonable(X)},
+        "template": {"point_ids": list(pids), "xy_mm": _frozen(prob.template_mm)},
+        "points": {"image_ids": [_plain(i) for i in ids], "xy_mm": _frozen(X)},
         "options": {
             "cost": cost,
             "radial": spec.radial,
@@ -1062,7 +1136,7 @@ def _make_result(prob, ref, start, ids, pids, spec, cost, g0, preliminary, norma
         covariance=cov,
         std=std,
         image_ids=tuple(_plain(i) for i in ids),
-        point_ids=tuple(_plain(p) for p in pids),
+        point_ids=pids,
         rvecs=ref.rvecs,
         tvecs_mm=ref.tvecs,
         pose_std=pose_std,
@@ -1095,7 +1169,7 @@ def _calibrate_record(calib, *, verdict: bool = False, template_mm=None, drop_im
 
         return recalibrate_directions(d)
     o = {**p["options"], **changes}
-    X = np.array([[[np.nan if v is None else v for v in pt] for pt in img] for img in p["points"]["xy_mm"]], dtype=float)
+    X = points_from_record(p["points"]["xy_mm"])
     image_ids = list(p["points"]["image_ids"])
     if drop_image is not None:
         X = np.delete(X, drop_image, axis=0)

@@ -228,6 +228,10 @@ def undetermined_parameters(res, points) -> None:
                 k = np.argsort(-np.abs(v[:, 0]))[:2]
                 sub = [n for n, o in zip(names, ok) if o]
                 bad = [sub[i] for i in k]
+    if not bad:
+        from psdcal.calibration.checks import undetermined_parameters as undetermined
+
+        bad = undetermined(res)  # the same from the reduced information: robust to what round-off made of C
     if bad:
         raise DegenerateViewsError(
             f"{points}: the views do not determine {', '.join(bad)} (their covariance is not a covariance: the "
