@@ -34,7 +34,8 @@ def collinearity_batch(pts, valid) -> np.ndarray:
     (n,) ndarray: smaller over larger singular value of each set's centred
     valid points (0 = collinear, and for sets with no spread or no point).
     The invalid rows are zeroed after centring, which leaves the singular
-    values unchanged: one batched SVD replaces n small ones.
+    values unchanged; they come from each set's 2 x 2 scatter matrix in
+    closed form (the smaller one summed across the principal direction).
     """
     pts = np.asarray(pts, dtype=float)
     valid = np.asarray(valid, dtype=bool)
@@ -42,10 +43,19 @@ def collinearity_batch(pts, valid) -> np.ndarray:
     cnt = np.maximum(valid.sum(axis=1), 1)[:, None]
     mean = np.where(w, pts, 0.0).sum(axis=1) / cnt
     centred = np.where(w, pts - mean[:, None, :], 0.0)
-    s = np.linalg.svd(centred, compute_uv=False)  # (n, 2), descending
-    out = np.zeros(s.shape[0])
-    pos = s[:, 0] > 0
-    out[pos] = s[pos, -1] / s[pos, 0]
+    # singular values of the centred points: square roots of the eigenvalues of their 2 x 2 scatter matrix
+    a = np.einsum("nm,nm->n", centred[..., 0], centred[..., 0])
+    b = np.einsum("nm,nm->n", centred[..., 0], centred[..., 1])
+    c = np.einsum("nm,nm->n", centred[..., 1], centred[..., 1])
+    # the smaller eigenvalue as the scatter across the principal direction, summed from the points
+    # themselves (no cancellation: exact to round-off relative to itself, even for nearly collinear sets)
+    theta = 0.5 * np.arctan2(2.0 * b, a - c)
+    across = centred[..., 1] * np.cos(theta)[:, None] - centred[..., 0] * np.sin(theta)[:, None]
+    lam_min = np.einsum("nm,nm->n", across, across)
+    lam_max = a + c - lam_min
+    out = np.zeros(a.shape[0])
+    pos = lam_max > 0
+    out[pos] = np.sqrt(lam_min[pos] / lam_max[pos])
     return out
 
 
@@ -145,7 +155,9 @@ def homographies(src, dst, *, normalize: bool = True, labels=None) -> np.ndarray
     rows_x = np.stack([X, Y, one, zero, zero, zero, -x * X, -x * Y, -x * one], axis=-1)
     rows_y = np.stack([zero, zero, zero, X, Y, one, -y * X, -y * Y, -y * one], axis=-1)
     A = np.concatenate([rows_x, rows_y], axis=1)  # (n, 2M, 9)
-    _, s, Vt = np.linalg.svd(A, full_matrices=False)  # U is never used: keep memory O(points)
+    # the SVD of the (9, 9) triangular factor of A: the same singular values and right vectors as A's,
+    # without A's (2M, 9) left vectors
+    _, s, Vt = np.linalg.svd(np.linalg.qr(A, mode="r"))
     bad = s[:, 7] <= 1e-12 * s[:, 0]
     if np.any(bad):
         i = int(np.flatnonzero(bad)[0])

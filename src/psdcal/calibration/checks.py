@@ -291,7 +291,9 @@ def undetermined_parameters(result) -> list[str]:
         return list(names)
     w, vec = np.linalg.eigh(0.5 * (Ss + Ss.T))
     sub = [n for n, k in zip(names, keep) if k]
-    for j in np.flatnonzero(w < UNDETERMINED_EIGENVALUE):
+    # at round-off, of either sign: an exact trade-off. A clearly negative eigenvalue is a solution that is
+    # itself broken (a pose with next to no information, a focal length near 0): the verdict names its cause.
+    for j in np.flatnonzero(np.abs(w) < UNDETERMINED_EIGENVALUE):
         for i in np.argsort(-np.abs(vec[:, j]))[:2]:
             if sub[i] not in out:
                 out.append(sub[i])

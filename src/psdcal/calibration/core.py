@@ -30,6 +30,9 @@ COSTS = ("image", "template")
 #: The line-straightness step uses at most this many template lines (the longest):
 #: a dense grid (Zhang's 256 corners) has hundreds, mostly short diagonals.
 MAX_STRAIGHTNESS_LINES = 40
+#: ... and at most this many points of each line (spread along it, both ends kept): the curvature of a
+#: line is fixed by a few of its points, and a 16-point chessboard row costs twice 8 for no better start.
+MAX_LINE_POINTS = 8
 _ALL_INTR = ("f_mm", "cx_mm", "cy_mm", "skew")
 
 
@@ -106,7 +109,7 @@ def initial_estimate(
     n_lines = 0
     c0 = np.zeros(2)
     if preliminary and radial_terms > 0:
-        lines = find_lines(T, max_lines=MAX_STRAIGHTNESS_LINES)
+        lines = _straightness_lines(T)
         if lines:
             st = estimate_radial(X, lines, c_mm=c0, n_terms=min(2, radial_terms))
             k[: st.k.size] = st.k
@@ -123,6 +126,51 @@ def initial_estimate(
             f"C = ({intr.cx_mm:.3g}, {intr.cy_mm:.3g}) mm): tilt the template differently between views"
         )
     return InitialEstimate(k, n_lines, Hs, intr, *poses_from_homographies(Hs, intr))
+
+
+_LINES_CACHE: dict = {}
+
+
+def _straightness_lines(T) -> list:
+    """The template lines of the straightness step, thinned (:func:`_thin_lines`); cached per template."""
+    key = (T.shape, T.tobytes(), MAX_STRAIGHTNESS_LINES, MAX_LINE_POINTS)
+    hit = _LINES_CACHE.get(key)
+    if hit is None:
+        hit = _thin_lines(T, find_lines(T, max_lines=MAX_STRAIGHTNESS_LINES), MAX_LINE_POINTS)
+        if len(_LINES_CACHE) >= 8:
+            _LINES_CACHE.pop(next(iter(_LINES_CACHE)))
+        _LINES_CACHE[key] = hit
+    return [ln.copy() for ln in hit]
+
+
+def _thin_lines(T, lines, k: int) -> list:
+    """The lines with at most ``k`` indices each, spread evenly along the line (both ends kept), sorted.
+
+    All lines at once: each line's direction is the principal axis of its
+    points (2 x 2 scatter in closed form), its points are ordered along it
+    and ``k`` of them taken at evenly spaced ranks.
+    """
+    lines = [np.asarray(ln) for ln in lines]
+    if not lines or max(ln.size for ln in lines) <= k:
+        return lines
+    n = np.array([ln.size for ln in lines])
+    start = np.concatenate([[0], np.cumsum(n)[:-1]])
+    idx = np.concatenate(lines)
+    owner = np.repeat(np.arange(len(lines)), n)
+    P = T[idx]
+    P = P - (np.add.reduceat(P, start, axis=0) / n[:, None])[owner]
+    sxx, sxy, syy = (np.add.reduceat(P[:, 0] * P[:, 0], start), np.add.reduceat(P[:, 0] * P[:, 1], start),
+                     np.add.reduceat(P[:, 1] * P[:, 1], start))
+    theta = 0.5 * np.arctan2(2 * sxy, sxx - syy)[owner]
+    order = np.lexsort((P[:, 0] * np.cos(theta) + P[:, 1] * np.sin(theta), owner))  # by line, then along it
+    out = []
+    for j, ln in enumerate(lines):
+        if ln.size <= k:
+            out.append(ln)
+            continue
+        along = idx[order[start[j]: start[j] + n[j]]]
+        out.append(np.sort(along[np.round(np.linspace(0, n[j] - 1, k)).astype(int)]))
+    return out
 
 
 @dataclass(frozen=True)
