@@ -119,7 +119,10 @@ def homographies(src, dst, *, normalize: bool = True, labels=None) -> np.ndarray
     labels = [f"image {i}" for i in range(n)] if labels is None else list(labels)
     ok = np.all(np.isfinite(dst), axis=-1)  # (n, M)
     n_valid = ok.sum(axis=1)
-    flat = np.minimum(collinearity_batch(np.broadcast_to(src, dst.shape), ok), collinearity_batch(dst, ok)) < 1e-6  # (n,)
+    all_seen = bool(ok.all())  # every view sees every point: the template's own terms are the same for all views
+    flat_src = (collinearity_batch(src[None], ok[:1]) if all_seen else
+                collinearity_batch(np.broadcast_to(src, dst.shape), ok))
+    flat = np.minimum(flat_src, collinearity_batch(dst, ok)) < 1e-6  # (n,)
     # the first view that fails either test names the error, as a loop over the views would
     for i in np.flatnonzero((n_valid < 4) | flat)[:1]:
         if n_valid[i] < 4:
@@ -131,20 +134,24 @@ def homographies(src, dst, *, normalize: bool = True, labels=None) -> np.ndarray
     src_n = np.broadcast_to(src, dst.shape)
     if normalize:
         # per-view similarities of both point sets (Hartley), over the valid points
-        def norm_mats(p):  # p (n, M, 2), finite
+        def norm_mats(p, w=w, cnt=cnt):  # p (k, M, 2), finite
             mean = np.einsum("nm,nmk->nk", w, p) / cnt[:, None]
             d = p - mean[:, None]
             dist = np.einsum("nm,nm->n", w, np.hypot(d[..., 0], d[..., 1])) / cnt
             s = np.sqrt(2.0) / dist
-            T = np.zeros((n, 3, 3))
+            T = np.zeros((p.shape[0], 3, 3))
             T[:, 0, 0] = T[:, 1, 1] = s
             T[:, :2, 2] = -s[:, None] * mean
             T[:, 2, 2] = 1.0
             return T
 
-        Tp = norm_mats(np.array(src_n))  # a copy (order "K"), summed in the same order as before
+        if all_seen:  # one similarity and one normalised template for all views
+            Tp = np.broadcast_to(norm_mats(np.array(src_n[:1]), w[:1], cnt[:1]), (n, 3, 3))
+            p = np.broadcast_to(src @ Tp[0, :2, :2].T + Tp[0, :2, 2], dst.shape)
+        else:
+            Tp = norm_mats(np.array(src_n))  # a copy (order "K"), summed in the same order as before
+            p = np.einsum("nij,nmj->nmi", Tp[:, :2, :2], src_n) + Tp[:, None, :2, 2]
         Tq = norm_mats(dst0)
-        p = np.einsum("nij,nmj->nmi", Tp[:, :2, :2], src_n) + Tp[:, None, :2, 2]
         q = np.einsum("nij,nmj->nmi", Tq[:, :2, :2], dst0) + Tq[:, None, :2, 2]
     else:
         p = src_n

@@ -168,7 +168,7 @@ def _newton(x0, x1, sx, sy, coef, cx, cy, tol, max_iter):
     for it in range(max_iter + 1):
         a0, a1, J00, J01, J10, J11 = _undistort_point(d0, d1, coef, cx, cy)
         r0, r1 = a0 - x0, a1 - x1
-        e = math.hypot(r0, r1)
+        e = math.sqrt(r0 * r0 + r1 * r1)
         if not (e < prev) and prev < math.inf:
             # the last step made things worse: take back half of it
             st0 *= 0.5
@@ -274,7 +274,7 @@ def image_model(P, img, theta, separate_fy, poses, warm, meas, gmap, want_jac, t
         xn, yn = pcx / pcz, pcy / pcz
         x0 = f * xn + sk * yn + cx  # Eq 4
         x1 = fy * yn + cy
-        tol = tol_mm * max(1.0, math.hypot(x0, x1))
+        tol = tol_mm * max(1.0, math.sqrt(x0 * x0 + x1 * x1))
         conv = False
         d0 = d1 = math.nan
         for attempt in range(3):

@@ -649,9 +649,7 @@ class BlockNormal:
         ng = self.n_global
         dg, dp = damp[:ng], damp[ng:].reshape(-1, 6)
         if self.compiled:
-            from psdcal.calibration._image_kernel import schur_solve
-
-            ok, hg, hp = schur_solve(self.U, self.W, self.V, self.gg, self.gp, dg, dp)
+            ok, hg, hp = _kernels().schur_solve(self.U, self.W, self.V, self.gg, self.gp, dg, dp)
         else:
             ok, hg, hp = schur_solve_reference(self.U, self.W, self.V, self.gg, self.gp, dg, dp)
         if not ok:
@@ -690,6 +688,19 @@ class BlockNormal:
             A[sl, :ng] = self.W[v].T
             A[sl, sl] = self.V[v]
         return A
+
+
+def _kernels():
+    """The compiled kernels' module (:mod:`psdcal.calibration._image_kernel`), imported once."""
+    global _KERNELS
+    if _KERNELS is None:
+        from psdcal.calibration import _image_kernel
+
+        _KERNELS = _image_kernel
+    return _KERNELS
+
+
+_KERNELS = None
 
 
 def _as_system(val):
@@ -767,7 +778,7 @@ def refine(prob: Problem, intr0: Intrinsics, dist0: Distortion, gains0, rvecs0, 
     with _single_threaded_blas():
         sol = levenberg_marquardt(ev.residuals, ev.jacobian_compact, z0, options, normal=ev.block_system)
         r, Jc = ev.evaluate_compact(sol.x)
-        return _finish(prob, ev, sol, r, Jc, m, n, options)
+        return _finish(prob, ev, sol, r, Jc, m, n, options, system=sol.system)
 
 
 def _single_threaded_blas():
@@ -824,6 +835,7 @@ class LMResult:
     message: str
     njev: int
     nfev: int
+    system: object = field(default=None, repr=False)  # the normal equations at x (DenseNormal / BlockNormal)
 
 
 def levenberg_marquardt(fun, jac, x0, options: SolverOptions = SolverOptions(), normal=None) -> LMResult:
@@ -868,22 +880,26 @@ def levenberg_marquardt(fun, jac, x0, options: SolverOptions = SolverOptions(), 
     nu = 2.0
     status, message = 0, "iteration limit reached"
     max_nfev = 4 * options.max_iterations + 10
+    fresh = True  # g, diagA and D changed (the tests that depend on them only alone are redone)
     while njev <= options.max_iterations and nfev < max_nfev:
         if F == 0.0:
             status, message = 4, "zero residual"
             break
-        colnorm = np.sqrt(np.maximum(diagA, 1e-300))
-        if np.max(np.abs(g) / colnorm) <= options.gtol * np.sqrt(2 * F):
-            status, message = 1, "gradient below gtol"
-            break
+        if fresh:
+            colnorm = np.sqrt(np.maximum(diagA, 1e-300))
+            if np.max(np.abs(g) / colnorm) <= options.gtol * np.sqrt(2 * F):
+                status, message = 1, "gradient below gtol"
+                break
+            sD = np.sqrt(D)
+            x_scale = np.sqrt((sD * x) @ (sD * x))
+            fresh = False
         h = sysm.solve(mu * D)
         if h is None:  # not positive definite at this damping
             mu *= nu
             nu *= 2.0
             continue
         h = -h
-        sD = np.sqrt(D)
-        if np.sqrt((sD * h) @ (sD * h)) <= options.xtol * (np.sqrt((sD * x) @ (sD * x)) + options.xtol):
+        if np.sqrt((sD * h) @ (sD * h)) <= options.xtol * (x_scale + options.xtol):
             status, message = 2, "step below xtol"
             break
         x_new = x + h
@@ -901,24 +917,33 @@ def levenberg_marquardt(fun, jac, x0, options: SolverOptions = SolverOptions(), 
             g = sysm.g
             diagA = sysm.diagonal()
             D = np.maximum(D, diagA)
+            fresh = True
             mu *= max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
             nu = 2.0
             if small:
                 status, message = 3, "relative cost reduction below ftol"
                 break
         else:
+            if pred > 0 and pred <= options.ftol * F and abs(F - F_new) <= options.ftol * F:
+                # MINPACK's test on every trial, not only accepted ones: the model predicts no reduction worth
+                # having and the cost did not change beyond round-off; x is the optimum to ftol (further trials
+                # only raise the damping until the step is below xtol)
+                status, message = 3, "relative cost reduction below ftol"
+                break
             mu *= nu
             nu *= 2.0
             if not np.isfinite(mu) or mu > 1e200:
                 status, message = 2, "no further progress possible (damping overflow)"
                 break
-    return LMResult(x=x, cost=F, status=status, message=message, njev=njev, nfev=nfev)
+    return LMResult(x=x, cost=F, status=status, message=message, njev=njev, nfev=nfev, system=sysm)
 
 
-def _finish(prob, ev, sol, r, Jc, m, n, options):
+def _finish(prob, ev, sol, r, Jc, m, n, options, system=None):
     dof = max(m - n, 1)
     sigma2 = float(r @ r) / dof
-    Cg, Cp, Cx = ev.block_system(Jc, r).covariance_blocks()
+    # the solver's last normal equations are those at the solution (it forms them at accepted points only)
+    sysm = system if isinstance(system, BlockNormal) else ev.block_system(Jc, r)
+    Cg, Cp, Cx = sysm.covariance_blocks()
     intr, coef, gains, rv, tv = ev.unpack(sol.x)
     iterations = int(sol.njev) if sol.njev is not None else int(sol.nfev)
     converged = bool(sol.status > 0) and bool(np.all(np.isfinite(sol.x))) and iterations <= options.max_iterations
