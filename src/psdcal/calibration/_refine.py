@@ -908,8 +908,13 @@ def levenberg_marquardt(fun, jac, x0, options: SolverOptions = SolverOptions(), 
         F_new = 0.5 * float(r_new @ r_new)
         pred = 0.5 * float(h @ (mu * D * h - g))
         rho = (F - F_new) / pred if pred > 0 else -1.0
-        if rho > 0 and np.isfinite(F_new):
-            small = (F - F_new) <= options.ftol * F and pred <= options.ftol * F
+        # At the optimum to round-off, the first step after an accepted one (damping not raised since) can
+        # predict a reduction below ftol and change the cost by round-off only, either way: it is then
+        # taken, as the last one (MINPACK's ftol test, which it applies to every trial). Rejecting it
+        # would only raise the damping trial after trial until the step falls below xtol.
+        final = nu == 2.0 and 0 < pred <= options.ftol * F and abs(F - F_new) <= options.ftol * F
+        if (rho > 0 or final) and np.isfinite(F_new):
+            small = final or ((F - F_new) <= options.ftol * F and pred <= options.ftol * F)
             x, r, F = x_new, r_new, F_new
             J = jac(x)
             njev += 1
@@ -924,12 +929,6 @@ def levenberg_marquardt(fun, jac, x0, options: SolverOptions = SolverOptions(), 
                 status, message = 3, "relative cost reduction below ftol"
                 break
         else:
-            if pred > 0 and pred <= options.ftol * F and abs(F - F_new) <= options.ftol * F:
-                # MINPACK's test on every trial, not only accepted ones: the model predicts no reduction worth
-                # having and the cost did not change beyond round-off; x is the optimum to ftol (further trials
-                # only raise the damping until the step is below xtol)
-                status, message = 3, "relative cost reduction below ftol"
-                break
             mu *= nu
             nu *= 2.0
             if not np.isfinite(mu) or mu > 1e200:

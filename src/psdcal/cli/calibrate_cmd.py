@@ -162,8 +162,17 @@ def calibrate_command(points, template, output, cost, radial, tangential, psd_ra
                            f"residual {p.residual_mm * 1e3:.2f} um = {p.ratio:.1f} sigma")
             for iid, pid in rej.kept_flagged:
                 click.echo(f"  kept (too few points left to remove it): image {iid}, point {pid}")
-    undetermined_parameters(res, points)
+    from psdcal.errors import DegenerateViewsError
+
+    try:
+        undetermined_parameters(res, points)
+        undetermined = None
+    except DegenerateViewsError as exc:
+        undetermined = exc
     res = with_verdict(res, noise_mm=noise_mm, points_kind=pf.kind)
+    if undetermined is not None and res.verdict["verdict"] != "wrong":
+        # a fit the data contradict (verdict wrong) has a covariance of no meaning: its diagnosis says more
+        raise undetermined
     if cv_k is not None:
         import dataclasses
 
