@@ -209,11 +209,14 @@ def _projector(G, Jpose, row_img, n_img):
     rank = int(np.sum(dq > 1e-10 * max(float(dq.max()), 1e-300)))
     Qrows = Qb[row_img, pos]  # (m, 6): each row's part of its view's basis
 
+    Qbt = np.ascontiguousarray(Qb.transpose(0, 2, 1))
+
     def perp_pose(B):
         Bb = np.zeros((n_img, nr, B.shape[1]))
         Bb[row_img, pos] = B
-        C = np.einsum("vri,vrk->vik", Qb, Bb)
-        return B - np.einsum("mi,mik->mk", Qrows, C[row_img])
+        # each view's part of B minus its projection on the view's pose basis (batched matrix products:
+        # no (rows, 6, k) temporary)
+        return B - np.matmul(Qb, np.matmul(Qbt, Bb))[row_img, pos]
 
     Gn = G / np.maximum(np.linalg.norm(G, axis=0), 1e-300)
     Gp = perp_pose(Gn)
