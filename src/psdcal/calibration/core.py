@@ -93,6 +93,7 @@ def initial_estimate(
     skew: bool = False,
     aspect: bool = False,
     image_ids=None,
+    _checked: bool = False,
 ) -> InitialEstimate:
     """The first, linear stage of the calibration (Sections 3.1-3.3).
 
@@ -104,7 +105,10 @@ def initial_estimate(
     normalize : Hartley-normalise the DLT.
     radial_terms : how many of k1, k2 the preliminary step estimates (0-2).
     """
-    T, X, ids = _check_inputs(template_mm, points_mm, image_ids, 3 if (skew or aspect) else 2)
+    if _checked:  # linear_starts' caller has checked them
+        T, X, ids = template_mm, points_mm, list(image_ids)
+    else:
+        T, X, ids = _check_inputs(template_mm, points_mm, image_ids, 3 if (skew or aspect) else 2)
     k = np.zeros(2)
     n_lines = 0
     c0 = np.zeros(2)
@@ -643,7 +647,7 @@ def _calibrate(template_mm, points_mm, *, cost, radial, tangential, psd_radial, 
         known_gains, X, g0 = g0, correct_points(X, g0, *sensor_mm), np.ones(4)
     primary, cands = linear_starts(
         T, X, preliminary=preliminary, normalize=normalize, radial=radial, skew=skew, aspect=aspect,
-        general=fit_gains, f_guess_mm=f_guess_mm, image_ids=ids, point_ids=pids,
+        general=fit_gains, f_guess_mm=f_guess_mm, image_ids=ids, point_ids=pids, _checked=True,
     )
     start = primary
     g0_start = g0
@@ -740,6 +744,21 @@ def subsample_views(T, X, k: int = SUBSAMPLE_POINTS):
     valid = np.all(np.isfinite(X), axis=-1)  # (n_images, M)
     if T.shape[0] <= 2 * k or not np.any(valid.sum(axis=1) > 2 * k):
         return None
+    keep = valid & _subsample_mask(T, k)[None, :]
+    few = (keep.sum(axis=1) < k // 2) | (valid.sum(axis=1) <= 2 * k)
+    keep[few] = valid[few]
+    return np.where(keep[..., None], X, np.nan)
+
+
+_SUBSAMPLE_CACHE: dict = {}
+
+
+def _subsample_mask(T, k) -> np.ndarray:
+    """(M,) bool: the template points :func:`subsample_views` keeps (cached per template)."""
+    ckey = (T.shape, T.tobytes(), k)
+    hit = _SUBSAMPLE_CACHE.get(ckey)
+    if hit is not None:
+        return hit
     # one point per cell of a g x g grid over the plate (the one nearest the cell's centre)
     g = int(np.ceil(np.sqrt(k)))
     lo, hi = T.min(axis=0), T.max(axis=0)
@@ -752,11 +771,11 @@ def subsample_views(T, X, k: int = SUBSAMPLE_POINTS):
     first[1:] = key[order[1:]] != key[order[:-1]]
     chosen = np.zeros(T.shape[0], dtype=bool)
     chosen[order[first]] = True
-    keep = valid & chosen[None, :]
-    few = (keep.sum(axis=1) < k // 2) | (valid.sum(axis=1) <= 2 * k)
-    keep[few] = valid[few]
-    Xs = np.where(keep[..., None], X, np.nan)
-    return Xs
+    chosen.flags.writeable = False
+    if len(_SUBSAMPLE_CACHE) >= 8:
+        _SUBSAMPLE_CACHE.pop(next(iter(_SUBSAMPLE_CACHE)))
+    _SUBSAMPLE_CACHE[ckey] = chosen
+    return chosen
 
 
 #: LM iterations a further start runs before it is compared with the best solution so far
@@ -956,7 +975,7 @@ def template_hint(T, X, Hs, point_ids=None) -> str:
 
 
 def linear_starts(T, X, *, preliminary=True, normalize=True, radial=2, skew=False, aspect=False, general=False,
-                  f_guess_mm=None, image_ids=None, point_ids=None):
+                  f_guess_mm=None, image_ids=None, point_ids=None, _checked=False):
     """Starts of the refinement from the linear stages, the first that fail being replaced by ones that cannot.
 
     Returns ``(primary, starts)``: ``primary`` is the :class:`InitialEstimate`
@@ -993,7 +1012,7 @@ def linear_starts(T, X, *, preliminary=True, normalize=True, radial=2, skew=Fals
     labels = [f"image {i}" for i in ids]
     try:
         est = initial_estimate(T, X, preliminary=preliminary, normalize=normalize, radial_terms=radial,
-                               skew=skew or general, aspect=aspect or general, image_ids=ids)
+                               skew=skew or general, aspect=aspect or general, image_ids=ids, _checked=_checked)
     except DegenerateViewsError as exc:
         closed_error, est = exc, None
     # the views' homographies (after the preliminary step when it applied: the better start); raises on collinear
