@@ -158,10 +158,11 @@ def homographies(src, dst, *, normalize: bool = True, labels=None) -> np.ndarray
         q = dst0
     X, Y = p[..., 0] * w, p[..., 1] * w
     x, y = q[..., 0], q[..., 1]
-    one, zero = w, np.zeros_like(w)
-    rows_x = np.stack([X, Y, one, zero, zero, zero, -x * X, -x * Y, -x * one], axis=-1)
-    rows_y = np.stack([zero, zero, zero, X, Y, one, -y * X, -y * Y, -y * one], axis=-1)
-    A = np.concatenate([rows_x, rows_y], axis=1)  # (n, 2M, 9)
+    A = np.zeros((n, 2 * M, 9))  # rows (X, Y, 1, 0, 0, 0, -xX, -xY, -x), then (0, 0, 0, X, Y, 1, -yX, -yY, -y)
+    A[:, :M, 0], A[:, :M, 1], A[:, :M, 2] = X, Y, w
+    A[:, M:, 3], A[:, M:, 4], A[:, M:, 5] = X, Y, w
+    A[:, :M, 6], A[:, :M, 7], A[:, :M, 8] = -x * X, -x * Y, -x * w
+    A[:, M:, 6], A[:, M:, 7], A[:, M:, 8] = -y * X, -y * Y, -y * w
     # the SVD of the (9, 9) triangular factor of A: the same singular values and right vectors as A's,
     # without A's (2M, 9) left vectors
     _, s, Vt = np.linalg.svd(np.linalg.qr(A, mode="r"))
