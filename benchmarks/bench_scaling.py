@@ -124,6 +124,22 @@ def find_mrcal_python(given: str | None) -> str | None:
     return None
 
 
+def refine_seconds(template_mm, points_mm, sensor_mm, repeats):
+    """Median time (s) of psdcal's optimizer alone (``refine``, image cost) from its closed-form seed,
+    with mrcal's LENSMODEL_OPENCV4 parameters: fx, fy, cx, cy, k1, k2, p1, p2 (like for like with mrcal)."""
+    from dataclasses import replace
+
+    from psdcal.calibration._refine import Problem, refine
+    from psdcal.calibration.core import initial_estimate
+    from psdcal.model.params import ModelSpec
+
+    est = initial_estimate(template_mm, points_mm, aspect=True)
+    spec = ModelSpec(radial=2, tangential=True, aspect=True)
+    prob = Problem(np.asarray(template_mm, float), np.asarray(points_mm, float), spec, sensor_mm=tuple(sensor_mm))
+    i0 = est.intrinsics if est.intrinsics.fy_mm is not None else replace(est.intrinsics, fy_mm=est.intrinsics.f_mm)
+    return _timed(lambda: refine(prob, i0, est.distortion(2), np.ones(4), est.rvecs, est.tvecs_mm), repeats)
+
+
 def mrcal_seconds(python, template_mm, points_mm, to_px, imagersize, repeats):
     """Median time (s) of mrcal's optimizer on the set, seeded by psdcal's linear stage (None without mrcal).
 
@@ -138,7 +154,7 @@ def mrcal_seconds(python, template_mm, points_mm, to_px, imagersize, repeats):
 
     if python is None:
         return None
-    est = initial_estimate(template_mm, points_mm)
+    est = initial_estimate(template_mm, points_mm, aspect=True)
     sx, sy, ox, oy = to_px
     i = est.intrinsics
     X = np.asarray(points_mm, dtype=float)
@@ -179,8 +195,9 @@ def synthetic_rows(cv2, sizes, repeats, scipy_max_views, mrcal_python=None):
         t_s = _timed(lambda: scipy_reference(s.template_mm, s.points_mm), max(1, repeats // 2)) if n <= scipy_max_views and m <= 256 else None
         t_m = mrcal_seconds(mrcal_python, s.template_mm, s.points_mm, (1 / PITCH_MM, 1 / PITCH_MM, 450.0, 450.0),
                             (900, 900), repeats)
+        t_r = refine_seconds(s.template_mm, s.points_mm, (9.0, 9.0), repeats) if t_m is not None else None
         rows.append({"set": "synthetic", "views": n, "points": len(s.template_mm), "model": "f, C, k1, k2",
-                     "psdcal": t_p, "opencv": t_o, "scipy": t_s, "mrcal": t_m})
+                     "psdcal": t_p, "opencv": t_o, "scipy": t_s, "mrcal": t_m, "refine": t_r})
     return rows
 
 
@@ -205,8 +222,9 @@ def zhang_row(cv2, repeats, mrcal_python=None):
     for row in px:
         px_views[int(row[0]), int(row[1])] = row[2:4]
     t_m = mrcal_seconds(mrcal_python, T, pts, _to_px_fit(pts, px_views), (640, 480), repeats)
+    t_r = refine_seconds(T, pts, (6.4, 4.8), repeats) if t_m is not None else None
     return {"set": "zhang1998 (real)", "views": len(objs), "points": len(T), "model": "fx, fy, C, k1, k2, p1, p2",
-            "psdcal": t_p, "opencv": t_o, "scipy": t_s, "psdcal_verdict": t_v, "mrcal": t_m}
+            "psdcal": t_p, "opencv": t_o, "scipy": t_s, "psdcal_verdict": t_v, "mrcal": t_m, "refine": t_r}
 
 
 def chessboard_rows(cv2, repeats, mrcal_python=None):
@@ -242,8 +260,9 @@ def chessboard_rows(cv2, repeats, mrcal_python=None):
             for j, u, v in rr:
                 px_views[k, j] = (u, v)
         t_m = mrcal_seconds(mrcal_python, T, pts.points_mm, _to_px_fit(pts.points_mm, px_views), size, repeats)
+        t_r = refine_seconds(T, pts.points_mm, (9.0, 9.0), repeats) if t_m is not None else None
         rows.append({"set": d.name + " (real)", "views": len(objs), "points": len(T), "model": "f, C, k1, k2, p1, p2",
-                     "psdcal": t_p, "opencv": t_o, "scipy": None, "psdcal_verdict": t_v, "mrcal": t_m})
+                     "psdcal": t_p, "opencv": t_o, "scipy": None, "psdcal_verdict": t_v, "mrcal": t_m, "refine": t_r})
     return rows
 
 
@@ -287,6 +306,13 @@ def main(argv=None) -> int:
               "-" if r["scipy"] is None else f"{1e3 * r['scipy']:.1f}",
               "-" if r["scipy"] is None else f"{r['psdcal'] / r['scipy']:.3f}") for r in rows]
     print_table(head, lines, a.markdown)
+    opt = [r for r in rows if r.get("refine") is not None and r.get("mrcal") is not None]
+    if opt:
+        print("\noptimizers alone, like for like: psdcal refine() and mrcal.optimize() from the same closed-form seed, "
+              "fx, fy, cx, cy, k1, k2, p1, p2 (LENSMODEL_OPENCV4)")
+        print_table(("set", "views", "points/view", "psdcal refine ms", "mrcal ms", "refine/mrcal"),
+                    [(r["set"], str(r["views"]), str(r["points"]), f"{1e3 * r['refine']:.2f}", f"{1e3 * r['mrcal']:.2f}",
+                      f"{r['refine'] / r['mrcal']:.2f}") for r in opt], a.markdown)
     for r in rows:
         if r.get("psdcal_verdict") is not None:
             print(f"{r['set']}: with the verdict (its self-checks) {1e3 * r['psdcal_verdict']:.2f} ms = "
