@@ -232,7 +232,8 @@ __all__ = ["Coverage", "align_to_problem", "coverage", "measured_points_mm", "mo
 #: Eigenvalue of the scaled reduced information (:func:`undetermined_parameters`) below which a direction of
 #: the global parameters counts as not determined by the views: round-off level. Well-posed sets give 6e-6 and
 #: more (the smallest of 60 simulated Lens 1 and Lens 2 sets of 3 to 40 views); views all parallel to the sensor
-#: give 1e-25.
+#: give 1e-25. False alarms: 0 in 78 calibrations (72 simulated: both lenses, 4-15 views, 0.5-10 um noise, five
+#: models incl. PSD l1, k3 and fy; Zhang's data and the five real chessboard sets).
 UNDETERMINED_EIGENVALUE = 1e-12
 
 
