@@ -40,3 +40,17 @@ def test_batched_dlt_memory_is_linear_in_points():
     assert H.shape == (2, 3, 3)
     # the DLT matrix itself is 2 x 4000 x 9 doubles = 0.6 MB; a (4000 x 4000) U per view is 256 MB
     assert _peak_mb(lambda: homographies(src, dst)) < 20.0
+
+
+def test_verdict_memory_is_linear_in_views():
+    """The verdict works from the compact block Jacobian: no (points x all poses) matrix."""
+    from psdcal.calibration.core import calibrate, with_verdict
+    from psdcal.study.simulate import simulate_set
+
+    peaks = []
+    for n in (50, 200):
+        s = simulate_set("lens2", n_images=n, noise_mm=0.002, seed=0)
+        r = calibrate(s.template_mm, s.points_mm, verdict=False)
+        peaks.append(_peak_mb(lambda: with_verdict(r, diagnose=False)))
+    # a dense Jacobian would be 2 x 14 n rows x 6 n columns: 0.5 MB -> 54 MB (x 100); linear is x 4
+    assert peaks[1] < 6.0 * peaks[0] + 1.0, peaks

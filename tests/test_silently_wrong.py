@@ -230,3 +230,21 @@ def test_several_sensors_without_calibration_uncertainty_are_refused(made, capsy
     lines = err.strip().splitlines()
     assert code == 2 and len(lines) == 1 and "t.json" in lines[0] and "--allow-no-covariance" in lines[0]
     assert not out.exists()
+
+
+def test_undetermined_parameters_from_the_reduced_information():
+    """Parallel views leave f undetermined whatever round-off made of the covariance; well-posed sets name none."""
+    from psdcal.calibration.checks import undetermined_parameters
+    from psdcal.calibration.core import calibrate
+    from psdcal.study.simulate import LENSES, default_template, measured_points, simulate_set
+
+    P = default_template()
+    intr, dist = LENSES["lens2"]
+    rng = np.random.default_rng(0)
+    R = np.array([[0, 0, rng.uniform(-1, 1)] for _ in range(8)])
+    T = np.array([[rng.uniform(-20, 20), rng.uniform(-20, 20), rng.uniform(400, 600)] for _ in range(8)])
+    res = calibrate(P, measured_points(P, intr, dist, R, T), verdict=False)
+    assert "f_mm" in undetermined_parameters(res)
+    for lens, n, seed in (("lens1", 3, 0), ("lens1", 12, 1), ("lens2", 3, 2), ("lens2", 40, 3)):
+        s = simulate_set(lens, n_images=n, noise_mm=0.002, seed=seed)
+        assert undetermined_parameters(calibrate(s.template_mm, s.points_mm, verdict=False)) == []

@@ -192,7 +192,9 @@ def calibration_schema() -> dict:
                 {"starts": {"type": "array", "items": _obj(
                     {"start": {"type": "string"}, "cost_rms": _NUM_OR_NULL, "converged": {"type": "boolean"},
                      "f_mm": _NUM_OR_NULL, "cx_mm": _NUM_OR_NULL, "cy_mm": _NUM_OR_NULL}, ("start", "converged"))},
-                 "chosen": {"type": "string"}},
+                 "chosen": {"type": "string"},
+                 "points_per_view": {"type": "integer", "minimum": 1,
+                                     "description": "the starts were compared on this many spread points per view"}},
                 ("starts", "chosen"),
                 description="the refinement's starts and the lowest-cost one chosen",
             ),

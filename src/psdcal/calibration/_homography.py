@@ -34,7 +34,8 @@ def collinearity_batch(pts, valid) -> np.ndarray:
     (n,) ndarray: smaller over larger singular value of each set's centred
     valid points (0 = collinear, and for sets with no spread or no point).
     The invalid rows are zeroed after centring, which leaves the singular
-    values unchanged: one batched SVD replaces n small ones.
+    values unchanged; they come from each set's 2 x 2 scatter matrix in
+    closed form (the smaller one summed across the principal direction).
     """
     pts = np.asarray(pts, dtype=float)
     valid = np.asarray(valid, dtype=bool)
@@ -42,10 +43,19 @@ def collinearity_batch(pts, valid) -> np.ndarray:
     cnt = np.maximum(valid.sum(axis=1), 1)[:, None]
     mean = np.where(w, pts, 0.0).sum(axis=1) / cnt
     centred = np.where(w, pts - mean[:, None, :], 0.0)
-    s = np.linalg.svd(centred, compute_uv=False)  # (n, 2), descending
-    out = np.zeros(s.shape[0])
-    pos = s[:, 0] > 0
-    out[pos] = s[pos, -1] / s[pos, 0]
+    # singular values of the centred points: square roots of the eigenvalues of their 2 x 2 scatter matrix
+    a = np.einsum("nm,nm->n", centred[..., 0], centred[..., 0])
+    b = np.einsum("nm,nm->n", centred[..., 0], centred[..., 1])
+    c = np.einsum("nm,nm->n", centred[..., 1], centred[..., 1])
+    # the smaller eigenvalue as the scatter across the principal direction, summed from the points
+    # themselves (no cancellation: exact to round-off relative to itself, even for nearly collinear sets)
+    theta = 0.5 * np.arctan2(2.0 * b, a - c)
+    across = centred[..., 1] * np.cos(theta)[:, None] - centred[..., 0] * np.sin(theta)[:, None]
+    lam_min = np.einsum("nm,nm->n", across, across)
+    lam_max = a + c - lam_min
+    out = np.zeros(a.shape[0])
+    pos = lam_max > 0
+    out[pos] = np.sqrt(lam_min[pos] / lam_max[pos])
     return out
 
 
@@ -109,7 +119,10 @@ def homographies(src, dst, *, normalize: bool = True, labels=None) -> np.ndarray
     labels = [f"image {i}" for i in range(n)] if labels is None else list(labels)
     ok = np.all(np.isfinite(dst), axis=-1)  # (n, M)
     n_valid = ok.sum(axis=1)
-    flat = np.minimum(collinearity_batch(np.broadcast_to(src, dst.shape), ok), collinearity_batch(dst, ok)) < 1e-6  # (n,)
+    all_seen = bool(ok.all())  # every view sees every point: the template's own terms are the same for all views
+    flat_src = (collinearity_batch(src[None], ok[:1]) if all_seen else
+                collinearity_batch(np.broadcast_to(src, dst.shape), ok))
+    flat = np.minimum(flat_src, collinearity_batch(dst, ok)) < 1e-6  # (n,)
     # the first view that fails either test names the error, as a loop over the views would
     for i in np.flatnonzero((n_valid < 4) | flat)[:1]:
         if n_valid[i] < 4:
@@ -121,31 +134,38 @@ def homographies(src, dst, *, normalize: bool = True, labels=None) -> np.ndarray
     src_n = np.broadcast_to(src, dst.shape)
     if normalize:
         # per-view similarities of both point sets (Hartley), over the valid points
-        def norm_mats(p):  # p (n, M, 2), finite
+        def norm_mats(p, w=w, cnt=cnt):  # p (k, M, 2), finite
             mean = np.einsum("nm,nmk->nk", w, p) / cnt[:, None]
             d = p - mean[:, None]
             dist = np.einsum("nm,nm->n", w, np.hypot(d[..., 0], d[..., 1])) / cnt
             s = np.sqrt(2.0) / dist
-            T = np.zeros((n, 3, 3))
+            T = np.zeros((p.shape[0], 3, 3))
             T[:, 0, 0] = T[:, 1, 1] = s
             T[:, :2, 2] = -s[:, None] * mean
             T[:, 2, 2] = 1.0
             return T
 
-        Tp = norm_mats(np.array(src_n))  # a copy (order "K"), summed in the same order as before
+        if all_seen:  # one similarity and one normalised template for all views
+            Tp = np.broadcast_to(norm_mats(np.array(src_n[:1]), w[:1], cnt[:1]), (n, 3, 3))
+            p = np.broadcast_to(src @ Tp[0, :2, :2].T + Tp[0, :2, 2], dst.shape)
+        else:
+            Tp = norm_mats(np.array(src_n))  # a copy (order "K"), summed in the same order as before
+            p = np.einsum("nij,nmj->nmi", Tp[:, :2, :2], src_n) + Tp[:, None, :2, 2]
         Tq = norm_mats(dst0)
-        p = np.einsum("nij,nmj->nmi", Tp[:, :2, :2], src_n) + Tp[:, None, :2, 2]
         q = np.einsum("nij,nmj->nmi", Tq[:, :2, :2], dst0) + Tq[:, None, :2, 2]
     else:
         p = src_n
         q = dst0
     X, Y = p[..., 0] * w, p[..., 1] * w
     x, y = q[..., 0], q[..., 1]
-    one, zero = w, np.zeros_like(w)
-    rows_x = np.stack([X, Y, one, zero, zero, zero, -x * X, -x * Y, -x * one], axis=-1)
-    rows_y = np.stack([zero, zero, zero, X, Y, one, -y * X, -y * Y, -y * one], axis=-1)
-    A = np.concatenate([rows_x, rows_y], axis=1)  # (n, 2M, 9)
-    _, s, Vt = np.linalg.svd(A, full_matrices=False)  # U is never used: keep memory O(points)
+    A = np.zeros((n, 2 * M, 9))  # rows (X, Y, 1, 0, 0, 0, -xX, -xY, -x), then (0, 0, 0, X, Y, 1, -yX, -yY, -y)
+    A[:, :M, 0], A[:, :M, 1], A[:, :M, 2] = X, Y, w
+    A[:, M:, 3], A[:, M:, 4], A[:, M:, 5] = X, Y, w
+    A[:, :M, 6], A[:, :M, 7], A[:, :M, 8] = -x * X, -x * Y, -x * w
+    A[:, M:, 6], A[:, M:, 7], A[:, M:, 8] = -y * X, -y * Y, -y * w
+    # the SVD of the (9, 9) triangular factor of A: the same singular values and right vectors as A's,
+    # without A's (2M, 9) left vectors
+    _, s, Vt = np.linalg.svd(np.linalg.qr(A, mode="r"))
     bad = s[:, 7] <= 1e-12 * s[:, 0]
     if np.any(bad):
         i = int(np.flatnonzero(bad)[0])

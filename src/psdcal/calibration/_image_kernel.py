@@ -168,7 +168,7 @@ def _newton(x0, x1, sx, sy, coef, cx, cy, tol, max_iter):
     for it in range(max_iter + 1):
         a0, a1, J00, J01, J10, J11 = _undistort_point(d0, d1, coef, cx, cy)
         r0, r1 = a0 - x0, a1 - x1
-        e = math.hypot(r0, r1)
+        e = math.sqrt(r0 * r0 + r1 * r1)
         if not (e < prev) and prev < math.inf:
             # the last step made things worse: take back half of it
             st0 *= 0.5
@@ -274,7 +274,7 @@ def image_model(P, img, theta, separate_fy, poses, warm, meas, gmap, want_jac, t
         xn, yn = pcx / pcz, pcy / pcz
         x0 = f * xn + sk * yn + cx  # Eq 4
         x1 = fy * yn + cy
-        tol = tol_mm * max(1.0, math.hypot(x0, x1))
+        tol = tol_mm * max(1.0, math.sqrt(x0 * x0 + x1 * x1))
         conv = False
         d0 = d1 = math.nan
         for attempt in range(3):
@@ -594,24 +594,37 @@ def block_normal(Jc, r, img, n_views):
     V = np.zeros((n_views, 6, 6))
     gg = np.zeros(ng)
     gp = np.zeros((n_views, 6))
-    for i in range(img.shape[0]):
+    # Each run of consecutive observations of one view is summed into one local (m, m) block (the two
+    # rows of an observation at once), then added to U, W_v, V_v: the inner loop touches a small
+    # array that stays in cache instead of the view's blocks in the big arrays.
+    M = np.zeros((m, m))
+    gl = np.zeros(m)
+    N = img.shape[0]
+    i = 0
+    while i < N:
         v = img[i]
-        for row in range(2 * i, 2 * i + 2):
-            ri = r[row]
-            for a in range(ng):
-                ja = Jc[row, a]
-                if ja == 0.0:
-                    continue
-                gg[a] += ja * ri
+        M[:, :] = 0.0
+        gl[:] = 0.0
+        while i < N and img[i] == v:
+            r0 = r[2 * i]
+            r1 = r[2 * i + 1]
+            for a in range(m):
+                a0 = Jc[2 * i, a]
+                a1 = Jc[2 * i + 1, a]
+                gl[a] += a0 * r0 + a1 * r1
                 for b in range(a + 1):
-                    U[a, b] += ja * Jc[row, b]
-                for b in range(6):
-                    W[v, a, b] += ja * Jc[row, ng + b]
-            for a in range(6):
-                ja = Jc[row, ng + a]
-                gp[v, a] += ja * ri
-                for b in range(a + 1):
-                    V[v, a, b] += ja * Jc[row, ng + b]
+                    M[a, b] += a0 * Jc[2 * i, b] + a1 * Jc[2 * i + 1, b]
+            i += 1
+        for a in range(ng):
+            gg[a] += gl[a]
+            for b in range(a + 1):
+                U[a, b] += M[a, b]
+        for a in range(6):
+            gp[v, a] += gl[ng + a]
+            for b in range(ng):
+                W[v, b, a] += M[ng + a, b]
+            for b in range(a + 1):
+                V[v, a, b] += M[ng + a, ng + b]
     for a in range(ng):
         for b in range(a):
             U[b, a] = U[a, b]

@@ -19,6 +19,7 @@ cross-check, see the tests).
 """
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -189,6 +190,10 @@ class Evaluator:
         self._kernel = self._tkernel = self._normal = None  # compiled image / template cost
         self._blocks = None  # compiled block normal equations
         self._ckey = self._cval = None
+        #: with the compiled image cost, evaluate the Jacobian with the residuals of every trial point
+        #: (set by :func:`refine`): most LM steps are accepted, and the Jacobian at an accepted point then
+        #: costs nothing more than its residuals did, instead of a second pass over the points
+        self.trial_jacobians = False
         if prob.cost == "image" or not prob.spec.fit_gains:
             from psdcal import _jit
 
@@ -221,6 +226,8 @@ class Evaluator:
         key = z.tobytes()
         if key == self._key:
             return self._val[0]
+        if self.trial_jacobians and self._kernel is not None:
+            return self.evaluate_compact(z)[0]
         if self.prob.cost == "image":
             r = (self.model_points(z) - self.d_meas).ravel()
         elif self._tkernel is not None:
@@ -291,7 +298,11 @@ class Evaluator:
 
     def jacobian_compact(self, z):
         """The compact block Jacobian (2N, n_global + 6) at ``z`` (see :meth:`evaluate_compact`)."""
-        return self.evaluate_compact(z)[1]
+        Jc = self.evaluate_compact(z)[1]
+        if self.trial_jacobians and self._kernel is not None and self._dkey == z.tobytes():
+            # LM asks for the Jacobian at accepted points only: the next Newton inverses start from here
+            self._anchor = self._dval
+        return Jc
 
     def block_system(self, Jc, r):
         """The normal equations ``J^T J``, ``J^T r`` of a compact Jacobian as a :class:`BlockNormal`."""
@@ -372,7 +383,7 @@ class Evaluator:
             self._gmap, want_jac, 1e-13, 50, self._gain_basis,
         )
         self._dkey, self._dval, self._yval = key, d, y
-        if want_jac:
+        if want_jac and not self.trial_jacobians:  # with trial Jacobians: only at accepted points (jacobian_compact)
             self._anchor = d
         return y, J
 
@@ -638,9 +649,7 @@ class BlockNormal:
         ng = self.n_global
         dg, dp = damp[:ng], damp[ng:].reshape(-1, 6)
         if self.compiled:
-            from psdcal.calibration._image_kernel import schur_solve
-
-            ok, hg, hp = schur_solve(self.U, self.W, self.V, self.gg, self.gp, dg, dp)
+            ok, hg, hp = _kernels().schur_solve(self.U, self.W, self.V, self.gg, self.gp, dg, dp)
         else:
             ok, hg, hp = schur_solve_reference(self.U, self.W, self.V, self.gg, self.gp, dg, dp)
         if not ok:
@@ -679,6 +688,19 @@ class BlockNormal:
             A[sl, :ng] = self.W[v].T
             A[sl, sl] = self.V[v]
         return A
+
+
+def _kernels():
+    """The compiled kernels' module (:mod:`psdcal.calibration._image_kernel`), imported once."""
+    global _KERNELS
+    if _KERNELS is None:
+        from psdcal.calibration import _image_kernel
+
+        _KERNELS = _image_kernel
+    return _KERNELS
+
+
+_KERNELS = None
 
 
 def _as_system(val):
@@ -752,26 +774,52 @@ def refine(prob: Problem, intr0: Intrinsics, dist0: Distortion, gains0, rvecs0, 
         from psdcal.errors import DegenerateViewsError
 
         raise DegenerateViewsError(f"{m // 2} observed points give {m} equations for {n} unknowns: add images or points")
+    ev.trial_jacobians = True
     with _single_threaded_blas():
         sol = levenberg_marquardt(ev.residuals, ev.jacobian_compact, z0, options, normal=ev.block_system)
         r, Jc = ev.evaluate_compact(sol.x)
-        return _finish(prob, ev, sol, r, Jc, m, n, options)
+        return _finish(prob, ev, sol, r, Jc, m, n, options, system=sol.system)
 
 
 def _single_threaded_blas():
     """Small dense problems run fastest on one BLAS thread (and do not fight
-    other processes of a Monte Carlo run for cores)."""
+    other processes of a Monte Carlo run for cores).
+
+    Nested uses (a refinement inside a calibration) cost nothing: only the
+    outermost one asks threadpoolctl (about 50 us per call when the limit is
+    already set)."""
+    import contextlib
+
     global _CONTROLLER
+    if getattr(_DEPTH, "n", 0) > 0:
+        return _counted(contextlib.nullcontext())
     try:
         if _CONTROLLER is None:
             from threadpoolctl import ThreadpoolController
 
             _CONTROLLER = ThreadpoolController()
-        return _CONTROLLER.limit(limits=1, user_api="blas")
+        return _counted(_CONTROLLER.limit(limits=1, user_api="blas"))
     except Exception:  # threadpoolctl missing or unable to introspect: run as is
-        import contextlib
+        return _counted(contextlib.nullcontext())
 
-        return contextlib.nullcontext()
+
+_DEPTH = threading.local()  # .n: how many _single_threaded_blas contexts this thread has open
+
+
+class _counted:
+    """A context that counts itself in :data:`_DEPTH` around another one."""
+
+    def __init__(self, inner):
+        self.inner = inner
+
+    def __enter__(self):
+        self.inner.__enter__()
+        _DEPTH.n = getattr(_DEPTH, "n", 0) + 1
+        return self
+
+    def __exit__(self, *exc):
+        _DEPTH.n -= 1
+        return self.inner.__exit__(*exc)
 
 
 _CONTROLLER = None
@@ -787,6 +835,7 @@ class LMResult:
     message: str
     njev: int
     nfev: int
+    system: object = field(default=None, repr=False)  # the normal equations at x (DenseNormal / BlockNormal)
 
 
 def levenberg_marquardt(fun, jac, x0, options: SolverOptions = SolverOptions(), normal=None) -> LMResult:
@@ -831,22 +880,26 @@ def levenberg_marquardt(fun, jac, x0, options: SolverOptions = SolverOptions(), 
     nu = 2.0
     status, message = 0, "iteration limit reached"
     max_nfev = 4 * options.max_iterations + 10
+    fresh = True  # g, diagA and D changed (the tests that depend on them only alone are redone)
     while njev <= options.max_iterations and nfev < max_nfev:
         if F == 0.0:
             status, message = 4, "zero residual"
             break
-        colnorm = np.sqrt(np.maximum(diagA, 1e-300))
-        if np.max(np.abs(g) / colnorm) <= options.gtol * np.sqrt(2 * F):
-            status, message = 1, "gradient below gtol"
-            break
+        if fresh:
+            colnorm = np.sqrt(np.maximum(diagA, 1e-300))
+            if np.max(np.abs(g) / colnorm) <= options.gtol * np.sqrt(2 * F):
+                status, message = 1, "gradient below gtol"
+                break
+            sD = np.sqrt(D)
+            x_scale = np.sqrt((sD * x) @ (sD * x))
+            fresh = False
         h = sysm.solve(mu * D)
         if h is None:  # not positive definite at this damping
             mu *= nu
             nu *= 2.0
             continue
         h = -h
-        sD = np.sqrt(D)
-        if np.sqrt((sD * h) @ (sD * h)) <= options.xtol * (np.sqrt((sD * x) @ (sD * x)) + options.xtol):
+        if np.sqrt((sD * h) @ (sD * h)) <= options.xtol * (x_scale + options.xtol):
             status, message = 2, "step below xtol"
             break
         x_new = x + h
@@ -855,8 +908,13 @@ def levenberg_marquardt(fun, jac, x0, options: SolverOptions = SolverOptions(), 
         F_new = 0.5 * float(r_new @ r_new)
         pred = 0.5 * float(h @ (mu * D * h - g))
         rho = (F - F_new) / pred if pred > 0 else -1.0
-        if rho > 0 and np.isfinite(F_new):
-            small = (F - F_new) <= options.ftol * F and pred <= options.ftol * F
+        # At the optimum to round-off, the first step after an accepted one (damping not raised since) can
+        # predict a reduction below ftol and change the cost by round-off only, either way: it is then
+        # taken, as the last one (MINPACK's ftol test, which it applies to every trial). Rejecting it
+        # would only raise the damping trial after trial until the step falls below xtol.
+        final = nu == 2.0 and 0 < pred <= options.ftol * F and abs(F - F_new) <= options.ftol * F
+        if (rho > 0 or final) and np.isfinite(F_new):
+            small = final or ((F - F_new) <= options.ftol * F and pred <= options.ftol * F)
             x, r, F = x_new, r_new, F_new
             J = jac(x)
             njev += 1
@@ -864,6 +922,7 @@ def levenberg_marquardt(fun, jac, x0, options: SolverOptions = SolverOptions(), 
             g = sysm.g
             diagA = sysm.diagonal()
             D = np.maximum(D, diagA)
+            fresh = True
             mu *= max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
             nu = 2.0
             if small:
@@ -875,13 +934,15 @@ def levenberg_marquardt(fun, jac, x0, options: SolverOptions = SolverOptions(), 
             if not np.isfinite(mu) or mu > 1e200:
                 status, message = 2, "no further progress possible (damping overflow)"
                 break
-    return LMResult(x=x, cost=F, status=status, message=message, njev=njev, nfev=nfev)
+    return LMResult(x=x, cost=F, status=status, message=message, njev=njev, nfev=nfev, system=sysm)
 
 
-def _finish(prob, ev, sol, r, Jc, m, n, options):
+def _finish(prob, ev, sol, r, Jc, m, n, options, system=None):
     dof = max(m - n, 1)
     sigma2 = float(r @ r) / dof
-    Cg, Cp, Cx = ev.block_system(Jc, r).covariance_blocks()
+    # the solver's last normal equations are those at the solution (it forms them at accepted points only)
+    sysm = system if isinstance(system, BlockNormal) else ev.block_system(Jc, r)
+    Cg, Cp, Cx = sysm.covariance_blocks()
     intr, coef, gains, rv, tv = ev.unpack(sol.x)
     iterations = int(sol.njev) if sol.njev is not None else int(sol.nfev)
     converged = bool(sol.status > 0) and bool(np.all(np.isfinite(sol.x))) and iterations <= options.max_iterations

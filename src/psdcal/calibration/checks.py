@@ -106,7 +106,9 @@ def measured_points_mm(result) -> np.ndarray:
     except (KeyError, TypeError):
         raise InputError("the calibration holds no measured points (problem.points); pass --points and --template",
                          field="problem.points") from None
-    X = np.array([[[np.nan if v is None else v for v in pt] for pt in img] for img in xy], dtype=float)
+    from psdcal.calibration.core import points_from_record
+
+    X = points_from_record(xy)
     if X.ndim != 3 or X.shape[:2] != np.asarray(result.residuals_mm).shape[:2]:
         raise InputError(f"problem.points has shape {X.shape}, the residuals {np.shape(result.residuals_mm)}",
                          field="problem.points")
@@ -225,3 +227,75 @@ def model_points_mm(result, template_mm=None) -> np.ndarray:
 
 
 __all__ = ["Coverage", "align_to_problem", "coverage", "measured_points_mm", "model_points_mm", "with_points"]
+
+
+#: Eigenvalue of the scaled reduced information (:func:`undetermined_parameters`) below which a direction of
+#: the global parameters counts as not determined by the views: round-off level. Well-posed sets give 6e-6 and
+#: more (the smallest of 60 simulated Lens 1 and Lens 2 sets of 3 to 40 views); views all parallel to the sensor
+#: give 1e-25. False alarms: 0 in 78 calibrations (72 simulated: both lenses, 4-15 views, 0.5-10 um noise, five
+#: models incl. PSD l1, k3 and fy; Zhang's data and the five real chessboard sets).
+UNDETERMINED_EIGENVALUE = 1e-12
+
+
+def undetermined_parameters(result) -> list[str]:
+    """Global parameters along a direction that the views do not determine (empty when every one is determined).
+
+    The poses are eliminated from the normal equations at the solution (the
+    reduced system ``S = U - sum_v W_v V_v^-1 W_v^T``, as in the refinement),
+    and ``S`` is scaled by the diagonal of the global block ``U``: an
+    eigenvalue of ``D^-1/2 S D^-1/2`` (``D = diag U``) is the fraction of a
+    direction's information that the poses do not explain. Where it is at
+    round-off (:data:`UNDETERMINED_EIGENVALUE`), a combination of parameters
+    trades off exactly against the poses (every view parallel to the sensor:
+    ``f`` against the distances), and its standard error is whatever
+    round-off made it. Returns the (at most two) parameters with the largest
+    share of each such direction.
+
+    Parameters
+    ----------
+    result : CalibrationResult with its problem record (``[]`` without one)
+    """
+    from psdcal.calibration._refine import Evaluator, Problem
+    from psdcal.calibration.core import points_from_record
+
+    try:
+        p = result.problem
+        T = np.asarray(p["template"]["xy_mm"], dtype=float)
+        X = points_from_record(p["points"]["xy_mm"])
+    except (KeyError, TypeError, ValueError):
+        return []
+    spec = result.model
+    names = tuple(result.param_names)
+    fixed = tuple(n for n in spec.global_names if n not in names)
+    try:
+        prob = Problem(T, X, spec, cost=result.cost, sensor_mm=tuple(result.sensor_mm), fixed=fixed)
+        if prob.names != names or X.shape[0] != len(result.rvecs):
+            return []
+        ev = Evaluator(prob, result.intrinsics, result.distortion, result.gains)
+        z = prob.pack(result.intrinsics, result.distortion, result.gains, result.rvecs, result.tvecs_mm)
+        r, Jc = ev.evaluate_compact(z)
+        bs = ev.block_system(Jc, r)
+    except (ValueError, np.linalg.LinAlgError, FloatingPointError):
+        return []
+    U, W, V = bs.U, bs.W, bs.V
+    S = U.copy()
+    for v in range(V.shape[0]):
+        Vi = np.linalg.pinv(V[v])
+        S -= W[v] @ Vi @ W[v].T
+    d = np.sqrt(np.maximum(np.diag(U), 0.0))
+    keep = d > 0
+    out = [n for n, k in zip(names, keep) if not k]  # a column with no information at all
+    if keep.sum() == 0:
+        return out
+    Ss = S[np.ix_(keep, keep)] / np.outer(d[keep], d[keep])
+    if not np.all(np.isfinite(Ss)):
+        return list(names)
+    w, vec = np.linalg.eigh(0.5 * (Ss + Ss.T))
+    sub = [n for n, k in zip(names, keep) if k]
+    # at round-off, of either sign: an exact trade-off. A clearly negative eigenvalue is a solution that is
+    # itself broken (a pose with next to no information, a focal length near 0): the verdict names its cause.
+    for j in np.flatnonzero(np.abs(w) < UNDETERMINED_EIGENVALUE):
+        for i in np.argsort(-np.abs(vec[:, j]))[:2]:
+            if sub[i] not in out:
+                out.append(sub[i])
+    return out

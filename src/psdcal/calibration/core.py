@@ -30,6 +30,9 @@ COSTS = ("image", "template")
 #: The line-straightness step uses at most this many template lines (the longest):
 #: a dense grid (Zhang's 256 corners) has hundreds, mostly short diagonals.
 MAX_STRAIGHTNESS_LINES = 40
+#: ... and at most this many points of each line (spread along it, both ends kept): the curvature of a
+#: line is fixed by a few of its points, and a 16-point chessboard row costs twice 8 for no better start.
+MAX_LINE_POINTS = 8
 _ALL_INTR = ("f_mm", "cx_mm", "cy_mm", "skew")
 
 
@@ -90,6 +93,7 @@ def initial_estimate(
     skew: bool = False,
     aspect: bool = False,
     image_ids=None,
+    _checked: bool = False,
 ) -> InitialEstimate:
     """The first, linear stage of the calibration (Sections 3.1-3.3).
 
@@ -101,12 +105,15 @@ def initial_estimate(
     normalize : Hartley-normalise the DLT.
     radial_terms : how many of k1, k2 the preliminary step estimates (0-2).
     """
-    T, X, ids = _check_inputs(template_mm, points_mm, image_ids, 3 if (skew or aspect) else 2)
+    if _checked:  # linear_starts' caller has checked them
+        T, X, ids = template_mm, points_mm, list(image_ids)
+    else:
+        T, X, ids = _check_inputs(template_mm, points_mm, image_ids, 3 if (skew or aspect) else 2)
     k = np.zeros(2)
     n_lines = 0
     c0 = np.zeros(2)
     if preliminary and radial_terms > 0:
-        lines = find_lines(T, max_lines=MAX_STRAIGHTNESS_LINES)
+        lines = _straightness_lines(T)
         if lines:
             st = estimate_radial(X, lines, c_mm=c0, n_terms=min(2, radial_terms))
             k[: st.k.size] = st.k
@@ -123,6 +130,51 @@ def initial_estimate(
             f"C = ({intr.cx_mm:.3g}, {intr.cy_mm:.3g}) mm): tilt the template differently between views"
         )
     return InitialEstimate(k, n_lines, Hs, intr, *poses_from_homographies(Hs, intr))
+
+
+_LINES_CACHE: dict = {}
+
+
+def _straightness_lines(T) -> list:
+    """The template lines of the straightness step, thinned (:func:`_thin_lines`); cached per template."""
+    key = (T.shape, T.tobytes(), MAX_STRAIGHTNESS_LINES, MAX_LINE_POINTS)
+    hit = _LINES_CACHE.get(key)
+    if hit is None:
+        hit = _thin_lines(T, find_lines(T, max_lines=MAX_STRAIGHTNESS_LINES), MAX_LINE_POINTS)
+        if len(_LINES_CACHE) >= 8:
+            _LINES_CACHE.pop(next(iter(_LINES_CACHE)))
+        _LINES_CACHE[key] = hit
+    return [ln.copy() for ln in hit]
+
+
+def _thin_lines(T, lines, k: int) -> list:
+    """The lines with at most ``k`` indices each, spread evenly along the line (both ends kept), sorted.
+
+    All lines at once: each line's direction is the principal axis of its
+    points (2 x 2 scatter in closed form), its points are ordered along it
+    and ``k`` of them taken at evenly spaced ranks.
+    """
+    lines = [np.asarray(ln) for ln in lines]
+    if not lines or max(ln.size for ln in lines) <= k:
+        return lines
+    n = np.array([ln.size for ln in lines])
+    start = np.concatenate([[0], np.cumsum(n)[:-1]])
+    idx = np.concatenate(lines)
+    owner = np.repeat(np.arange(len(lines)), n)
+    P = T[idx]
+    P = P - (np.add.reduceat(P, start, axis=0) / n[:, None])[owner]
+    sxx, sxy, syy = (np.add.reduceat(P[:, 0] * P[:, 0], start), np.add.reduceat(P[:, 0] * P[:, 1], start),
+                     np.add.reduceat(P[:, 1] * P[:, 1], start))
+    theta = 0.5 * np.arctan2(2 * sxy, sxx - syy)[owner]
+    order = np.lexsort((P[:, 0] * np.cos(theta) + P[:, 1] * np.sin(theta), owner))  # by line, then along it
+    out = []
+    for j, ln in enumerate(lines):
+        if ln.size <= k:
+            out.append(ln)
+            continue
+        along = idx[order[start[j]: start[j] + n[j]]]
+        out.append(np.sort(along[np.round(np.linspace(0, n[j] - 1, k)).astype(int)]))
+    return out
 
 
 @dataclass(frozen=True)
@@ -339,6 +391,30 @@ class CalibrationResult:
 
 def _plain(v):
     return v.item() if isinstance(v, np.generic) else v
+
+
+def _plain_ids(ids) -> tuple:
+    """``ids`` as a tuple of plain Python values (numpy scalars converted)."""
+    ids = tuple(ids)
+    return tuple(_plain(v) for v in ids) if any(isinstance(v, np.generic) for v in ids) else ids
+
+
+def _frozen(a) -> np.ndarray:
+    """A read-only float copy of ``a``."""
+    out = np.array(a, dtype=float)
+    out.flags.writeable = False
+    return out
+
+
+def points_from_record(xy) -> np.ndarray:
+    """The measured points (n_images, M, 2) of a problem record's ``points.xy_mm``, mm, NaN where missing.
+
+    Accepts the array kept in a :class:`CalibrationResult` and the nested lists
+    (``null`` for a missing coordinate) of its JSON file.
+    """
+    if isinstance(xy, np.ndarray):
+        return np.array(xy, dtype=float)
+    return np.array([[[np.nan if v is None else v for v in pt] for pt in img] for img in xy], dtype=float)
 
 
 def _jsonable(obj):
@@ -571,7 +647,7 @@ def _calibrate(template_mm, points_mm, *, cost, radial, tangential, psd_radial, 
         known_gains, X, g0 = g0, correct_points(X, g0, *sensor_mm), np.ones(4)
     primary, cands = linear_starts(
         T, X, preliminary=preliminary, normalize=normalize, radial=radial, skew=skew, aspect=aspect,
-        general=fit_gains, f_guess_mm=f_guess_mm, image_ids=ids, point_ids=pids,
+        general=fit_gains, f_guess_mm=f_guess_mm, image_ids=ids, point_ids=pids, _checked=True,
     )
     start = primary
     g0_start = g0
@@ -580,10 +656,14 @@ def _calibrate(template_mm, points_mm, *, cost, radial, tangential, psd_radial, 
     # Every start is refined on the image cost with the core model (or the model itself
     # when it has nothing beyond the core); the lowest cost wins (global minimum).
     first = staged if staged is not None else spec
-    pfirst = Problem(T, X, first, cost="image", sensor_mm=tuple(sensor_mm))
+    # Many points per view (a chessboard): the starts are compared on a spread subset of each view's points
+    # (the basins of the cost are those of the whole set), and the final refinement takes every point.
+    Xs = subsample_views(T, X)
+    sub = Xs is not None
+    pfirst = Problem(T, X if Xs is None else Xs, first, cost="image", sensor_mm=tuple(sensor_mm))
     # a start stage only seeds the final refinement: looser tolerances (_stage_solver) unless it is the final one
-    tried = _refine_starts(pfirst, first, cands, g0_start,
-                           solver if (staged is None and cost == "image") else _stage_solver(solver))
+    final_start = staged is None and cost == "image" and not sub
+    tried = _refine_starts(pfirst, first, cands, g0_start, solver if final_start else _stage_solver(solver))
     good = [t for t in tried if t[2]]
     if not good:
         good = [t for t in tried if np.isfinite(t[1].cost_rms)]
@@ -596,12 +676,14 @@ def _calibrate(template_mm, points_mm, *, cost, radial, tangential, psd_radial, 
     start_record = {"starts": [{"start": lb, "cost_rms": float(r.cost_rms), "converged": bool(r.converged), "f_mm": float(r.intrinsics.f_mm),
                                 "cx_mm": float(r.intrinsics.cx_mm), "cy_mm": float(r.intrinsics.cy_mm)} for lb, r, _ in tried],
                     "chosen": label}
+    if sub:
+        start_record["points_per_view"] = SUBSAMPLE_POINTS
     intr0 = best0.intrinsics
     if aspect and intr0.fy_mm is None:
         intr0 = replace(intr0, fy_mm=intr0.f_mm)
     dist0 = Distortion.from_array(best0.coeffs)
     rv0, tv0 = best0.rvecs, best0.tvecs
-    final_done = best0 if (staged is None and cost == "image") else None
+    final_done = best0 if final_start else None
     if spec.psd_radial > 0:
         best = _psd_multistart(T, X, spec, sensor_mm, start, intr0, dist0, g0, rv0, tv0, solver)
         if best is not None:
@@ -637,6 +719,63 @@ def _calibrate(template_mm, points_mm, *, cost, radial, tangential, psd_radial, 
             result=result,
         )
     return result
+
+
+#: Points per view on which the starts of the refinement are compared when a view has more than twice as
+#: many (:func:`subsample_views`); the final refinement always takes every point.
+SUBSAMPLE_POINTS = 32
+
+
+def subsample_views(T, X, k: int = SUBSAMPLE_POINTS):
+    """``X`` with all but about ``k`` spread points of each view set to NaN; None when no view has more than ``2 k``.
+
+    The points are chosen once on the template: the one nearest the centre of
+    each cell of a ``g x g`` grid over the plate, ``g = ceil(sqrt(k))``, so they
+    cover the whole plate, corners included (where distortion shows most). A
+    view that keeps fewer than ``k / 2`` of them (a partly seen template)
+    keeps all its points.
+
+    Parameters
+    ----------
+    T : (M, 2) template points, mm
+    X : (n_images, M, 2) measured points, mm, NaN where missing
+    """
+    T = np.asarray(T, dtype=float)
+    valid = np.all(np.isfinite(X), axis=-1)  # (n_images, M)
+    if T.shape[0] <= 2 * k or not np.any(valid.sum(axis=1) > 2 * k):
+        return None
+    keep = valid & _subsample_mask(T, k)[None, :]
+    few = (keep.sum(axis=1) < k // 2) | (valid.sum(axis=1) <= 2 * k)
+    keep[few] = valid[few]
+    return np.where(keep[..., None], X, np.nan)
+
+
+_SUBSAMPLE_CACHE: dict = {}
+
+
+def _subsample_mask(T, k) -> np.ndarray:
+    """(M,) bool: the template points :func:`subsample_views` keeps (cached per template)."""
+    ckey = (T.shape, T.tobytes(), k)
+    hit = _SUBSAMPLE_CACHE.get(ckey)
+    if hit is not None:
+        return hit
+    # one point per cell of a g x g grid over the plate (the one nearest the cell's centre)
+    g = int(np.ceil(np.sqrt(k)))
+    lo, hi = T.min(axis=0), T.max(axis=0)
+    size = np.where(hi > lo, (hi - lo) / g, 1.0)
+    cell = np.minimum(((T - lo) / size).astype(np.int64), g - 1)
+    off = np.sum(((T - lo) / size - cell - 0.5) ** 2, axis=1)
+    key = cell[:, 0] * g + cell[:, 1]
+    order = np.lexsort((off, key))
+    first = np.ones(order.size, dtype=bool)
+    first[1:] = key[order[1:]] != key[order[:-1]]
+    chosen = np.zeros(T.shape[0], dtype=bool)
+    chosen[order[first]] = True
+    chosen.flags.writeable = False
+    if len(_SUBSAMPLE_CACHE) >= 8:
+        _SUBSAMPLE_CACHE.pop(next(iter(_SUBSAMPLE_CACHE)))
+    _SUBSAMPLE_CACHE[ckey] = chosen
+    return chosen
 
 
 #: LM iterations a further start runs before it is compared with the best solution so far
@@ -836,7 +975,7 @@ def template_hint(T, X, Hs, point_ids=None) -> str:
 
 
 def linear_starts(T, X, *, preliminary=True, normalize=True, radial=2, skew=False, aspect=False, general=False,
-                  f_guess_mm=None, image_ids=None, point_ids=None):
+                  f_guess_mm=None, image_ids=None, point_ids=None, _checked=False):
     """Starts of the refinement from the linear stages, the first that fail being replaced by ones that cannot.
 
     Returns ``(primary, starts)``: ``primary`` is the :class:`InitialEstimate`
@@ -873,7 +1012,7 @@ def linear_starts(T, X, *, preliminary=True, normalize=True, radial=2, skew=Fals
     labels = [f"image {i}" for i in ids]
     try:
         est = initial_estimate(T, X, preliminary=preliminary, normalize=normalize, radial_terms=radial,
-                               skew=skew or general, aspect=aspect or general, image_ids=ids)
+                               skew=skew or general, aspect=aspect or general, image_ids=ids, _checked=_checked)
     except DegenerateViewsError as exc:
         closed_error, est = exc, None
     # the views' homographies (after the preliminary step when it applied: the better start); raises on collinear
@@ -1034,9 +1173,11 @@ def _make_result(prob, ref, start, ids, pids, spec, cost, g0, preliminary, norma
         "closed_form": {**start.intrinsics.to_dict(), "normalized": bool(normalize)},
         "initial_extrinsics": [{"image_id": _plain(i), "rvec": r.tolist(), "tvec_mm": t.tolist()} for i, r, t in zip(ids, start.rvecs, start.tvecs_mm)],
     }
+    pids = _plain_ids(pids)
+    # the inputs are kept as (read-only) arrays; to_dict() writes them as lists, NaN as null
     problem = {
-        "template": {"point_ids": [_plain(p) for p in pids], "xy_mm": prob.template_mm.tolist()},
-        "points": {"image_ids": [_plain(i) for i in ids], "xy_mm": _jsonable(X)},
+        "template": {"point_ids": list(pids), "xy_mm": _frozen(prob.template_mm)},
+        "points": {"image_ids": [_plain(i) for i in ids], "xy_mm": _frozen(X)},
         "options": {
             "cost": cost,
             "radial": spec.radial,
@@ -1062,7 +1203,7 @@ def _make_result(prob, ref, start, ids, pids, spec, cost, g0, preliminary, norma
         covariance=cov,
         std=std,
         image_ids=tuple(_plain(i) for i in ids),
-        point_ids=tuple(_plain(p) for p in pids),
+        point_ids=pids,
         rvecs=ref.rvecs,
         tvecs_mm=ref.tvecs,
         pose_std=pose_std,
@@ -1095,7 +1236,7 @@ def _calibrate_record(calib, *, verdict: bool = False, template_mm=None, drop_im
 
         return recalibrate_directions(d)
     o = {**p["options"], **changes}
-    X = np.array([[[np.nan if v is None else v for v in pt] for pt in img] for img in p["points"]["xy_mm"]], dtype=float)
+    X = points_from_record(p["points"]["xy_mm"])
     image_ids = list(p["points"]["image_ids"])
     if drop_image is not None:
         X = np.delete(X, drop_image, axis=0)

@@ -265,7 +265,9 @@ def _check_k(k):
 
 def _points_array(problem) -> np.ndarray:
     xy = problem["points"]["xy_mm"]
-    return np.array([[[np.nan if v is None else v for v in pt] for pt in img] for img in xy], dtype=float)
+    from psdcal.calibration.core import points_from_record
+
+    return points_from_record(xy)
 
 
 def _refit(result, points_mm):

@@ -166,13 +166,14 @@ def _linearise(result, exclude=None) -> _Linear:
     extra_names = [n for n in rich.global_names if n not in spec.global_names]
     prob = Problem(T, X, rich, cost="image", sensor_mm=tuple(res.sensor_mm))
     ev = Evaluator(prob, res.intrinsics, res.distortion, gains)
-    r, Jr = ev.evaluate(prob.pack(res.intrinsics, res.distortion, gains, res.rvecs, res.tvecs_mm))
+    # the compact block Jacobian: the global columns, then each row's own view's six pose columns
+    r, Jc = ev.evaluate_compact(prob.pack(res.intrinsics, res.distortion, gains, res.rvecs, res.tvecs_mm))
     r = np.asarray(r, dtype=float)
-    Jr = np.asarray(Jr, dtype=float)
+    Jc = np.asarray(Jc, dtype=float)
     ng_r = prob.n_global
-    G = Jr[:, [prob.names.index(n) for n in spec.global_names]]
-    extra = Jr[:, [prob.names.index(n) for n in extra_names]]
-    Jpose = Jr[:, ng_r:]
+    G = Jc[:, [prob.names.index(n) for n in spec.global_names]]
+    extra = Jc[:, [prob.names.index(n) for n in extra_names]]
+    Jpose = Jc[:, ng_r:]
     img, led, d_meas = ev.img_idx, ev.pt_idx, ev.d_meas
     if exclude is not None:  # (n_images, M) bool: observations left out of the test (flagged outliers)
         keep_pt = ~np.asarray(exclude, dtype=bool)[img, led]
@@ -192,8 +193,9 @@ def _projector(G, Jpose, row_img, n_img):
 
     The pose columns of a view touch only that view's rows: a batched QR of the
     (rows x 6) blocks projects them out view by view; then a QR of the global
-    columns so projected. Returns ``(perp, leverages, rank)`` where
-    ``perp(B)`` is ``(I - P) B`` for B (m, k).
+    columns so projected. ``Jpose`` is (m, 6) (each row's own view's pose
+    columns, the compact form) or (m, 6 n_img) (dense). Returns
+    ``(perp, leverages, rank)`` where ``perp(B)`` is ``(I - P) B`` for B (m, k).
     """
     m = row_img.size
     counts = np.bincount(row_img, minlength=n_img)
@@ -202,18 +204,21 @@ def _projector(G, Jpose, row_img, n_img):
     nr = int(counts.max()) if m else 0
     cols = 6 * row_img[:, None] + np.arange(6)
     blocks = np.zeros((n_img, nr, 6))
-    blocks[row_img, pos] = np.take_along_axis(Jpose, cols, axis=1)
+    blocks[row_img, pos] = Jpose if Jpose.shape[1] == 6 else np.take_along_axis(Jpose, cols, axis=1)
     blocks /= np.maximum(np.linalg.norm(blocks, axis=1, keepdims=True), 1e-300)
     Qb, Rb = np.linalg.qr(blocks)
     dq = np.abs(np.diagonal(Rb, axis1=1, axis2=2))
     rank = int(np.sum(dq > 1e-10 * max(float(dq.max()), 1e-300)))
     Qrows = Qb[row_img, pos]  # (m, 6): each row's part of its view's basis
 
+    Qbt = np.ascontiguousarray(Qb.transpose(0, 2, 1))
+
     def perp_pose(B):
         Bb = np.zeros((n_img, nr, B.shape[1]))
         Bb[row_img, pos] = B
-        C = np.einsum("vri,vrk->vik", Qb, Bb)
-        return B - np.einsum("mi,mik->mk", Qrows, C[row_img])
+        # each view's part of B minus its projection on the view's pose basis (batched matrix products:
+        # no (rows, 6, k) temporary)
+        return B - np.matmul(Qb, np.matmul(Qbt, Bb))[row_img, pos]
 
     Gn = G / np.maximum(np.linalg.norm(G, axis=0), 1e-300)
     Gp = perp_pose(Gn)

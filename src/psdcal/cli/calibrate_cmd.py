@@ -162,8 +162,17 @@ def calibrate_command(points, template, output, cost, radial, tangential, psd_ra
                            f"residual {p.residual_mm * 1e3:.2f} um = {p.ratio:.1f} sigma")
             for iid, pid in rej.kept_flagged:
                 click.echo(f"  kept (too few points left to remove it): image {iid}, point {pid}")
-    undetermined_parameters(res, points)
+    from psdcal.errors import DegenerateViewsError
+
+    try:
+        undetermined_parameters(res, points)
+        undetermined = None
+    except DegenerateViewsError as exc:
+        undetermined = exc
     res = with_verdict(res, noise_mm=noise_mm, points_kind=pf.kind)
+    if undetermined is not None and res.verdict["verdict"] != "wrong":
+        # a fit the data contradict (verdict wrong) has a covariance of no meaning: its diagnosis says more
+        raise undetermined
     if cv_k is not None:
         import dataclasses
 
@@ -228,6 +237,10 @@ def undetermined_parameters(res, points) -> None:
                 k = np.argsort(-np.abs(v[:, 0]))[:2]
                 sub = [n for n, o in zip(names, ok) if o]
                 bad = [sub[i] for i in k]
+    if not bad:
+        from psdcal.calibration.checks import undetermined_parameters as undetermined
+
+        bad = undetermined(res)  # the same from the reduced information: robust to what round-off made of C
     if bad:
         raise DegenerateViewsError(
             f"{points}: the views do not determine {', '.join(bad)} (their covariance is not a covariance: the "
