@@ -162,8 +162,10 @@ def prescan(recording: Recording, config: LocateConfig) -> tuple[float, list[str
         else:
             window_s = 0.01
     if config.check_carriers and x is not None and x.shape[1] >= 64:
+        cache: dict = {}  # one spectrum for all the carriers
         for f in config.carriers_hz:
-            chk = check_carrier(f, carrier_near(x, recording.rate_hz, f), window_s, tdm=config.tdm)
+            chk = check_carrier(f, carrier_near(x, recording.rate_hz, f, spectrum_cache=cache), window_s,
+                                tdm=config.tdm)
             if not chk.ok:
                 warnings.append(f"{recording.path}: {chk.message}")
     return window_s, warnings
@@ -269,6 +271,37 @@ def _rows_single(t_s, names, a, var_a, model: SensorModel, distance_mm, min_snr)
     return cols, int((~keep).sum())
 
 
+#: Rows computed at once (angles, CSV text), at most: the windows of several chunks are batched
+#: (fewer calls), up to ``chunk_samples / BATCH_SAMPLES_PER_ROW`` rows so that the memory stays
+#: bounded by the chunk size.
+BATCH_ROWS = 4096
+BATCH_SAMPLES_PER_ROW = 16
+
+
+def _demodulated(recording, lockin: MultiCarrierLockin, chunk: int):
+    """Yield ``(samples read so far, WindowBlock)`` per chunk of ``recording``.
+
+    A ``.npy`` recording is read as rows where it lies (no copy, no transpose)
+    and its samples are checked through the lock-in's per-window sums of
+    squares: they are finite only when every sample is, so a block is
+    scanned for the bad sample (the error names it) only when they are not,
+    or when its tail is left waiting for the next window.
+    """
+    n_done = 0
+    if getattr(recording, "kind", None) == "npy" and isinstance(recording, Recording):
+        for t0, rows in recording.chunks(chunk, rows=True, check_finite=False):
+            wb = lockin.process_rows(t0, rows)
+            if lockin.pending_samples or not np.isfinite(wb.noise_sigma).all():
+                recording.check_block(rows, n_done, rows=True)
+            n_done += rows.shape[0]
+            yield n_done, wb
+    else:
+        for t0, block in recording.chunks(chunk):
+            wb = lockin.process(t0, block)
+            n_done += block.shape[1]
+            yield n_done, wb
+
+
 def _stream_single(recording: Recording, config: LocateConfig, out_path, order, make_cols, progress):
     """Shared streaming loop of one recording: chunks -> windows (or TDM segments) -> rows -> CSV.
 
@@ -288,6 +321,7 @@ def _stream_single(recording: Recording, config: LocateConfig, out_path, order, 
                            n_emitters=config.n_emitters)
     chunk = max(1, int(config.chunk_samples) // lockin.n_window) * lockin.n_window
     k = len(names)
+    batch_rows = min(BATCH_ROWS, max(1, chunk // BATCH_SAMPLES_PER_ROW))
     names_arr = np.array(names, dtype=object)
     n_samples = n_windows = n_rows = n_skipped = 0
 
@@ -311,22 +345,38 @@ def _stream_single(recording: Recording, config: LocateConfig, out_path, order, 
             else:  # rows are collected and written as one array below
                 def write(_fh, cols, _order):
                     return npy.write(cols)
-            for t0, block in recording.chunks(chunk):
-                n_samples += block.shape[1]
-                wb = lockin.process(t0, block)
+            pending = []  # windows not yet turned into rows: (t, emitter, a, var_a), batched across chunks
+
+            def flush():
+                nonlocal n_rows, n_skipped
+                if not pending:
+                    return
+                t, nm, a, v = (np.concatenate(p) for p in zip(*pending)) if len(pending) > 1 else pending[0]
+                pending.clear()
+                cols, skipped = make_cols(t, nm, a, v)
+                n_skipped += skipped
+                if cols is not None:
+                    n_rows += write(fh, cols, order)
+
+            n_pending = 0
+            for n_samples, wb in _demodulated(recording, lockin, chunk):
                 n_windows += len(wb)
                 if len(wb):
                     if seg is not None:
                         cols, skipped = segment_rows(seg.feed(wb))
+                        n_skipped += skipped
+                        if cols is not None:
+                            n_rows += write(fh, cols, order)
                     else:
-                        t = np.repeat(wb.t_s, k)
-                        nm = np.tile(names_arr, len(wb))
-                        cols, skipped = make_cols(t, nm, wb.amplitude.reshape(-1, 4), wb.var_amplitude.reshape(-1, 4))
-                    n_skipped += skipped
-                    if cols is not None:
-                        n_rows += write(fh, cols, order)
+                        pending.append((np.repeat(wb.t_s, k), np.tile(names_arr, len(wb)),
+                                        wb.amplitude.reshape(-1, 4), wb.var_amplitude.reshape(-1, 4)))
+                        n_pending += len(wb) * k
+                        if n_pending >= batch_rows:
+                            flush()
+                            n_pending = 0
                 if progress is not None:
                     progress(n_samples)
+            flush()
             if seg is not None:
                 cols, skipped = segment_rows(seg.finish())
                 n_skipped += skipped

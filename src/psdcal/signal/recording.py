@@ -98,8 +98,25 @@ class Recording:
         """Length of the recording, s (None when unknown)."""
         return None if self.n_samples is None else self.n_samples / self.rate_hz
 
-    def chunks(self, chunk_samples: int = DEFAULT_CHUNK) -> Iterator[tuple[float, np.ndarray]]:
+    def chunks(self, chunk_samples: int = DEFAULT_CHUNK, *, rows: bool = False,
+               check_finite: bool = True) -> Iterator[tuple[float, np.ndarray]]:
         """Yield ``(t0_s, block)``, ``block`` float64 (4, <= chunk_samples).
+
+        Parameters
+        ----------
+        chunk_samples : int
+            Samples per channel per block (the last one may be shorter).
+        rows : bool
+            Yield ``(<= chunk_samples, 4)`` blocks instead (one sample of the
+            four channels a row, any strides).  A ``(n, 4)`` float64 ``.npy``
+            recording is then read where it lies, without a copy; other
+            formats give the transpose (a view) of their block.
+        check_finite : bool
+            Check every sample (below).  ``False`` (``rows`` blocks of ``.npy``
+            recordings only) leaves the check to the caller, who runs
+            :meth:`check_block` on a block whose sums came out non-finite
+            (``psdcal locate`` uses the lock-in's per-window sums of squares,
+            which are finite only when every sample is).
 
         Raises
         ------
@@ -110,8 +127,21 @@ class Recording:
         chunk_samples = int(chunk_samples)
         if chunk_samples < 1:
             raise InputError(f"chunk size must be positive, got {chunk_samples}", field="chunk_samples")
+        if rows and self.kind == "npy":
+            yield from _rows_npy(self, chunk_samples, check_finite)
+            return
         reader = {"npy": _chunks_npy, "csv": _chunks_csv, "hdf5": _chunks_hdf5, "tdms": _chunks_tdms}[self.kind]
-        yield from reader(self, chunk_samples)
+        for t0, block in reader(self, chunk_samples):
+            yield t0, (block.T if rows else block)
+
+    def check_block(self, block: np.ndarray, first_sample: int, *, rows: bool = False) -> None:
+        """Raise :class:`InputError` naming the first non-finite sample of ``block``, if any.
+
+        ``block`` is (4, m), or (m, 4) with ``rows``; ``first_sample`` is the
+        index of its first sample in the recording.
+        """
+        b = np.asarray(block)
+        _check_finite(b.T if rows else b, self.path, first_sample)
 
 
 # --------------------------------------------------------------------------- open
@@ -225,6 +255,20 @@ def _chunks_npy(rec: Recording, chunk: int):
         block = np.empty((4, stop - start))
         block[...] = part.T if by_rows else part
         _check_finite(block, rec.path, start)
+        yield rec.t0_s + start / rec.rate_hz, block
+
+
+def _rows_npy(rec: Recording, chunk: int, check: bool):
+    """(m, 4) float64 blocks of a ``.npy`` recording; read where they lie for a (n, 4) float64 file."""
+    arr = _npy_array(rec.path)
+    by_rows = arr.shape[1] == 4
+    n = rec.n_samples
+    for start in range(0, n, chunk):
+        stop = min(n, start + chunk)
+        part = arr[start:stop] if by_rows else arr[:, start:stop].T
+        block = np.asarray(part, dtype=np.float64)  # no copy for native float64
+        if check:
+            _check_finite(block.T, rec.path, start)
         yield rec.t0_s + start / rec.rate_hz, block
 
 
