@@ -90,6 +90,18 @@ def njit(fn):
         return numba.njit(cache=False, nogil=True, error_model="numpy")(fn)
 
 
+def njit_inline(fn):
+    """As :func:`njit` for a helper that compiled kernels call: inlined into them (numba's
+    ``inline="always"``), so no per-call passing of its array arguments."""
+    if not AVAILABLE:
+        return fn
+    numba = _load_numba()
+    try:
+        return numba.njit(cache=True, nogil=True, error_model="numpy", inline="always")(fn)
+    except (RuntimeError, OSError):
+        return numba.njit(cache=False, nogil=True, error_model="numpy", inline="always")(fn)
+
+
 class _Lazy:
     """A kernel compiled on its first call (numba imported then)."""
 

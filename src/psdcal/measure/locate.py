@@ -186,24 +186,30 @@ MULTI_COLUMNS = ("t_s", "emitter", "X_mm", "Y_mm", "Z_mm", "sigma_X_mm", "sigma_
 
 
 def _write_rows(fh, cols: dict, order) -> int:
-    """Write columns (equal-length arrays) as CSV rows; floats with 10 significant digits."""
+    """Write columns (equal-length arrays) as CSV rows; floats with 10 significant digits.
+
+    The text is formatted by the compiled writer (:func:`psdcal._csvtext.rows_text`, the same
+    bytes as Python's ``"%.10g"``/``"%d"``/``"%s"``), or by :func:`_rows_text` without numba.
+    """
     n = len(cols["t_s"])
     if n == 0:
         return 0
-    parts, lists = [], []
-    for c in order:
-        a = np.asarray(cols[c])
-        if a.dtype.kind in "OUS":
-            parts.append("%s")
-        elif a.dtype.kind in "iub":
-            parts.append("%d")
-        else:
-            parts.append("%.10g")
-        lists.append(a.tolist())
-    fmt = ",".join(parts)
-    fh.write("\n".join([fmt % row for row in zip(*lists)]))
-    fh.write("\n")
+    from psdcal import _jit
+
+    if _jit.enabled():
+        from psdcal._csvtext import rows_text
+
+        fh.write(rows_text([cols[c] for c in order]))
+    else:
+        fh.write(_rows_text(cols, order))
     return n
+
+
+def _rows_text(cols: dict, order) -> str:
+    """The CSV text of :func:`_write_rows` by Python's ``%`` formatting (the reference)."""
+    from psdcal._csvtext import rows_text_reference
+
+    return rows_text_reference([cols[c] for c in order])
 
 
 class _NpyRows:
