@@ -215,24 +215,31 @@ def format_cells(F, I, kind, src, slots, lens):  # pragma: no cover - compiled
 
 
 @njit
-def join_cells(slots, lens, kind, src, codes, table, offsets):  # pragma: no cover - compiled
-    """The CSV text (uint8) of formatted cells: ``,`` between cells, ``\\n`` after each row.
+def join_cells(slots, lens, kind, src, codes, table, offsets, fb_table, fb_offsets):  # pragma: no cover - compiled
+    """The CSV text (uint8) of formatted cells: ``,`` between cells, ``\n`` after each row.
 
     Text cells (``kind == 2``) are ``table[offsets[c]:offsets[c + 1]]`` with
-    ``c = codes[row, src[j]]``.
+    ``c = codes[row, src[j]]``; cells left to Python (``lens < 0``) are the
+    successive strings of ``fb_table`` (row-major order).
     """
     n, ncol = lens.shape
     total = 0
+    nfb = 0
     for r in range(n):
         for j in range(ncol):
             if kind[j] == 2:
                 c = codes[r, src[j]]
                 total += offsets[c + 1] - offsets[c]
+            elif lens[r, j] < 0:
+                total += fb_offsets[nfb + 1] - fb_offsets[nfb]
+                nfb += 1
             else:
                 total += lens[r, j]
         total += ncol  # ncol - 1 commas and a newline
     out = np.empty(total, dtype=np.uint8)
+    flat = slots.reshape(slots.size)
     p = 0
+    nfb = 0
     for r in range(n):
         for j in range(ncol):
             if j > 0:
@@ -243,9 +250,15 @@ def join_cells(slots, lens, kind, src, codes, table, offsets):  # pragma: no cov
                 for i in range(offsets[c], offsets[c + 1]):
                     out[p] = table[i]
                     p += 1
+            elif lens[r, j] < 0:
+                for i in range(fb_offsets[nfb], fb_offsets[nfb + 1]):
+                    out[p] = fb_table[i]
+                    p += 1
+                nfb += 1
             else:
+                b = (r * ncol + j) * SLOT
                 for i in range(lens[r, j]):
-                    out[p] = slots[r, j, i]
+                    out[p] = flat[b + i]
                     p += 1
         out[p] = 10
         p += 1
@@ -275,6 +288,15 @@ def rows_text_reference(columns) -> str:
     return "\n".join([fmt % row for row in zip(*lists)]) + "\n"
 
 
+def _table(texts):
+    """UTF-8 table of strings: (bytes as uint8, offsets (len + 1,))."""
+    enc = [t.encode("utf-8") for t in texts]
+    offsets = np.zeros(len(enc) + 1, dtype=np.int64)
+    offsets[1:] = np.cumsum([len(b) for b in enc])
+    table = np.frombuffer(b"".join(enc), dtype=np.uint8) if offsets[-1] else np.zeros(1, dtype=np.uint8)
+    return table, offsets
+
+
 def _codes(a: np.ndarray):
     """Integer codes of a text column and the UTF-8 table of its distinct values (``"%s" % v``)."""
     values = a.tolist()
@@ -286,10 +308,7 @@ def _codes(a: np.ndarray):
     else:
         index = {v: i for i, v in enumerate(distinct)}
         codes = np.fromiter((index[v] for v in values), dtype=np.int64, count=a.shape[0])
-    enc = [("%s" % v).encode("utf-8") for v in distinct]
-    offsets = np.zeros(len(enc) + 1, dtype=np.int64)
-    offsets[1:] = np.cumsum([len(b) for b in enc])
-    table = np.frombuffer(b"".join(enc), dtype=np.uint8) if offsets[-1] else np.zeros(1, dtype=np.uint8)
+    table, offsets = _table(["%s" % v for v in distinct])
     return codes, table, offsets
 
 
@@ -325,10 +344,14 @@ def rows_text(columns) -> str:
     slots = np.empty((n, len(cols), SLOT), dtype=np.uint8)
     lens = np.empty((n, len(cols)), dtype=np.int64)
     format_cells(F, I, kind, src, slots, lens)
-    for r, j in np.argwhere(lens < 0):  # rare: values near a rounding tie, extreme exponents
-        text = (("%.10g" % F[r, src[j]]) if kind[j] == 0 else ("%d" % I[r, src[j]])).encode("ascii")
-        slots[r, j, : len(text)] = np.frombuffer(text, dtype=np.uint8)
-        lens[r, j] = len(text)
+    bad = np.argwhere(lens < 0)  # rare: values near a rounding tie, extreme exponents
+    fb_table, fb_offsets = _table([])
+    if len(bad):  # Python's text for them, in row-major order (the order join_cells meets them)
+        rr, jj = bad[:, 0], bad[:, 1]
+        fv = F[rr, src[jj]].tolist()
+        iv = I[rr, np.minimum(src[jj], I.shape[1] - 1)].tolist()
+        fb_table, fb_offsets = _table([("%.10g" % f) if kind[j] == 0 else ("%d" % i)
+                                       for j, f, i in zip(jj.tolist(), fv, iv)])
     codes = np.zeros((n, max(1, len(scols))), dtype=np.int64)
     tables, offs, base = [], [np.zeros(1, dtype=np.int64)], 0
     n_codes = 0
@@ -341,5 +364,5 @@ def rows_text(columns) -> str:
         base += int(offsets[-1])
     table = np.concatenate(tables) if tables and base else np.zeros(1, dtype=np.uint8)
     offsets = np.concatenate(offs)
-    out = join_cells(slots, lens, kind, src, codes, table, offsets)
+    out = join_cells(slots, lens, kind, src, codes, table, offsets, fb_table, fb_offsets)
     return out.tobytes().decode("utf-8")
