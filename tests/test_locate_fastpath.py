@@ -83,10 +83,10 @@ def test_sum_squares_equals_reference():
     assert np.isnan(s[3, 2]) and np.isinf(s[5, 0]) and np.isfinite(np.delete(s.ravel(), [3 * 4 + 2, 5 * 4])).all()
 
 
-@pytest.mark.parametrize("layout", ["rows", "cols", "float32"])
+@pytest.mark.parametrize("layout", ["rows", "fortran", "cols", "float32"])
 def test_rows_chunks_equal_checked_chunks(tmp_path, layout):
     _, x = _sig(10_007)
-    arr = {"rows": x.T, "cols": x, "float32": x.T.astype(np.float32)}[layout]
+    arr = {"rows": np.ascontiguousarray(x.T), "fortran": x.T, "cols": x, "float32": x.T.astype(np.float32)}[layout]
     np.save(tmp_path / "r.npy", arr)
     rec = open_recording(tmp_path / "r.npy", RATE)
     ref = list(rec.chunks(3_000))
@@ -95,16 +95,32 @@ def test_rows_chunks_equal_checked_chunks(tmp_path, layout):
     for (_, a), (_, b) in zip(fast, ref):
         assert a.shape == b.T.shape and a.dtype == np.float64
         np.testing.assert_array_equal(a, b.T)
-    if layout == "rows":  # read where it lies: a view of the file, no copy
-        assert not fast[0][1].flags.owndata
+    reused = [b.copy() for _, b in rec.chunks(3_000, rows=True, reuse_buffer=True)]
+    for a, (_, b) in zip(reused, ref):
+        np.testing.assert_array_equal(a, b.T)
+    if layout == "rows":  # read straight into one buffer, filled again for every chunk
+        it = rec.chunks(3_000, rows=True, reuse_buffer=True)
+        first, second = next(it)[1], next(it)[1]
+        assert np.shares_memory(first, second)
+
+
+def test_truncated_npy_is_named(tmp_path):
+    _, x = _sig(10_000)
+    np.save(tmp_path / "r.npy", np.ascontiguousarray(x.T))
+    rec = open_recording(tmp_path / "r.npy", RATE)
+    data = (tmp_path / "r.npy").read_bytes()
+    (tmp_path / "r.npy").write_bytes(data[: len(data) - 32 * 100])  # the last 100 samples lost after opening
+    with pytest.raises(InputError, match=r"r\.npy.*(truncated|not a readable)"):
+        list(rec.chunks(3_000, rows=True, check_finite=False))
 
 
 @pytest.mark.parametrize("where", [5_000, 24_990])  # inside a window; in the tail left waiting (no window)
 @pytest.mark.parametrize("bad", [np.nan, np.inf])
-def test_non_finite_sample_named_on_the_fast_path(tmp_path, where, bad):
+@pytest.mark.parametrize("order", ["C", "F"])  # read into a buffer; converted from the memory map
+def test_non_finite_sample_named_on_the_fast_path(tmp_path, where, bad, order):
     m, x = _sig(25_000)
     x[2, where] = bad
-    np.save(tmp_path / "r.npy", x.T)
+    np.save(tmp_path / "r.npy", np.asarray(x.T, order=order))
     (tmp_path / "out.csv").write_text("keep\n")
     cfg = LocateConfig(carriers_hz=(1000.0, 1300.0), window_s=0.01, check_carriers=False, chunk_samples=8_192)
     with pytest.raises(InputError, match=rf"sample {where} of channel vy1"):
@@ -116,7 +132,7 @@ def test_locate_csv_text_equals_python_formatting(tmp_path, monkeypatch):
     import psdcal._csvtext as ct
 
     m, x = _sig(60_000)
-    np.save(tmp_path / "r.npy", x.T)
+    np.save(tmp_path / "r.npy", np.ascontiguousarray(x.T))
     rec = open_recording(tmp_path / "r.npy", RATE)
     cfg = LocateConfig(carriers_hz=(1000.0, 1300.0), window_s=0.01, distance_mm=5000.0)
     locate_to_csv(rec, m, tmp_path / "fast.csv", cfg)
@@ -129,7 +145,7 @@ def test_locate_csv_text_equals_python_formatting(tmp_path, monkeypatch):
 
 def test_batching_does_not_change_rows(tmp_path):
     m, x = _sig(100_000)
-    np.save(tmp_path / "r.npy", x.T)
+    np.save(tmp_path / "r.npy", np.ascontiguousarray(x.T))
     rec = open_recording(tmp_path / "r.npy", RATE)
     outs = []
     for k, chunk in enumerate((1_250, 16_384, 1 << 20)):  # one window per chunk .. everything in one batch

@@ -293,7 +293,8 @@ def _table(texts):
     enc = [t.encode("utf-8") for t in texts]
     offsets = np.zeros(len(enc) + 1, dtype=np.int64)
     offsets[1:] = np.cumsum([len(b) for b in enc])
-    table = np.frombuffer(b"".join(enc), dtype=np.uint8) if offsets[-1] else np.zeros(1, dtype=np.uint8)
+    # a writable copy: one compiled signature for the kernels whatever the table (numba types read-only apart)
+    table = np.frombuffer(b"".join(enc), dtype=np.uint8).copy() if offsets[-1] else np.zeros(1, dtype=np.uint8)
     return table, offsets
 
 

@@ -280,22 +280,23 @@ def _rows_single(t_s, names, a, var_a, model: SensorModel, distance_mm, min_snr)
 #: Rows computed at once (angles, CSV text), at most: the windows of several chunks are batched
 #: (fewer calls), up to ``chunk_samples / BATCH_SAMPLES_PER_ROW`` rows so that the memory stays
 #: bounded by the chunk size.
-BATCH_ROWS = 4096
-BATCH_SAMPLES_PER_ROW = 16
+BATCH_ROWS = 1024
+BATCH_SAMPLES_PER_ROW = 32
 
 
 def _demodulated(recording, lockin: MultiCarrierLockin, chunk: int):
     """Yield ``(samples read so far, WindowBlock)`` per chunk of ``recording``.
 
-    A ``.npy`` recording is read as rows where it lies (no copy, no transpose)
-    and its samples are checked through the lock-in's per-window sums of
+    A ``.npy`` recording is read as rows straight into one reused buffer (no
+    conversion, no transpose; the lock-in keeps copies of what it holds for the
+    next chunk) and its samples are checked through the lock-in's per-window sums of
     squares: they are finite only when every sample is, so a block is
     scanned for the bad sample (the error names it) only when they are not,
     or when its tail is left waiting for the next window.
     """
     n_done = 0
     if getattr(recording, "kind", None) == "npy" and isinstance(recording, Recording):
-        for t0, rows in recording.chunks(chunk, rows=True, check_finite=False):
+        for t0, rows in recording.chunks(chunk, rows=True, check_finite=False, reuse_buffer=True):
             wb = lockin.process_rows(t0, rows)
             if lockin.pending_samples or not np.isfinite(wb.noise_sigma).all():
                 recording.check_block(rows, n_done, rows=True)
@@ -351,20 +352,25 @@ def _stream_single(recording: Recording, config: LocateConfig, out_path, order, 
             else:  # rows are collected and written as one array below
                 def write(_fh, cols, _order):
                     return npy.write(cols)
-            pending = []  # windows not yet turned into rows: (t, emitter, a, var_a), batched across chunks
+            # windows not yet turned into rows, batched across chunks in buffers allocated once
+            # (the memory does not change from chunk to chunk)
+            cap = batch_rows + k * (chunk // lockin.n_window + 1)
+            pend_t, pend_e = np.empty(cap), np.empty(cap, dtype=np.intp)
+            pend_a, pend_v = np.empty((cap, 4)), np.empty((cap, 4))
+            fill = 0
+            emitter_index = np.arange(k)
 
             def flush():
-                nonlocal n_rows, n_skipped
-                if not pending:
+                nonlocal n_rows, n_skipped, fill
+                if fill == 0:
                     return
-                t, nm, a, v = (np.concatenate(p) for p in zip(*pending)) if len(pending) > 1 else pending[0]
-                pending.clear()
-                cols, skipped = make_cols(t, nm, a, v)
+                cols, skipped = make_cols(pend_t[:fill], names_arr[pend_e[:fill]], pend_a[:fill], pend_v[:fill])
+                fill = 0
                 n_skipped += skipped
                 if cols is not None:
-                    n_rows += write(fh, cols, order)
+                    n_rows += write(fh, {c: np.array(v, copy=True) for c, v in cols.items()} if npy is not None else cols,
+                                    order)  # the npy writer keeps the arrays: no views of the buffers
 
-            n_pending = 0
             for n_samples, wb in _demodulated(recording, lockin, chunk):
                 n_windows += len(wb)
                 if len(wb):
@@ -374,12 +380,23 @@ def _stream_single(recording: Recording, config: LocateConfig, out_path, order, 
                         if cols is not None:
                             n_rows += write(fh, cols, order)
                     else:
-                        pending.append((np.repeat(wb.t_s, k), np.tile(names_arr, len(wb)),
-                                        wb.amplitude.reshape(-1, 4), wb.var_amplitude.reshape(-1, 4)))
-                        n_pending += len(wb) * k
-                        if n_pending >= batch_rows:
+                        r = len(wb) * k
+                        if fill + r > cap:
                             flush()
-                            n_pending = 0
+                        if r > cap:  # (not expected: a chunk is at most cap rows) rows at once
+                            cols, skipped = make_cols(np.repeat(wb.t_s, k), np.tile(names_arr, len(wb)),
+                                                      wb.amplitude.reshape(-1, 4), wb.var_amplitude.reshape(-1, 4))
+                            n_skipped += skipped
+                            if cols is not None:
+                                n_rows += write(fh, cols, order)
+                        else:
+                            pend_t[fill: fill + r] = np.repeat(wb.t_s, k)
+                            pend_e[fill: fill + r] = np.tile(emitter_index, len(wb))
+                            pend_a[fill: fill + r] = wb.amplitude.reshape(-1, 4)
+                            pend_v[fill: fill + r] = wb.var_amplitude.reshape(-1, 4)
+                            fill += r
+                            if fill >= batch_rows:
+                                flush()
                 if progress is not None:
                     progress(n_samples)
             flush()
