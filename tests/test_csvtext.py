@@ -1,4 +1,4 @@
-"""The compiled CSV writer (psdcal._csvtext) against Python's own ``%`` formatting, byte for byte."""
+"""The compiled CSV writer (psdcal.measure._csvtext) against Python's own ``%`` formatting, byte for byte."""
 from __future__ import annotations
 
 import numpy as np
@@ -7,7 +7,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from psdcal import _jit
-from psdcal._csvtext import rows_text, rows_text_reference
+from psdcal.measure._csvtext import rows_text, rows_text_reference
 
 pytestmark = pytest.mark.skipif(not _jit.enabled(), reason="the compiled writer needs numba")
 

@@ -117,6 +117,7 @@ def test_truncated_npy_is_named(tmp_path):
 @pytest.mark.parametrize("where", [5_000, 24_990])  # inside a window; in the tail left waiting (no window)
 @pytest.mark.parametrize("bad", [np.nan, np.inf])
 @pytest.mark.parametrize("order", ["C", "F"])  # read into a buffer; converted from the memory map
+@pytest.mark.filterwarnings("error")  # one error line, no numpy warnings before it
 def test_non_finite_sample_named_on_the_fast_path(tmp_path, where, bad, order):
     m, x = _sig(25_000)
     x[2, where] = bad
@@ -129,7 +130,7 @@ def test_non_finite_sample_named_on_the_fast_path(tmp_path, where, bad, order):
 
 
 def test_locate_csv_text_equals_python_formatting(tmp_path, monkeypatch):
-    import psdcal._csvtext as ct
+    import psdcal.measure._csvtext as ct
 
     m, x = _sig(60_000)
     np.save(tmp_path / "r.npy", np.ascontiguousarray(x.T))

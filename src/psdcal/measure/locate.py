@@ -188,7 +188,7 @@ MULTI_COLUMNS = ("t_s", "emitter", "X_mm", "Y_mm", "Z_mm", "sigma_X_mm", "sigma_
 def _write_rows(fh, cols: dict, order) -> int:
     """Write columns (equal-length arrays) as CSV rows; floats with 10 significant digits.
 
-    The text is formatted by the compiled writer (:func:`psdcal._csvtext.rows_text`, the same
+    The text is formatted by the compiled writer (:func:`psdcal.measure._csvtext.rows_text`, the same
     bytes as Python's ``"%.10g"``/``"%d"``/``"%s"``), or by :func:`_rows_text` without numba.
     """
     n = len(cols["t_s"])
@@ -197,7 +197,7 @@ def _write_rows(fh, cols: dict, order) -> int:
     from psdcal import _jit
 
     if _jit.enabled():
-        from psdcal._csvtext import rows_text
+        from psdcal.measure._csvtext import rows_text
 
         fh.write(rows_text([cols[c] for c in order]))
     else:
@@ -207,7 +207,7 @@ def _write_rows(fh, cols: dict, order) -> int:
 
 def _rows_text(cols: dict, order) -> str:
     """The CSV text of :func:`_write_rows` by Python's ``%`` formatting (the reference)."""
-    from psdcal._csvtext import rows_text_reference
+    from psdcal.measure._csvtext import rows_text_reference
 
     return rows_text_reference([cols[c] for c in order])
 

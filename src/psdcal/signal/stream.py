@@ -244,6 +244,13 @@ class MultiCarrierLockin:
         if nw == 0:
             e = np.zeros((0, k, 4))
             return WindowBlock(index, t_start, t_start, e, e, np.zeros((0, k)), np.zeros((0, 4)))
+        # a non-finite sample (found and named by the caller from noise_sigma) must not print numpy warnings
+        with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+            return self._fit_rows(xr, index, t_start)
+
+    def _fit_rows(self, xr, index, t_start) -> WindowBlock:
+        n = self.n_window
+        k = len(self.carriers_hz)
         coef = np.matmul(self._proj_t, xr)  # (nw, 2k+1, 4): the least-squares fit of every window and channel
         xx = _sum_squares(xr)  # (nw, 4)
         fit = np.einsum("wic,ij,wjc->wc", coef, self._gram, coef)
