@@ -160,3 +160,18 @@ def test_batching_does_not_change_rows(tmp_path):
         for f in o.dtype.names:
             if f != "emitter":
                 np.testing.assert_allclose(o[f], outs[0][f], rtol=1e-12, atol=1e-15, err_msg=f)
+
+
+def test_window_sums_of_several_chunks_turned_into_windows_at_once():
+    _, x = _sig(40_000)
+    rows = np.ascontiguousarray(x.T)
+    a = MultiCarrierLockin(RATE, (1000.0, 1300.0), 0.01)
+    b = MultiCarrierLockin(RATE, (1000.0, 1300.0), 0.01)
+    per_chunk = [a.process_rows(i / RATE, rows[i: i + 3_000]) for i in range(0, 40_000, 3_000)]
+    sums = [b.fit_rows(i / RATE, rows[i: i + 3_000]) for i in range(0, 40_000, 3_000)]
+    # consecutive windows: each chunk's first window follows the previous chunk's last
+    assert [j for j, _, _ in sums] == list(np.cumsum([0] + [len(w) for w in per_chunk[:-1]]))
+    together = b.windows(sums[0][0], np.concatenate([c for _, c, _ in sums]), np.concatenate([s for _, _, s in sums]))
+    for f in ("index", "t_s", "amplitude", "var_amplitude", "noise_sigma", "phase_rad"):
+        np.testing.assert_allclose(getattr(together, f), np.concatenate([getattr(w, f) for w in per_chunk]),
+                                   rtol=1e-13, atol=1e-15, err_msg=f)

@@ -281,32 +281,55 @@ def _rows_single(t_s, names, a, var_a, model: SensorModel, distance_mm, min_snr)
 #: (fewer calls), up to ``chunk_samples / BATCH_SAMPLES_PER_ROW`` rows so that the memory stays
 #: bounded by the chunk size.
 BATCH_ROWS = 1024
-BATCH_SAMPLES_PER_ROW = 32
+BATCH_SAMPLES_PER_ROW = 64
 
 
-def _demodulated(recording, lockin: MultiCarrierLockin, chunk: int):
-    """Yield ``(samples read so far, WindowBlock)`` per chunk of ``recording``.
+def _demodulated(recording, lockin: MultiCarrierLockin, chunk: int, batch_windows: int = 1):
+    """Yield ``(samples read so far, [WindowBlock, ...])`` per chunk of ``recording``.
 
     A ``.npy`` recording is read as rows straight into one reused buffer (no
     conversion, no transpose; the lock-in keeps copies of what it holds for the
-    next chunk) and its samples are checked through the lock-in's per-window sums of
-    squares: they are finite only when every sample is, so a block is
-    scanned for the bad sample (the error names it) only when they are not,
-    or when its tail is left waiting for the next window.
+    next chunk) and its samples are checked through the lock-in's per-window
+    sums of squares: they are finite only when every sample is, so a block is
+    scanned for the bad sample (the error names it) only when they are not, or
+    when its tail is left waiting for the next window.  Its windows' sums are
+    gathered over chunks and turned into amplitudes ``batch_windows`` at a time
+    (the per-window arithmetic is a few dozen numpy calls whatever their
+    number); the list is empty for a chunk whose windows wait.
     """
     n_done = 0
-    if getattr(recording, "kind", None) == "npy" and isinstance(recording, Recording):
-        for t0, rows in recording.chunks(chunk, rows=True, check_finite=False, reuse_buffer=True):
-            wb = lockin.process_rows(t0, rows)
-            if lockin.pending_samples or not np.isfinite(wb.noise_sigma).all():
-                recording.check_block(rows, n_done, rows=True)
-            n_done += rows.shape[0]
-            yield n_done, wb
-    else:
+    if not (getattr(recording, "kind", None) == "npy" and isinstance(recording, Recording)):
         for t0, block in recording.chunks(chunk):
             wb = lockin.process(t0, block)
             n_done += block.shape[1]
-            yield n_done, wb
+            yield n_done, [wb]
+        return
+    cap = max(int(batch_windows), chunk // lockin.n_window + 1)
+    acc_c = np.empty((cap, 2 * len(lockin.carriers_hz) + 1, 4))
+    acc_x = np.empty((cap, 4))
+    fill, j_first = 0, 0
+    for t0, rows in recording.chunks(chunk, rows=True, check_finite=False, reuse_buffer=True):
+        j0, coef, xx = lockin.fit_rows(t0, rows)
+        if lockin.pending_samples or not np.isfinite(xx).all():
+            recording.check_block(rows, n_done, rows=True)
+        n_done += rows.shape[0]
+        out = []
+        nw = xx.shape[0]
+        if fill and fill + nw > cap:
+            out.append(lockin.windows(j_first, acc_c[:fill], acc_x[:fill]))
+            fill = 0
+        if nw:
+            if fill == 0:
+                j_first = j0
+            acc_c[fill: fill + nw] = coef
+            acc_x[fill: fill + nw] = xx
+            fill += nw
+        if fill >= batch_windows:
+            out.append(lockin.windows(j_first, acc_c[:fill], acc_x[:fill]))
+            fill = 0
+        yield n_done, out
+    if fill:
+        yield n_done, [lockin.windows(j_first, acc_c[:fill], acc_x[:fill])]
 
 
 def _stream_single(recording: Recording, config: LocateConfig, out_path, order, make_cols, progress):
@@ -354,7 +377,7 @@ def _stream_single(recording: Recording, config: LocateConfig, out_path, order, 
                     return npy.write(cols)
             # windows not yet turned into rows, batched across chunks in buffers allocated once
             # (the memory does not change from chunk to chunk)
-            cap = batch_rows + k * (chunk // lockin.n_window + 1)
+            cap = batch_rows + k * (max(batch_rows // k, chunk // lockin.n_window) + 2)  # a batch and a block
             pend_t, pend_e = np.empty(cap), np.empty(cap, dtype=np.intp)
             pend_a, pend_v = np.empty((cap, 4)), np.empty((cap, 4))
             fill = 0
@@ -371,9 +394,11 @@ def _stream_single(recording: Recording, config: LocateConfig, out_path, order, 
                     n_rows += write(fh, {c: np.array(v, copy=True) for c, v in cols.items()} if npy is not None else cols,
                                     order)  # the npy writer keeps the arrays: no views of the buffers
 
-            for n_samples, wb in _demodulated(recording, lockin, chunk):
-                n_windows += len(wb)
-                if len(wb):
+            for n_samples, blocks in _demodulated(recording, lockin, chunk, max(1, batch_rows // k)):
+                for wb in blocks:
+                    n_windows += len(wb)
+                    if not len(wb):
+                        continue
                     if seg is not None:
                         cols, skipped = segment_rows(seg.feed(wb))
                         n_skipped += skipped
@@ -383,7 +408,7 @@ def _stream_single(recording: Recording, config: LocateConfig, out_path, order, 
                         r = len(wb) * k
                         if fill + r > cap:
                             flush()
-                        if r > cap:  # (not expected: a chunk is at most cap rows) rows at once
+                        if r > cap:  # (not expected: a block is at most cap rows) rows at once
                             cols, skipped = make_cols(np.repeat(wb.t_s, k), np.tile(names_arr, len(wb)),
                                                       wb.amplitude.reshape(-1, 4), wb.var_amplitude.reshape(-1, 4))
                             n_skipped += skipped

@@ -202,8 +202,20 @@ class MultiCarrierLockin:
     def process_rows(self, t0_s: float, rows) -> WindowBlock:
         """As :meth:`process`, for a chunk given as rows ``(m, 4)`` (one sample of the four channels a row).
 
-        The layout of a ``(n, 4)`` ``.npy`` recording: the chunk is read where it
-        lies (a memory map needs no copy), any strides.
+        The layout of a ``(n, 4)`` ``.npy`` recording: the chunk is used as it
+        lies (no transpose), any strides.
+        """
+        return self.windows(*self.fit_rows(t0_s, rows))
+
+    def fit_rows(self, t0_s: float, rows) -> tuple[int, np.ndarray, np.ndarray]:
+        """The least-squares sums of the windows a chunk of rows ``(m, 4)`` completes.
+
+        The first half of :meth:`process_rows`: returns ``(j0, coef, xx)``,
+        the number of the first window completed, ``coef`` (nw, 2k + 1, 4)
+        the fitted ``sin, cos`` of each carrier and the offset, ``xx`` (nw, 4)
+        the sums of squares of each window and channel (finite only when
+        every sample is).  :meth:`windows` turns them (those of several
+        chunks together, consecutive) into a :class:`WindowBlock`.
         """
         rows = np.asarray(rows, dtype=float)
         if rows.ndim != 2 or rows.shape[1] != 4:
@@ -220,40 +232,50 @@ class MultiCarrierLockin:
         nw = x.shape[0] // n
         used = nw * n
         self._buf = x[used:].copy() if used < x.shape[0] else np.empty((0, 4))
-        return self._demodulate_rows(x[:used].reshape(nw, n, 4))
+        return self._fit(x[:used].reshape(nw, n, 4))
 
     @property
     def pending_samples(self) -> int:
         """Samples received but not yet in a complete window (held for the next chunk)."""
         return int(self._buf.shape[0])
 
+    def _fit(self, xr: np.ndarray) -> tuple[int, np.ndarray, np.ndarray]:
+        """``(j0, coef, xx)`` of windows ``xr`` (nw, n, 4): one matrix product per window with the projection table."""
+        j0 = self._next_window
+        self._next_window += xr.shape[0]
+        if xr.shape[0] == 0:
+            return j0, np.zeros((0, self._proj_t.shape[0], 4)), np.zeros((0, 4))
+        coef = np.matmul(self._proj_t, xr)  # (nw, 2k+1, 4): the least-squares fit of every window and channel
+        return j0, coef, _sum_squares(xr)
+
     def _demodulate_rows(self, xr: np.ndarray) -> WindowBlock:
-        """Windows ``xr`` (nw, n, 4) -> amplitudes: one matrix product per window with the projection table.
+        """Windows ``xr`` (nw, n, 4) -> amplitudes (:meth:`_fit`, then :meth:`windows`).
 
         Same estimate as :meth:`_demodulate` (the numpy reference, on the
         channel-major layout): ``coef = P x`` with ``P = G^-1 B^T`` computed
         once, the residual from ``|x|^2 - coef^T G coef``.
         """
+        return self.windows(*self._fit(xr))
+
+    def windows(self, j0: int, coef: np.ndarray, xx: np.ndarray) -> WindowBlock:
+        """Windows ``j0, j0 + 1, ...`` from their sums (:meth:`fit_rows`): amplitudes, noise, phases."""
         n = self.n_window
         k = len(self.carriers_hz)
-        nw = xr.shape[0]
-        j0 = self._next_window
-        self._next_window += nw
+        nw = coef.shape[0]
         index = np.arange(j0, j0 + nw)
-        t_start = self._origin_s + index * n / self.rate_hz
         if nw == 0:
             e = np.zeros((0, k, 4))
-            return WindowBlock(index, t_start, t_start, e, e, np.zeros((0, k)), np.zeros((0, 4)))
-        # a non-finite sample (found and named by the caller from noise_sigma) must not print numpy warnings
+            t0 = np.zeros(0)
+            return WindowBlock(index, t0, t0, e, e, np.zeros((0, k)), np.zeros((0, 4)))
+        t_start = self._origin_s + index * n / self.rate_hz
+        # a non-finite sample (found and named by the caller from the sums) must not print numpy warnings
         with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
-            return self._fit_rows(xr, index, t_start)
+            return self._windows(coef, xx, index, t_start)
 
-    def _fit_rows(self, xr, index, t_start) -> WindowBlock:
+    def _windows(self, coef, xx, index, t_start) -> WindowBlock:
         n = self.n_window
         k = len(self.carriers_hz)
-        coef = np.matmul(self._proj_t, xr)  # (nw, 2k+1, 4): the least-squares fit of every window and channel
-        xx = _sum_squares(xr)  # (nw, 4)
-        fit = np.einsum("wic,ij,wjc->wc", coef, self._gram, coef)
+        fit = (coef * np.matmul(self._gram, coef)).sum(axis=1)  # coef^T G coef per window and channel (nw, 4)
         var = np.clip(xx - fit, 0.0, None) / max(self._dof, 1)  # (nw, 4)
         # floor: rounding leaves a residual of ~1e-16 of the signal (see _demodulate)
         var = np.maximum(var, (NOISE_FLOOR_REL**2) * xx / n)
