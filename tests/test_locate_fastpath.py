@@ -175,3 +175,12 @@ def test_window_sums_of_several_chunks_turned_into_windows_at_once():
     for f in ("index", "t_s", "amplitude", "var_amplitude", "noise_sigma", "phase_rad"):
         np.testing.assert_allclose(getattr(together, f), np.concatenate([getattr(w, f) for w in per_chunk]),
                                    rtol=1e-13, atol=1e-15, err_msg=f)
+
+
+def test_big_endian_npy_gives_the_same_rows(tmp_path):
+    _, x = _sig(7_000)
+    native = np.ascontiguousarray(x.T)
+    np.save(tmp_path / "be.npy", native.astype(">f8"))
+    rec = open_recording(tmp_path / "be.npy", RATE)
+    got = np.concatenate([b.copy() for _, b in rec.chunks(3_000, rows=True, reuse_buffer=True)])
+    np.testing.assert_array_equal(got, native)

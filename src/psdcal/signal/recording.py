@@ -109,10 +109,10 @@ class Recording:
         rows : bool
             Yield ``(<= chunk_samples, 4)`` blocks instead (one sample of the
             four channels a row, any strides).  A ``(n, 4)`` float64 ``.npy``
-            recording is then read where it lies, without a copy; other
-            formats give the transpose (a view) of their block.  A ``(n, 4)``
-            float64 ``.npy`` file is read straight into the block (no
-            conversion, no transpose).
+            file (native byte order, C order) is read straight into the block
+            (no conversion, no transpose); other ``.npy`` layouts are
+            converted from a memory map, other formats give the transpose (a
+            view) of their block.
         check_finite : bool
             Check every sample (below).  ``False`` (``rows`` blocks of ``.npy``
             recordings only) leaves the check to the caller, who runs
@@ -267,7 +267,7 @@ def _chunks_npy(rec: Recording, chunk: int):
 def _rows_npy(rec: Recording, chunk: int, check: bool, reuse: bool):
     """(m, 4) float64 blocks of a ``.npy`` recording.
 
-    A ``(n, 4)`` little-endian float64 file in C order is read with ``readinto``
+    A ``(n, 4)`` float64 file (native byte order, C order) is read with ``readinto``
     (into one buffer kept between chunks with ``reuse``): copying from the page
     cache costs less than faulting the pages of a memory map in.  Other layouts
     and dtypes are converted from the memory map.
@@ -276,7 +276,7 @@ def _rows_npy(rec: Recording, chunk: int, check: bool, reuse: bool):
     by_rows = arr.shape[1] == 4
     n = rec.n_samples
     offset = getattr(arr, "offset", None)
-    direct = (by_rows and arr.dtype == np.dtype("<f8") and arr.flags.c_contiguous and isinstance(offset, int)
+    direct = (by_rows and arr.dtype == np.dtype(np.float64) and arr.flags.c_contiguous and isinstance(offset, int)
               and chunk * 32 <= 1 << 30)
     if not direct:
         for start in range(0, n, chunk):
