@@ -90,6 +90,18 @@ def njit(fn):
         return numba.njit(cache=False, nogil=True, error_model="numpy")(fn)
 
 
+def njit_inline(fn):
+    """As :func:`njit` for a helper that compiled kernels call: inlined into them (numba's
+    ``inline="always"``), so no per-call passing of its array arguments."""
+    if not AVAILABLE:
+        return fn
+    numba = _load_numba()
+    try:
+        return numba.njit(cache=True, nogil=True, error_model="numpy", inline="always")(fn)
+    except (RuntimeError, OSError):
+        return numba.njit(cache=False, nogil=True, error_model="numpy", inline="always")(fn)
+
+
 class _Lazy:
     """A kernel compiled on its first call (numba imported then)."""
 
@@ -169,6 +181,9 @@ def warm_up(verbose: bool = True) -> float:
 
     model = SensorModel.from_dict({"intrinsics": {"f_mm": 8.0, "cx_mm": 0.0, "cy_mm": 0.0}})
     angles_from_points(np.zeros((4, 2)), model, np.zeros((4, 2, 2)))
+    from psdcal.measure._csvtext import rows_text  # locate's CSV writer
+
+    rows_text([np.zeros(2), np.array(["a", "b"], dtype=object), np.arange(2)])
     dt = time.perf_counter() - t0
     if verbose:
         print(f"psdcal: kernels ready ({dt:.1f} s)", file=sys.stderr, flush=True)

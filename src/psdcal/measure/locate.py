@@ -162,8 +162,10 @@ def prescan(recording: Recording, config: LocateConfig) -> tuple[float, list[str
         else:
             window_s = 0.01
     if config.check_carriers and x is not None and x.shape[1] >= 64:
+        cache: dict = {}  # one spectrum for all the carriers
         for f in config.carriers_hz:
-            chk = check_carrier(f, carrier_near(x, recording.rate_hz, f), window_s, tdm=config.tdm)
+            chk = check_carrier(f, carrier_near(x, recording.rate_hz, f, spectrum_cache=cache), window_s,
+                                tdm=config.tdm)
             if not chk.ok:
                 warnings.append(f"{recording.path}: {chk.message}")
     return window_s, warnings
@@ -184,24 +186,30 @@ MULTI_COLUMNS = ("t_s", "emitter", "X_mm", "Y_mm", "Z_mm", "sigma_X_mm", "sigma_
 
 
 def _write_rows(fh, cols: dict, order) -> int:
-    """Write columns (equal-length arrays) as CSV rows; floats with 10 significant digits."""
+    """Write columns (equal-length arrays) as CSV rows; floats with 10 significant digits.
+
+    The text is formatted by the compiled writer (:func:`psdcal.measure._csvtext.rows_text`, the same
+    bytes as Python's ``"%.10g"``/``"%d"``/``"%s"``), or by :func:`_rows_text` without numba.
+    """
     n = len(cols["t_s"])
     if n == 0:
         return 0
-    parts, lists = [], []
-    for c in order:
-        a = np.asarray(cols[c])
-        if a.dtype.kind in "OUS":
-            parts.append("%s")
-        elif a.dtype.kind in "iub":
-            parts.append("%d")
-        else:
-            parts.append("%.10g")
-        lists.append(a.tolist())
-    fmt = ",".join(parts)
-    fh.write("\n".join([fmt % row for row in zip(*lists)]))
-    fh.write("\n")
+    from psdcal import _jit
+
+    if _jit.enabled():
+        from psdcal.measure._csvtext import rows_text
+
+        fh.write(rows_text([cols[c] for c in order]))
+    else:
+        fh.write(_rows_text(cols, order))
     return n
+
+
+def _rows_text(cols: dict, order) -> str:
+    """The CSV text of :func:`_write_rows` by Python's ``%`` formatting (the reference)."""
+    from psdcal.measure._csvtext import rows_text_reference
+
+    return rows_text_reference([cols[c] for c in order])
 
 
 class _NpyRows:
@@ -269,6 +277,61 @@ def _rows_single(t_s, names, a, var_a, model: SensorModel, distance_mm, min_snr)
     return cols, int((~keep).sum())
 
 
+#: Rows computed at once (angles, CSV text), at most: the windows of several chunks are batched
+#: (fewer calls), up to ``chunk_samples / BATCH_SAMPLES_PER_ROW`` rows so that the memory stays
+#: bounded by the chunk size.
+BATCH_ROWS = 1024
+BATCH_SAMPLES_PER_ROW = 64
+
+
+def _demodulated(recording, lockin: MultiCarrierLockin, chunk: int, batch_windows: int = 1):
+    """Yield ``(samples read so far, [WindowBlock, ...])`` per chunk of ``recording``.
+
+    A ``.npy`` recording is read as rows straight into one reused buffer (no
+    conversion, no transpose; the lock-in keeps copies of what it holds for the
+    next chunk) and its samples are checked through the lock-in's per-window
+    sums of squares: they are finite only when every sample is, so a block is
+    scanned for the bad sample (the error names it) only when they are not, or
+    when its tail is left waiting for the next window.  Its windows' sums are
+    gathered over chunks and turned into amplitudes ``batch_windows`` at a time
+    (the per-window arithmetic is a few dozen numpy calls whatever their
+    number); the list is empty for a chunk whose windows wait.
+    """
+    n_done = 0
+    if not (getattr(recording, "kind", None) == "npy" and isinstance(recording, Recording)):
+        for t0, block in recording.chunks(chunk):
+            wb = lockin.process(t0, block)
+            n_done += block.shape[1]
+            yield n_done, [wb]
+        return
+    cap = max(int(batch_windows), chunk // lockin.n_window + 1)
+    acc_c = np.empty((cap, 2 * len(lockin.carriers_hz) + 1, 4))
+    acc_x = np.empty((cap, 4))
+    fill, j_first = 0, 0
+    for t0, rows in recording.chunks(chunk, rows=True, check_finite=False, reuse_buffer=True):
+        j0, coef, xx = lockin.fit_rows(t0, rows)
+        if lockin.pending_samples or not np.isfinite(xx).all():
+            recording.check_block(rows, n_done, rows=True)
+        n_done += rows.shape[0]
+        out = []
+        nw = xx.shape[0]
+        if fill and fill + nw > cap:
+            out.append(lockin.windows(j_first, acc_c[:fill], acc_x[:fill]))
+            fill = 0
+        if nw:
+            if fill == 0:
+                j_first = j0
+            acc_c[fill: fill + nw] = coef
+            acc_x[fill: fill + nw] = xx
+            fill += nw
+        if fill >= batch_windows:
+            out.append(lockin.windows(j_first, acc_c[:fill], acc_x[:fill]))
+            fill = 0
+        yield n_done, out
+    if fill:
+        yield n_done, [lockin.windows(j_first, acc_c[:fill], acc_x[:fill])]
+
+
 def _stream_single(recording: Recording, config: LocateConfig, out_path, order, make_cols, progress):
     """Shared streaming loop of one recording: chunks -> windows (or TDM segments) -> rows -> CSV.
 
@@ -288,6 +351,7 @@ def _stream_single(recording: Recording, config: LocateConfig, out_path, order, 
                            n_emitters=config.n_emitters)
     chunk = max(1, int(config.chunk_samples) // lockin.n_window) * lockin.n_window
     k = len(names)
+    batch_rows = min(BATCH_ROWS, max(1, chunk // BATCH_SAMPLES_PER_ROW))
     names_arr = np.array(names, dtype=object)
     n_samples = n_windows = n_rows = n_skipped = 0
 
@@ -311,22 +375,56 @@ def _stream_single(recording: Recording, config: LocateConfig, out_path, order, 
             else:  # rows are collected and written as one array below
                 def write(_fh, cols, _order):
                     return npy.write(cols)
-            for t0, block in recording.chunks(chunk):
-                n_samples += block.shape[1]
-                wb = lockin.process(t0, block)
-                n_windows += len(wb)
-                if len(wb):
+            # windows not yet turned into rows, batched across chunks in buffers allocated once
+            # (the memory does not change from chunk to chunk)
+            cap = batch_rows + k * (max(batch_rows // k, chunk // lockin.n_window) + 2)  # a batch and a block
+            pend_t, pend_e = np.empty(cap), np.empty(cap, dtype=np.intp)
+            pend_a, pend_v = np.empty((cap, 4)), np.empty((cap, 4))
+            fill = 0
+            emitter_index = np.arange(k)
+
+            def flush():
+                nonlocal n_rows, n_skipped, fill
+                if fill == 0:
+                    return
+                cols, skipped = make_cols(pend_t[:fill], names_arr[pend_e[:fill]], pend_a[:fill], pend_v[:fill])
+                fill = 0
+                n_skipped += skipped
+                if cols is not None:
+                    n_rows += write(fh, {c: np.array(v, copy=True) for c, v in cols.items()} if npy is not None else cols,
+                                    order)  # the npy writer keeps the arrays: no views of the buffers
+
+            for n_samples, blocks in _demodulated(recording, lockin, chunk, max(1, batch_rows // k)):
+                for wb in blocks:
+                    n_windows += len(wb)
+                    if not len(wb):
+                        continue
                     if seg is not None:
                         cols, skipped = segment_rows(seg.feed(wb))
+                        n_skipped += skipped
+                        if cols is not None:
+                            n_rows += write(fh, cols, order)
                     else:
-                        t = np.repeat(wb.t_s, k)
-                        nm = np.tile(names_arr, len(wb))
-                        cols, skipped = make_cols(t, nm, wb.amplitude.reshape(-1, 4), wb.var_amplitude.reshape(-1, 4))
-                    n_skipped += skipped
-                    if cols is not None:
-                        n_rows += write(fh, cols, order)
+                        r = len(wb) * k
+                        if fill + r > cap:
+                            flush()
+                        if r > cap:  # (not expected: a block is at most cap rows) rows at once
+                            cols, skipped = make_cols(np.repeat(wb.t_s, k), np.tile(names_arr, len(wb)),
+                                                      wb.amplitude.reshape(-1, 4), wb.var_amplitude.reshape(-1, 4))
+                            n_skipped += skipped
+                            if cols is not None:
+                                n_rows += write(fh, cols, order)
+                        else:
+                            pend_t[fill: fill + r] = np.repeat(wb.t_s, k)
+                            pend_e[fill: fill + r] = np.tile(emitter_index, len(wb))
+                            pend_a[fill: fill + r] = wb.amplitude.reshape(-1, 4)
+                            pend_v[fill: fill + r] = wb.var_amplitude.reshape(-1, 4)
+                            fill += r
+                            if fill >= batch_rows:
+                                flush()
                 if progress is not None:
                     progress(n_samples)
+            flush()
             if seg is not None:
                 cols, skipped = segment_rows(seg.finish())
                 n_skipped += skipped

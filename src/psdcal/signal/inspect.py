@@ -189,13 +189,21 @@ def _carrier_at(k, p, ptot, floor, df, wsum, w2sum) -> Carrier:
 
 
 def carrier_near(x, rate_hz: float, asked_hz: float, *, rel: float = 0.05,
-                 min_snr_db: float = MIN_CARRIER_SNR_DB) -> Carrier | None:
+                 min_snr_db: float = MIN_CARRIER_SNR_DB, spectrum_cache: dict | None = None) -> Carrier | None:
     """The strongest spectral peak within ``+-rel`` of ``asked_hz`` (None when below ``min_snr_db``).
 
     Unlike :func:`find_carriers` no side-band rule applies: a weak emitter
-    near a strong one is still measured.
+    near a strong one is still measured.  ``spectrum_cache``: a dict kept
+    between calls on the same ``x`` (several carriers): the spectrum is
+    computed once.
     """
-    freq, p, wsum, w2sum, df, floor, ptot = _spectrum_and_floor(x, rate_hz)
+    if spectrum_cache is not None and spectrum_cache.get("x") is x and spectrum_cache.get("rate_hz") == rate_hz:
+        spec = spectrum_cache["spec"]
+    else:
+        spec = _spectrum_and_floor(x, rate_hz)
+        if spectrum_cache is not None:
+            spectrum_cache.update(x=x, rate_hz=rate_hz, spec=spec)
+    freq, p, wsum, w2sum, df, floor, ptot = spec
     lo = max(1, int(math.floor(asked_hz * (1 - rel) / df)))
     hi = min(len(freq) - 2, int(math.ceil(asked_hz * (1 + rel) / df)))
     if hi < lo:

@@ -98,8 +98,31 @@ class Recording:
         """Length of the recording, s (None when unknown)."""
         return None if self.n_samples is None else self.n_samples / self.rate_hz
 
-    def chunks(self, chunk_samples: int = DEFAULT_CHUNK) -> Iterator[tuple[float, np.ndarray]]:
+    def chunks(self, chunk_samples: int = DEFAULT_CHUNK, *, rows: bool = False, check_finite: bool = True,
+               reuse_buffer: bool = False) -> Iterator[tuple[float, np.ndarray]]:
         """Yield ``(t0_s, block)``, ``block`` float64 (4, <= chunk_samples).
+
+        Parameters
+        ----------
+        chunk_samples : int
+            Samples per channel per block (the last one may be shorter).
+        rows : bool
+            Yield ``(<= chunk_samples, 4)`` blocks instead (one sample of the
+            four channels a row, any strides).  A ``(n, 4)`` float64 ``.npy``
+            file (native byte order, C order) is read straight into the block
+            (no conversion, no transpose); other ``.npy`` layouts are
+            converted from a memory map, other formats give the transpose (a
+            view) of their block.
+        check_finite : bool
+            Check every sample (below).  ``False`` (``rows`` blocks of ``.npy``
+            recordings only) leaves the check to the caller, who runs
+            :meth:`check_block` on a block whose sums came out non-finite
+            (``psdcal locate`` uses the lock-in's per-window sums of squares,
+            which are finite only when every sample is).
+        reuse_buffer : bool
+            ``rows`` blocks of ``.npy`` recordings: fill one buffer again for
+            every chunk (no allocation per chunk); a block is then valid only
+            until the next one is asked for: copy what must be kept.
 
         Raises
         ------
@@ -110,8 +133,21 @@ class Recording:
         chunk_samples = int(chunk_samples)
         if chunk_samples < 1:
             raise InputError(f"chunk size must be positive, got {chunk_samples}", field="chunk_samples")
+        if rows and self.kind == "npy":
+            yield from _rows_npy(self, chunk_samples, check_finite, reuse_buffer)
+            return
         reader = {"npy": _chunks_npy, "csv": _chunks_csv, "hdf5": _chunks_hdf5, "tdms": _chunks_tdms}[self.kind]
-        yield from reader(self, chunk_samples)
+        for t0, block in reader(self, chunk_samples):
+            yield t0, (block.T if rows else block)
+
+    def check_block(self, block: np.ndarray, first_sample: int, *, rows: bool = False) -> None:
+        """Raise :class:`InputError` naming the first non-finite sample of ``block``, if any.
+
+        ``block`` is (4, m), or (m, 4) with ``rows``; ``first_sample`` is the
+        index of its first sample in the recording.
+        """
+        b = np.asarray(block)
+        _check_finite(b.T if rows else b, self.path, first_sample)
 
 
 # --------------------------------------------------------------------------- open
@@ -226,6 +262,45 @@ def _chunks_npy(rec: Recording, chunk: int):
         block[...] = part.T if by_rows else part
         _check_finite(block, rec.path, start)
         yield rec.t0_s + start / rec.rate_hz, block
+
+
+def _rows_npy(rec: Recording, chunk: int, check: bool, reuse: bool):
+    """(m, 4) float64 blocks of a ``.npy`` recording.
+
+    A ``(n, 4)`` float64 file (native byte order, C order) is read with ``readinto``
+    (into one buffer kept between chunks with ``reuse``): copying from the page
+    cache costs less than faulting the pages of a memory map in.  Other layouts
+    and dtypes are converted from the memory map.
+    """
+    arr = _npy_array(rec.path)
+    by_rows = arr.shape[1] == 4
+    n = rec.n_samples
+    offset = getattr(arr, "offset", None)
+    direct = (by_rows and arr.dtype == np.dtype(np.float64) and arr.flags.c_contiguous and isinstance(offset, int)
+              and chunk * 32 <= 1 << 30)
+    if not direct:
+        for start in range(0, n, chunk):
+            stop = min(n, start + chunk)
+            part = arr[start:stop] if by_rows else arr[:, start:stop].T
+            block = np.asarray(part, dtype=np.float64)  # no copy for native float64
+            if check:
+                _check_finite(block.T, rec.path, start)
+            yield rec.t0_s + start / rec.rate_hz, block
+        return
+    del arr
+    buf = np.empty((min(chunk, n), 4)) if reuse else None
+    with open(rec.path, "rb") as fh:
+        fh.seek(offset)
+        for start in range(0, n, chunk):
+            m = min(n, start + chunk) - start
+            block = buf[:m] if reuse else np.empty((m, 4))
+            got = fh.readinto(memoryview(block).cast("B"))
+            if got != m * 32:
+                raise InputError(f"the file ends after {start + (got or 0) // 32} of its {n} samples: a truncated "
+                                 "recording", path=rec.path)
+            if check:
+                _check_finite(block.T, rec.path, start)
+            yield rec.t0_s + start / rec.rate_hz, block
 
 
 # --------------------------------------------------------------------------- csv

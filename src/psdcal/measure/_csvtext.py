@@ -1,0 +1,369 @@
+"""CSV text of numeric columns, compiled: the same bytes as Python's ``"%.10g" % x`` and ``"%d" % i``.
+
+``psdcal locate`` writes one row per window and emitter; formatting its
+floats one by one in Python (``"%.10g" % x``, ~0.1 us a value) costs as much
+as the demodulation.  :func:`rows_text` formats whole blocks of rows in a
+compiled loop instead.  A float is written with 10 significant digits as
+``%g`` does (fixed notation for decimal exponents -4 to 9, else ``d.ddde+XX``;
+trailing zeros dropped; ``nan``, ``inf``, ``-0``).
+
+Exactness: the 10 digits are ``round(|x| 10^(9 - e))``, the scaling done with
+exact powers of ten (at most two roundings, < 3e-6 absolute on a value below
+1e10).  Where that product lies within 1e-4 of a rounding tie, or the value is
+outside 1e-280..1e290 (where the scaling is not exact enough), the kernel
+leaves the value to Python's own formatting; so the text equals
+``"%.10g" % x`` byte for byte for every double (the tests compare both on
+random, edge and tie values).  :func:`rows_text_reference` is the Python
+reference.
+
+numba is imported when this module is (it is imported only by the writers
+that use it).
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from psdcal._jit import njit, njit_inline
+
+#: Bytes reserved per formatted value ("-1.234567891e-100" is 17; an int64 20); the ten digits
+#: of a float are worked out in the slot's last ten bytes.
+SLOT = 32
+_SCRATCH = SLOT - 10
+_P10 = np.array([10.0**i for i in range(23)])  # exact doubles
+_LUT = np.frombuffer("".join(f"{i:02d}" for i in range(100)).encode(), dtype=np.uint8).copy()  # "00".."99"
+
+
+@njit_inline
+def _scaled(ax, k):  # pragma: no cover - compiled
+    """|x| 10^k with exact powers of ten (at most two roundings); -1.0 when |k| > 44."""
+    if 0 <= k <= 22:
+        return ax * _P10[k]
+    if 22 < k <= 44:
+        return (ax * _P10[22]) * _P10[k - 22]
+    if -22 <= k < 0:
+        return ax / _P10[-k]
+    if -44 <= k < -22:
+        return (ax / _P10[22]) / _P10[-k - 22]
+    return -1.0
+
+
+@njit_inline
+def _fmt_int(v, out, b):  # pragma: no cover - compiled
+    """Write ``"%d" % v`` into ``out[b:]``; its length, or -1 (int64's minimum: left to Python)."""
+    if v == -9223372036854775807 - 1:
+        return -1
+    p = 0
+    if v < 0:
+        out[b + 0] = 45
+        p = 1
+        v = -v
+    nd = 1
+    t = v
+    while t >= 10:
+        t //= 10
+        nd += 1
+    for i in range(nd - 1, -1, -1):
+        out[b + p + i] = 48 + v % 10
+        v //= 10
+    return p + nd
+
+
+@njit
+def format_cells(F, I, kind, src, slots, lens):  # pragma: no cover - compiled
+    """Format the numeric cells of a block of rows.
+
+    ``kind[j]``: 0 float (column ``src[j]`` of ``F``), 1 integer (of ``I``),
+    2 text (not formatted here).  ``slots`` (n, ncol, SLOT) uint8 receives
+    the text, ``lens`` (n, ncol) its length (-1: left to Python).  The float
+    formatting is written out in the loop (a helper taking the array costs
+    more than the formatting).
+    """
+    n, ncol = lens.shape
+    out = slots.reshape(n * ncol * SLOT)  # one index per byte (cheaper than three)
+    FB = F.view(np.int64)  # the bits of the floats
+    for r in range(n):
+        for j in range(ncol):
+            kd = kind[j]
+            b = (r * ncol + j) * SLOT
+            if kd == 1:
+                lens[r, j] = _fmt_int(I[r, src[j]], out, b)
+                continue
+            if kd != 0:
+                lens[r, j] = 0
+                continue
+            x = F[r, src[j]]
+            if x != x:
+                out[b + 0], out[b + 1], out[b + 2] = 110, 97, 110  # nan
+                lens[r, j] = 3
+                continue
+            p = 0
+            if FB[r, src[j]] < 0:  # the sign bit (also of -0.0)
+                out[b + 0] = 45  # '-'
+                p = 1
+            ax = abs(x)
+            if ax == math.inf:
+                out[b + p], out[b + p + 1], out[b + p + 2] = 105, 110, 102  # inf
+                lens[r, j] = p + 3
+                continue
+            if ax == 0.0:
+                out[b + p] = 48
+                lens[r, j] = p + 1
+                continue
+            if ax < 1e-280 or ax > 1e290:
+                lens[r, j] = -1
+                continue
+            # decimal exponent from the binary one (libm's log10 costs more than all the rest):
+            # floor((e2 - 1) log10 2) <= log10|x| < that + 2; the check below moves it up by one
+            e2 = ((FB[r, src[j]] >> 52) & 2047) - 1022  # |x| = mantissa 2^e2, mantissa in [0.5, 1)
+            e = ((e2 - 1) * 78913) >> 18  # floor((e2 - 1) log10 2) for |e2| < 1700
+            k = 9 - e
+            if 0 <= k <= 22:
+                y = ax * _P10[k]
+            elif -22 <= k < 0:
+                y = ax / _P10[-k]
+            else:
+                y = _scaled(ax, k)
+            if y >= 1e10:  # the estimate one low: rescale from |x| itself
+                e += 1
+                y = _scaled(ax, 9 - e)
+            elif y < 1e9:  # (not expected; kept for safety)
+                e -= 1
+                y = _scaled(ax, 9 - e)
+            if not (1e9 <= y < 1e10):
+                lens[r, j] = -1
+                continue
+            fl = math.floor(y)
+            frac = y - fl
+            if abs(frac - 0.5) < 1e-4:  # too near a tie for the scaling's rounding: Python decides
+                lens[r, j] = -1
+                continue
+            m = np.int64(fl)
+            if frac > 0.5:
+                m += 1
+            if m == 10_000_000_000:
+                m = 1_000_000_000
+                e += 1
+            # ten digits without integer division (slow here): two halves of five,
+            # each by (v * 1374389535) >> 37 == v // 100
+            hi = np.int64(m * 1e-5)
+            lo = m - hi * 100000
+            if lo < 0:
+                hi -= 1
+                lo += 100000
+            elif lo >= 100000:
+                hi += 1
+                lo -= 100000
+            d0 = b + _SCRATCH  # the digits, in the slot's last bytes (never reached by the text)
+            for h in range(2):  # five digits of each half
+                v = hi if h == 0 else lo
+                at = d0 + 5 * h
+                q1 = (v * 1374389535) >> 37  # v // 100 for 0 <= v < 2^32
+                t2 = (v - q1 * 100) * 2
+                out[at + 3] = _LUT[t2]
+                out[at + 4] = _LUT[t2 + 1]
+                q2 = (q1 * 1374389535) >> 37
+                t2 = (q1 - q2 * 100) * 2
+                out[at + 1] = _LUT[t2]
+                out[at + 2] = _LUT[t2 + 1]
+                out[at] = 48 + q2
+            nd = 10
+            while nd > 1 and out[d0 + nd - 1] == 48:
+                nd -= 1
+            if -4 <= e < 10:  # %g: fixed notation
+                if e >= 0:
+                    for i in range(e + 1):
+                        out[b + p] = out[d0 + i]
+                        p += 1
+                    if nd > e + 1:
+                        out[b + p] = 46  # '.'
+                        p += 1
+                        for i in range(e + 1, nd):
+                            out[b + p] = out[d0 + i]
+                            p += 1
+                else:
+                    out[b + p], out[b + p + 1] = 48, 46  # "0."
+                    p += 2
+                    for _ in range(-e - 1):
+                        out[b + p] = 48
+                        p += 1
+                    for i in range(nd):
+                        out[b + p] = out[d0 + i]
+                        p += 1
+                lens[r, j] = p
+                continue
+            out[b + p] = out[d0 + 0]
+            p += 1
+            if nd > 1:
+                out[b + p] = 46
+                p += 1
+                for i in range(1, nd):
+                    out[b + p] = out[d0 + i]
+                    p += 1
+            out[b + p] = 101  # 'e'
+            out[b + p + 1] = 45 if e < 0 else 43
+            p += 2
+            ae = -e if e < 0 else e
+            if ae >= 100:
+                out[b + p] = 48 + ae // 100
+                p += 1
+            out[b + p] = 48 + (ae // 10) % 10
+            out[b + p + 1] = 48 + ae % 10
+            lens[r, j] = p + 2
+            continue
+
+
+@njit
+def join_cells(slots, lens, kind, src, codes, table, offsets, fb_table, fb_offsets):  # pragma: no cover - compiled
+    """The CSV text (uint8) of formatted cells: ``,`` between cells, ``\n`` after each row.
+
+    Text cells (``kind == 2``) are ``table[offsets[c]:offsets[c + 1]]`` with
+    ``c = codes[row, src[j]]``; cells left to Python (``lens < 0``) are the
+    successive strings of ``fb_table`` (row-major order).
+    """
+    n, ncol = lens.shape
+    total = 0
+    nfb = 0
+    for r in range(n):
+        for j in range(ncol):
+            if kind[j] == 2:
+                c = codes[r, src[j]]
+                total += offsets[c + 1] - offsets[c]
+            elif lens[r, j] < 0:
+                total += fb_offsets[nfb + 1] - fb_offsets[nfb]
+                nfb += 1
+            else:
+                total += lens[r, j]
+        total += ncol  # ncol - 1 commas and a newline
+    out = np.empty(total, dtype=np.uint8)
+    flat = slots.reshape(slots.size)
+    p = 0
+    nfb = 0
+    for r in range(n):
+        for j in range(ncol):
+            if j > 0:
+                out[p] = 44
+                p += 1
+            if kind[j] == 2:
+                c = codes[r, src[j]]
+                for i in range(offsets[c], offsets[c + 1]):
+                    out[p] = table[i]
+                    p += 1
+            elif lens[r, j] < 0:
+                for i in range(fb_offsets[nfb], fb_offsets[nfb + 1]):
+                    out[p] = fb_table[i]
+                    p += 1
+                nfb += 1
+            else:
+                b = (r * ncol + j) * SLOT
+                for i in range(lens[r, j]):
+                    out[p] = flat[b + i]
+                    p += 1
+        out[p] = 10
+        p += 1
+    return out
+
+
+# --------------------------------------------------------------------------- Python side
+def _kind_of(a: np.ndarray) -> str:
+    if a.dtype.kind in "OUS":
+        return "s"
+    if a.dtype.kind in "iub":
+        return "d"
+    return "g"
+
+
+def rows_text_reference(columns) -> str:
+    """CSV text of equal-length columns: floats ``"%.10g"``, integers ``"%d"``, others ``"%s"``.
+
+    The reference of :func:`rows_text` (one Python ``%`` formatting per value).
+    """
+    parts, lists = [], []
+    for a in columns:
+        a = np.asarray(a)
+        parts.append({"s": "%s", "d": "%d", "g": "%.10g"}[_kind_of(a)])
+        lists.append(a.tolist())
+    fmt = ",".join(parts)
+    return "\n".join([fmt % row for row in zip(*lists)]) + "\n"
+
+
+def _table(texts):
+    """UTF-8 table of strings: (bytes as uint8, offsets (len + 1,))."""
+    enc = [t.encode("utf-8") for t in texts]
+    offsets = np.zeros(len(enc) + 1, dtype=np.int64)
+    offsets[1:] = np.cumsum([len(b) for b in enc])
+    # a writable copy: one compiled signature for the kernels whatever the table (numba types read-only apart)
+    table = np.frombuffer(b"".join(enc), dtype=np.uint8).copy() if offsets[-1] else np.zeros(1, dtype=np.uint8)
+    return table, offsets
+
+
+def _codes(a: np.ndarray):
+    """Integer codes of a text column and the UTF-8 table of its distinct values (``"%s" % v``)."""
+    values = a.tolist()
+    distinct = list(dict.fromkeys(values))
+    if len(distinct) <= 16:  # a few emitter names: one vectorised comparison each
+        codes = np.zeros(a.shape[0], dtype=np.int64)
+        for i, v in enumerate(distinct[1:], start=1):
+            codes[a == v] = i
+    else:
+        index = {v: i for i, v in enumerate(distinct)}
+        codes = np.fromiter((index[v] for v in values), dtype=np.int64, count=a.shape[0])
+    table, offsets = _table(["%s" % v for v in distinct])
+    return codes, table, offsets
+
+
+def rows_text(columns) -> str:
+    """CSV text of equal-length 1-D columns (no header), byte for byte :func:`rows_text_reference`.
+
+    Floats (any float dtype) as ``"%.10g"``, integers and booleans as
+    ``"%d"``, strings and objects as ``"%s"``; rows end with ``\\n``.
+    """
+    cols = [np.asarray(a) for a in columns]
+    n = cols[0].shape[0]
+    if n == 0:
+        return ""
+    kinds = [_kind_of(a) for a in cols]
+    if any(a.ndim != 1 for a in cols) or any(a.dtype == np.uint64 for a in cols) or any(
+            a.dtype.kind == "O" and set(map(type, a.tolist())) != {str} for a in cols):
+        return rows_text_reference(cols)  # what the compiled path does not cover: Python's own formatting
+    fcols = [a for a, k in zip(cols, kinds) if k == "g"]
+    icols = [a for a, k in zip(cols, kinds) if k == "d"]
+    scols = [a for a, k in zip(cols, kinds) if k == "s"]
+    F = np.empty((n, max(1, len(fcols))))
+    for j, a in enumerate(fcols):
+        F[:, j] = a  # float16/32 -> float64 is exact: the same decimal text
+    I = np.zeros((n, max(1, len(icols))), dtype=np.int64)
+    for j, a in enumerate(icols):
+        I[:, j] = a
+    kind = np.array([{"g": 0, "d": 1, "s": 2}[k] for k in kinds], dtype=np.int64)
+    src = np.zeros(len(cols), dtype=np.int64)
+    count = {"g": 0, "d": 0, "s": 0}
+    for j, k in enumerate(kinds):
+        src[j] = count[k]
+        count[k] += 1
+    slots = np.empty((n, len(cols), SLOT), dtype=np.uint8)
+    lens = np.empty((n, len(cols)), dtype=np.int64)
+    format_cells(F, I, kind, src, slots, lens)
+    bad = np.argwhere(lens < 0)  # rare: values near a rounding tie, extreme exponents
+    fb_table, fb_offsets = _table([])
+    if len(bad):  # Python's text for them, in row-major order (the order join_cells meets them)
+        rr, jj = bad[:, 0], bad[:, 1]
+        fv = F[rr, src[jj]].tolist()
+        iv = I[rr, np.minimum(src[jj], I.shape[1] - 1)].tolist()
+        fb_table, fb_offsets = _table([("%.10g" % f) if kind[j] == 0 else ("%d" % i)
+                                       for j, f, i in zip(jj.tolist(), fv, iv)])
+    codes = np.zeros((n, max(1, len(scols))), dtype=np.int64)
+    tables, offs, base = [], [np.zeros(1, dtype=np.int64)], 0
+    n_codes = 0
+    for j, a in enumerate(scols):
+        c, table, offsets = _codes(a)
+        codes[:, j] = c + n_codes
+        n_codes += len(offsets) - 1
+        tables.append(table[: offsets[-1]])
+        offs.append(offsets[1:] + base)
+        base += int(offsets[-1])
+    table = np.concatenate(tables) if tables and base else np.zeros(1, dtype=np.uint8)
+    offsets = np.concatenate(offs)
+    out = join_cells(slots, lens, kind, src, codes, table, offsets, fb_table, fb_offsets)
+    return out.tobytes().decode("utf-8")

@@ -1,0 +1,186 @@
+"""The fast locate path: rows read where they lie, the lock-in on rows, batched rows, the compiled CSV writer.
+
+Each is checked against its reference: the channel-major lock-in
+(``MultiCarrierLockin._demodulate``), the checked (4, m) reader, Python's
+``%`` formatting.
+"""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from _locate_sim import amplitudes, calib_dict, signals, spot_for_angles
+from psdcal.errors import InputError
+from psdcal.measure.locate import LocateConfig, locate_to_csv
+from psdcal.measure.sensor_model import SensorModel
+from psdcal.signal.recording import open_recording
+from psdcal.signal.stream import MultiCarrierLockin, _sum_squares, sum_squares_reference
+
+RATE = 125_000.0
+
+
+def _sig(n, carriers=(1000.0, 1300.0), noise=2e-3, seed=0):
+    m = SensorModel.from_dict(calib_dict())
+    d = spot_for_angles(m, np.radians([[10.0, -3.0], [-7.0, 12.0], [4.0, 5.0]]))
+    parts = [(amplitudes(m, d[i]), f, 0.3 + i) for i, f in enumerate(carriers)]
+    return m, signals(RATE, n, parts, noise=noise, rng=np.random.default_rng(seed))
+
+
+@pytest.mark.parametrize("carriers", [(1000.0,), (1000.0, 1300.0), (1000.0, 1300.0, 1700.0)])
+def test_rows_lockin_equals_channel_major_reference(carriers):
+    _, x = _sig(40_000, carriers)
+    lk = MultiCarrierLockin(RATE, carriers, 0.01)
+    n = lk.n_window
+    nw = x.shape[1] // n
+    lk._origin_s = 0.0
+    ref = lk._demodulate(np.ascontiguousarray(x[:, : nw * n]).reshape(4, nw, n))
+    lk2 = MultiCarrierLockin(RATE, carriers, 0.01)
+    lk2._origin_s = 0.0
+    new = lk2._demodulate_rows(np.ascontiguousarray(x[:, : nw * n].T).reshape(nw, n, 4))
+    for f in ("amplitude", "t_s", "t_start_s", "index"):
+        a, b = getattr(new, f), getattr(ref, f)
+        assert a.shape == b.shape, f
+        np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-12 * np.abs(b).max(), err_msg=f)
+    # the residual variance is |x|^2 - fit, a difference of two sums of the signal's energy: both ways
+    # agree to rounding of that energy (1e-13 of |x|^2 / dof), not to 1e-12 of the small residual
+    xx = sum_squares_reference(np.ascontiguousarray(x[:, : nw * n].T).reshape(nw, n, 4))  # (nw, 4)
+    tol_var = 1e-13 * xx / lk._dof
+    assert new.var_amplitude.shape == ref.var_amplitude.shape
+    assert np.all(np.abs(new.noise_sigma**2 - ref.noise_sigma**2) <= tol_var)
+    gain = ref.var_amplitude / (ref.noise_sigma**2)[:, None, :]  # (nw, k, 4): the projection's factor
+    assert np.all(np.abs(new.var_amplitude - ref.var_amplitude) <= gain * tol_var[:, None, :] * (1 + 1e-9))
+    # phases: equal modulo 2 pi
+    np.testing.assert_allclose(np.exp(1j * new.phase_rad), np.exp(1j * ref.phase_rad), rtol=0, atol=1e-12)
+
+
+def test_process_rows_equals_process_any_chunking_and_strides():
+    _, x = _sig(31_111)
+    a = MultiCarrierLockin(RATE, (1000.0, 1300.0), 0.01)
+    b = MultiCarrierLockin(RATE, (1000.0, 1300.0), 0.01)
+    rows = np.ascontiguousarray(x.T)
+    out_a, out_b = [], []
+    for i in range(0, x.shape[1], 4_567):  # not a multiple of the window: samples wait for the next chunk
+        out_a.append(a.process(i / RATE, x[:, i: i + 4_567]))  # (4, m) block: a strided transposed view inside
+        out_b.append(b.process_rows(i / RATE, rows[i: i + 4_567]))
+    assert a.pending_samples == b.pending_samples == x.shape[1] % a.n_window
+    for f in ("amplitude", "var_amplitude", "noise_sigma", "phase_rad"):  # the same windows, the same sums
+        np.testing.assert_allclose(np.concatenate([getattr(w, f) for w in out_b]),
+                                   np.concatenate([getattr(w, f) for w in out_a]), rtol=1e-9, atol=1e-15)
+    with pytest.raises(InputError, match=r"shape \(n, 4\)"):
+        b.process_rows(0.0, np.zeros((4, 10)))
+
+
+def test_sum_squares_equals_reference():
+    rng = np.random.default_rng(3)
+    xr = rng.standard_normal((7, 1250, 4)) * np.array([1.0, 1e-3, 1e3, 5.0])
+    np.testing.assert_allclose(_sum_squares(xr), sum_squares_reference(xr), rtol=1e-13)
+    strided = np.ascontiguousarray(xr.transpose(2, 0, 1)).transpose(1, 2, 0)  # a transposed block's layout
+    np.testing.assert_allclose(_sum_squares(strided), sum_squares_reference(xr), rtol=1e-13)
+    bad = xr.copy()
+    bad[3, 100, 2] = np.nan
+    bad[5, 7, 0] = np.inf
+    s = _sum_squares(bad)
+    assert np.isnan(s[3, 2]) and np.isinf(s[5, 0]) and np.isfinite(np.delete(s.ravel(), [3 * 4 + 2, 5 * 4])).all()
+
+
+@pytest.mark.parametrize("layout", ["rows", "fortran", "cols", "float32"])
+def test_rows_chunks_equal_checked_chunks(tmp_path, layout):
+    _, x = _sig(10_007)
+    arr = {"rows": np.ascontiguousarray(x.T), "fortran": x.T, "cols": x, "float32": x.T.astype(np.float32)}[layout]
+    np.save(tmp_path / "r.npy", arr)
+    rec = open_recording(tmp_path / "r.npy", RATE)
+    ref = list(rec.chunks(3_000))
+    fast = list(rec.chunks(3_000, rows=True, check_finite=False))
+    assert [t for t, _ in fast] == [t for t, _ in ref]
+    for (_, a), (_, b) in zip(fast, ref):
+        assert a.shape == b.T.shape and a.dtype == np.float64
+        np.testing.assert_array_equal(a, b.T)
+    reused = [b.copy() for _, b in rec.chunks(3_000, rows=True, reuse_buffer=True)]
+    for a, (_, b) in zip(reused, ref):
+        np.testing.assert_array_equal(a, b.T)
+    if layout == "rows":  # read straight into one buffer, filled again for every chunk
+        it = rec.chunks(3_000, rows=True, reuse_buffer=True)
+        first, second = next(it)[1], next(it)[1]
+        assert np.shares_memory(first, second)
+
+
+def test_truncated_npy_is_named(tmp_path):
+    _, x = _sig(10_000)
+    np.save(tmp_path / "r.npy", np.ascontiguousarray(x.T))
+    rec = open_recording(tmp_path / "r.npy", RATE)
+    data = (tmp_path / "r.npy").read_bytes()
+    (tmp_path / "r.npy").write_bytes(data[: len(data) - 32 * 100])  # the last 100 samples lost after opening
+    with pytest.raises(InputError, match=r"r\.npy.*(truncated|not a readable)"):
+        list(rec.chunks(3_000, rows=True, check_finite=False))
+
+
+@pytest.mark.parametrize("where", [5_000, 24_990])  # inside a window; in the tail left waiting (no window)
+@pytest.mark.parametrize("bad", [np.nan, np.inf])
+@pytest.mark.parametrize("order", ["C", "F"])  # read into a buffer; converted from the memory map
+@pytest.mark.filterwarnings("error")  # one error line, no numpy warnings before it
+def test_non_finite_sample_named_on_the_fast_path(tmp_path, where, bad, order):
+    m, x = _sig(25_000)
+    x[2, where] = bad
+    np.save(tmp_path / "r.npy", np.asarray(x.T, order=order))
+    (tmp_path / "out.csv").write_text("keep\n")
+    cfg = LocateConfig(carriers_hz=(1000.0, 1300.0), window_s=0.01, check_carriers=False, chunk_samples=8_192)
+    with pytest.raises(InputError, match=rf"sample {where} of channel vy1"):
+        locate_to_csv(open_recording(tmp_path / "r.npy", RATE), m, tmp_path / "out.csv", cfg)
+    assert (tmp_path / "out.csv").read_text() == "keep\n"
+
+
+def test_locate_csv_text_equals_python_formatting(tmp_path, monkeypatch):
+    import psdcal.measure._csvtext as ct
+
+    m, x = _sig(60_000)
+    np.save(tmp_path / "r.npy", np.ascontiguousarray(x.T))
+    rec = open_recording(tmp_path / "r.npy", RATE)
+    cfg = LocateConfig(carriers_hz=(1000.0, 1300.0), window_s=0.01, distance_mm=5000.0)
+    locate_to_csv(rec, m, tmp_path / "fast.csv", cfg)
+    monkeypatch.setattr(ct, "rows_text", ct.rows_text_reference)
+    locate_to_csv(rec, m, tmp_path / "ref.csv", cfg)
+    fast, ref = (tmp_path / "fast.csv").read_bytes(), (tmp_path / "ref.csv").read_bytes()
+    assert fast.count(b"\n") == 1 + 2 * (60_000 // 1250)
+    assert fast == ref
+
+
+def test_batching_does_not_change_rows(tmp_path):
+    m, x = _sig(100_000)
+    np.save(tmp_path / "r.npy", np.ascontiguousarray(x.T))
+    rec = open_recording(tmp_path / "r.npy", RATE)
+    outs = []
+    for k, chunk in enumerate((1_250, 16_384, 1 << 20)):  # one window per chunk .. everything in one batch
+        cfg = LocateConfig(carriers_hz=(1000.0, 1300.0), window_s=0.01, distance_mm=5000.0, chunk_samples=chunk,
+                           output_format="npy")
+        s = locate_to_csv(rec, m, tmp_path / f"o{k}.npy", cfg)
+        assert s.n_rows == 2 * (100_000 // 1250)
+        outs.append(np.load(tmp_path / f"o{k}.npy"))
+    for o in outs[1:]:
+        assert list(o["emitter"]) == list(outs[0]["emitter"])
+        for f in o.dtype.names:
+            if f != "emitter":
+                np.testing.assert_allclose(o[f], outs[0][f], rtol=1e-12, atol=1e-15, err_msg=f)
+
+
+def test_window_sums_of_several_chunks_turned_into_windows_at_once():
+    _, x = _sig(40_000)
+    rows = np.ascontiguousarray(x.T)
+    a = MultiCarrierLockin(RATE, (1000.0, 1300.0), 0.01)
+    b = MultiCarrierLockin(RATE, (1000.0, 1300.0), 0.01)
+    per_chunk = [a.process_rows(i / RATE, rows[i: i + 3_000]) for i in range(0, 40_000, 3_000)]
+    sums = [b.fit_rows(i / RATE, rows[i: i + 3_000]) for i in range(0, 40_000, 3_000)]
+    # consecutive windows: each chunk's first window follows the previous chunk's last
+    assert [j for j, _, _ in sums] == list(np.cumsum([0] + [len(w) for w in per_chunk[:-1]]))
+    together = b.windows(sums[0][0], np.concatenate([c for _, c, _ in sums]), np.concatenate([s for _, _, s in sums]))
+    for f in ("index", "t_s", "amplitude", "var_amplitude", "noise_sigma", "phase_rad"):
+        np.testing.assert_allclose(getattr(together, f), np.concatenate([getattr(w, f) for w in per_chunk]),
+                                   rtol=1e-13, atol=1e-15, err_msg=f)
+
+
+def test_big_endian_npy_gives_the_same_rows(tmp_path):
+    _, x = _sig(7_000)
+    native = np.ascontiguousarray(x.T)
+    np.save(tmp_path / "be.npy", native.astype(">f8"))
+    rec = open_recording(tmp_path / "be.npy", RATE)
+    got = np.concatenate([b.copy() for _, b in rec.chunks(3_000, rows=True, reuse_buffer=True)])
+    np.testing.assert_array_equal(got, native)
