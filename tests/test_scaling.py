@@ -10,6 +10,7 @@ from __future__ import annotations
 import tracemalloc
 
 import numpy as np
+import pytest
 
 from psdcal.calibration._homography import homographies
 from psdcal.model.params import Intrinsics
@@ -42,10 +43,19 @@ def test_batched_dlt_memory_is_linear_in_points():
     assert _peak_mb(lambda: homographies(src, dst)) < 20.0
 
 
-def test_verdict_memory_is_linear_in_views():
-    """The verdict works from the compact block Jacobian: no (points x all poses) matrix."""
+def test_verdict_memory_is_linear_in_views(monkeypatch):
+    """The verdict works from the compact block Jacobian: no (points x all poses) matrix.
+
+    With the compiled kernels (the library's default; an in-process `psdcal calibrate` of an
+    earlier test leaves the "auto" mode, where problems this small take the numpy reference path,
+    whose Jacobian is dense)."""
+    from psdcal import _jit
     from psdcal.calibration.core import calibrate, with_verdict
     from psdcal.study.simulate import simulate_set
+
+    if not _jit.AVAILABLE:
+        pytest.skip("numba is not installed")
+    monkeypatch.setattr(_jit, "_MODE", "always")
 
     peaks = []
     for n in (50, 200):
