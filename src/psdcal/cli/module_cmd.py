@@ -74,7 +74,7 @@ def module_command(recording, channels, rate_hz, mm_per_unit, n_emitters, calib,
 
             cov = np.zeros((len(em), 2, 2))
             cov[:, 0, 0], cov[:, 1, 1] = sig[:, 0] ** 2, sig[:, 1] ** 2
-            res = angles_from_points(d, model, cov)
+            res = angles_from_points(d, model, cov, derivatives=False)
             a = np.degrees(res.alpha_rad)
             sa = np.degrees(res.sigma_alpha_rad)
             header += ["alpha_x_deg", "alpha_y_deg", "sigma_alpha_x_deg", "sigma_alpha_y_deg"]

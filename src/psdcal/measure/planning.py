@@ -101,7 +101,7 @@ def plan_map(sensors, room_mm, *, z_mm: float = 1000.0, grid_mm: float = 100.0, 
             continue
         count += vis
         dv = d[vis]
-        res = angles_from_points(dv, m, np.broadcast_to(sigma_d_mm**2 * np.eye(2), dv.shape + (2,)))
+        res = angles_from_points(dv, m, np.broadcast_to(sigma_d_mm**2 * np.eye(2), dv.shape + (2,)), derivatives=False)
         C = res.cov_n + 1e-30 * np.eye(2)
         R = s.R
         pc = (P[vis] @ R.T) + np.asarray(s.tvec_mm, float)

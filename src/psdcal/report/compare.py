@@ -129,7 +129,7 @@ def aoa_field(result, d_mm) -> AoAField:
     """
     from psdcal.measure.aoa import angles_from_points
 
-    a = angles_from_points(np.asarray(d_mm, dtype=float), sensor_model(result))
+    a = angles_from_points(np.asarray(d_mm, dtype=float), sensor_model(result), derivatives=False)
     g = 1.0 / (1.0 + a.n * a.n)  # d atan(n) / dn
     cov = a.cov_n_calib * g[..., :, None] * g[..., None, :]
     return AoAField(np.asarray(d_mm, dtype=float), a.alpha_rad, cov, a.ray)

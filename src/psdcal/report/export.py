@@ -202,7 +202,7 @@ def fit_opencv(result, *, pixel_um: float = 1.0, n_coeffs: int = 5, n_grid: int 
     intr = result.intrinsics
     sensor = tuple(float(v) for v in result.sensor_mm)
     d = sensor_grid_mm(sensor, n_grid).reshape(-1, 2)
-    a = angles_from_points(d, SensorModel(intrinsics=intr, distortion=result.distortion))
+    a = angles_from_points(d, SensorModel(intrinsics=intr, distortion=result.distortion), derivatives=False)
     ok = np.all(np.isfinite(a.n), axis=1)
     d, n = d[ok], a.n[ok]
     f, fy = intr.f_mm, intr.fy
