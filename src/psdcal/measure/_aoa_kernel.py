@@ -25,6 +25,7 @@ import math
 import numpy as np
 
 from psdcal._jit import njit
+from psdcal.calibration._image_kernel import _model_terms
 
 #: parameter codes of :func:`angles_kernel` (index into this tuple)
 PARAM_CODES = ("f_mm", "cx_mm", "cy_mm", "skew", "fy_mm", "k1", "k2", "k3", "p1", "p2", "l1", "l2",
@@ -122,7 +123,6 @@ def angles_kernel(d, intr, separate_fy, coef, codes, B, lower, cov_d, dd_dg, der
     if not has_noise:
         covn[:] = 0.0
     has_gain = dd_dg.shape[0] == N
-    k1, k2, k3, p1, p2, l1, l2 = coef[0], coef[1], coef[2], coef[3], coef[4], coef[5], coef[6]
     # One scratch block W[row, point] (point-contiguous, a single array so that the compiler sees that
     # its rows do not overlap and vectorises the loops over the points): rows 0-1 x, 2-3 n,
     # 4-7 dn/dd, then the 15 derivative columns in PARAM_CODES order, row 8 + 2 code + (0 for xn, 1 for yn),
@@ -141,24 +141,8 @@ def angles_kernel(d, intr, separate_fy, coef, codes, B, lower, cov_d, dd_dg, der
             W[39, t] = d[i0 + t, 1]
         for t in range(m):
             d0, d1 = W[38, t], W[39, t]
-            # the undistortion model at d (Eq 7-16), as psdcal.calibration._image_kernel._model_terms
-            h2 = d0 * d0 + d1 * d1
-            sp = 1.0 + l1 * h2 + l2 * h2 * h2
-            ux, uy = d0 * sp, d1 * sp
-            ex, ey = ux - cx, uy - cy
-            r2 = ex * ex + ey * ey
-            rad = r2 * (k1 + r2 * (k2 + r2 * k3))
-            x0 = ux + ex * rad + p1 * (r2 + 2 * ex * ex) + 2 * p2 * ex * ey
-            x1 = uy + ey * rad + p2 * (r2 + 2 * ey * ey) + 2 * p1 * ex * ey
-            g = 2 * (k1 + r2 * (2 * k2 + 3 * k3 * r2))
-            G00 = rad + g * ex * ex + 6 * p1 * ex + 2 * p2 * ey
-            G01 = g * ex * ey + 2 * p1 * ey + 2 * p2 * ex
-            G10 = g * ex * ey + 2 * p2 * ex + 2 * p1 * ey
-            G11 = rad + g * ey * ey + 6 * p2 * ey + 2 * p1 * ex
-            ds = 2 * (l1 + 2 * l2 * h2)
-            U00 = sp + ds * d0 * d0
-            U01 = ds * d0 * d1
-            U11 = sp + ds * d1 * d1
+            # the undistortion model at d (Eq 7-16)
+            x0, x1, h2, ex, ey, r2, G00, G01, G10, G11, U00, U01, U11 = _model_terms(d0, d1, coef, cx, cy)
             yn = (x1 - cy) / fy
             xn = (x0 - cx - s * yn) / f
             W[0, t], W[1, t], W[2, t], W[3, t] = x0, x1, xn, yn
