@@ -418,10 +418,17 @@ def estimate_radial(points_mm, lines, *, c_mm=(0.0, 0.0), n_terms: int = 2) -> S
             return last["state"]
 
         def fun(z):
+            # the Jacobian comes with the residuals (one pass): LM asks for it at the accepted points,
+            # which are most of the points it evaluates
             q, cnt, abc, nx, ny = state(z)
-            return _radial_line_residuals_kernel(d_c, q, g_c, cnt, abc, nx, ny, c_c, scale, False)[0]
+            res, jz = _radial_line_residuals_kernel(d_c, q, g_c, cnt, abc, nx, ny, c_c, scale, True)
+            last["jac"] = (z.tobytes(), jz)
+            return res
 
         def jac(z):
+            hit = last.get("jac")
+            if hit is not None and hit[0] == z.tobytes():
+                return hit[1]
             q, cnt, abc, nx, ny = state(z)
             return _radial_line_residuals_kernel(d_c, q, g_c, cnt, abc, nx, ny, c_c, scale, True)[1]
 
