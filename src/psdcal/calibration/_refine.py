@@ -19,6 +19,7 @@ cross-check, see the tests).
 """
 from __future__ import annotations
 
+import contextlib
 import threading
 from dataclasses import dataclass, field
 
@@ -649,7 +650,9 @@ class BlockNormal:
         ng = self.n_global
         dg, dp = damp[:ng], damp[ng:].reshape(-1, 6)
         if self.compiled:
-            ok, hg, hp = _kernels().schur_solve(self.U, self.W, self.V, self.gg, self.gp, dg, dp)
+            from psdcal.calibration._image_kernel import schur_solve
+
+            ok, hg, hp = schur_solve(self.U, self.W, self.V, self.gg, self.gp, dg, dp)
         else:
             ok, hg, hp = schur_solve_reference(self.U, self.W, self.V, self.gg, self.gp, dg, dp)
         if not ok:
@@ -688,19 +691,6 @@ class BlockNormal:
             A[sl, :ng] = self.W[v].T
             A[sl, sl] = self.V[v]
         return A
-
-
-def _kernels():
-    """The compiled kernels' module (:mod:`psdcal.calibration._image_kernel`), imported once."""
-    global _KERNELS
-    if _KERNELS is None:
-        from psdcal.calibration import _image_kernel
-
-        _KERNELS = _image_kernel
-    return _KERNELS
-
-
-_KERNELS = None
 
 
 def _as_system(val):
@@ -781,45 +771,40 @@ def refine(prob: Problem, intr0: Intrinsics, dist0: Distortion, gains0, rvecs0, 
         return _finish(prob, ev, sol, r, Jc, m, n, options, system=sol.system)
 
 
+@contextlib.contextmanager
 def _single_threaded_blas():
     """Small dense problems run fastest on one BLAS thread (and do not fight
     other processes of a Monte Carlo run for cores).
 
     Nested uses (a refinement inside a calibration) cost nothing: only the
-    outermost one asks threadpoolctl (about 50 us per call when the limit is
-    already set)."""
-    import contextlib
-
-    global _CONTROLLER
-    if getattr(_DEPTH, "n", 0) > 0:
-        return _counted(contextlib.nullcontext())
+    outermost one of a thread asks threadpoolctl (about 50 us per call, even
+    when the limit is already set)."""
+    depth = getattr(_DEPTH, "n", 0)
+    _DEPTH.n = depth + 1
     try:
-        if _CONTROLLER is None:
-            from threadpoolctl import ThreadpoolController
-
-            _CONTROLLER = ThreadpoolController()
-        return _counted(_CONTROLLER.limit(limits=1, user_api="blas"))
-    except Exception:  # threadpoolctl missing or unable to introspect: run as is
-        return _counted(contextlib.nullcontext())
+        if depth:
+            yield
+        else:
+            with _blas_limit():
+                yield
+    finally:
+        _DEPTH.n = depth
 
 
 _DEPTH = threading.local()  # .n: how many _single_threaded_blas contexts this thread has open
 
 
-class _counted:
-    """A context that counts itself in :data:`_DEPTH` around another one."""
+def _blas_limit():
+    """threadpoolctl's one-thread BLAS limit (a null context when threadpoolctl cannot provide one)."""
+    global _CONTROLLER
+    try:
+        if _CONTROLLER is None:
+            from threadpoolctl import ThreadpoolController
 
-    def __init__(self, inner):
-        self.inner = inner
-
-    def __enter__(self):
-        self.inner.__enter__()
-        _DEPTH.n = getattr(_DEPTH, "n", 0) + 1
-        return self
-
-    def __exit__(self, *exc):
-        _DEPTH.n -= 1
-        return self.inner.__exit__(*exc)
+            _CONTROLLER = ThreadpoolController()
+        return _CONTROLLER.limit(limits=1, user_api="blas")
+    except Exception:  # threadpoolctl missing or unable to introspect: run as is
+        return contextlib.nullcontext()
 
 
 _CONTROLLER = None

@@ -256,12 +256,10 @@ def undetermined_parameters(result) -> list[str]:
     result : CalibrationResult with its problem record (``[]`` without one)
     """
     from psdcal.calibration._refine import Evaluator, Problem
-    from psdcal.calibration.core import points_from_record
+    from psdcal.calibration.core import inputs_from_record
 
     try:
-        p = result.problem
-        T = np.asarray(p["template"]["xy_mm"], dtype=float)
-        X = points_from_record(p["points"]["xy_mm"])
+        T, X = inputs_from_record(result.problem)
     except (KeyError, TypeError, ValueError):
         return []
     spec = result.model
@@ -278,10 +276,7 @@ def undetermined_parameters(result) -> list[str]:
     except (ValueError, np.linalg.LinAlgError, FloatingPointError):
         return []
     U, W, V = bs.U, bs.W, bs.V
-    S = U.copy()
-    for v in range(V.shape[0]):
-        Vi = np.linalg.pinv(V[v])
-        S -= W[v] @ Vi @ W[v].T
+    S = U - np.einsum("vij,vkj->ik", W @ np.linalg.pinv(V), W)  # sum over the views of W_v V_v^+ W_v^T
     d = np.sqrt(np.maximum(np.diag(U), 0.0))
     keep = d > 0
     out = [n for n, k in zip(names, keep) if not k]  # a column with no information at all

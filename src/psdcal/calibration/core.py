@@ -11,6 +11,7 @@ Steps, each usable on its own from its private module:
 from __future__ import annotations
 
 import datetime as _dt
+import functools
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -71,10 +72,11 @@ def _check_inputs(template_mm, points_mm, image_ids, min_images):
         raise InputError(f"points_mm must have shape (n_images, {T.shape[0]}, 2), got {X.shape}")
     if not np.all(np.isfinite(T)):
         raise InputError("template_mm contains NaN or infinite values")
-    # a point is missing only when both coordinates are NaN
-    half = np.isnan(X).any(-1) & ~np.isnan(X).all(-1)
-    if np.any(half) or np.any(np.isinf(X)):
-        raise InputError("points_mm: a point must be either two finite coordinates or two NaN (missing)")
+    # a point is missing only when both coordinates are NaN (nothing to look at when all are finite)
+    if not np.isfinite(X).all():
+        nan = np.isnan(X)
+        if np.any(nan.any(-1) & ~nan.all(-1)) or np.any(np.isinf(X)):
+            raise InputError("points_mm: a point must be either two finite coordinates or two NaN (missing)")
     ids = list(range(X.shape[0])) if image_ids is None else list(image_ids)
     if len(ids) != X.shape[0]:
         raise InputError(f"image_ids has {len(ids)} entries for {X.shape[0]} images")
@@ -93,7 +95,6 @@ def initial_estimate(
     skew: bool = False,
     aspect: bool = False,
     image_ids=None,
-    _checked: bool = False,
 ) -> InitialEstimate:
     """The first, linear stage of the calibration (Sections 3.1-3.3).
 
@@ -105,10 +106,7 @@ def initial_estimate(
     normalize : Hartley-normalise the DLT.
     radial_terms : how many of k1, k2 the preliminary step estimates (0-2).
     """
-    if _checked:  # linear_starts' caller has checked them
-        T, X, ids = template_mm, points_mm, list(image_ids)
-    else:
-        T, X, ids = _check_inputs(template_mm, points_mm, image_ids, 3 if (skew or aspect) else 2)
+    T, X, ids = _check_inputs(template_mm, points_mm, image_ids, 3 if (skew or aspect) else 2)
     k = np.zeros(2)
     n_lines = 0
     c0 = np.zeros(2)
@@ -132,19 +130,26 @@ def initial_estimate(
     return InitialEstimate(k, n_lines, Hs, intr, *poses_from_homographies(Hs, intr))
 
 
-_LINES_CACHE: dict = {}
-
-
 def _straightness_lines(T) -> list:
     """The template lines of the straightness step, thinned (:func:`_thin_lines`); cached per template."""
-    key = (T.shape, T.tobytes(), MAX_STRAIGHTNESS_LINES, MAX_LINE_POINTS)
-    hit = _LINES_CACHE.get(key)
-    if hit is None:
-        hit = _thin_lines(T, find_lines(T, max_lines=MAX_STRAIGHTNESS_LINES), MAX_LINE_POINTS)
-        if len(_LINES_CACHE) >= 8:
-            _LINES_CACHE.pop(next(iter(_LINES_CACHE)))
-        _LINES_CACHE[key] = hit
-    return [ln.copy() for ln in hit]
+    return [ln.copy() for ln in _lines_of(*_template_key(T), MAX_STRAIGHTNESS_LINES, MAX_LINE_POINTS)]
+
+
+def _template_key(T) -> tuple:
+    """``(shape, bytes)`` of a float template: a hashable key for the per-template caches."""
+    T = np.ascontiguousarray(T, dtype=float)
+    return T.shape, T.tobytes()
+
+
+def _template_of(shape, data) -> np.ndarray:
+    """The template of a :func:`_template_key` (read-only)."""
+    return np.frombuffer(data, dtype=float).reshape(shape)
+
+
+@functools.lru_cache(maxsize=8)
+def _lines_of(shape, data, max_lines, max_points) -> tuple:
+    T = _template_of(shape, data)
+    return tuple(_thin_lines(T, find_lines(T, max_lines=max_lines), max_points))
 
 
 def _thin_lines(T, lines, k: int) -> list:
@@ -406,6 +411,11 @@ def _frozen(a) -> np.ndarray:
     return out
 
 
+def inputs_from_record(problem) -> tuple[np.ndarray, np.ndarray]:
+    """The template (M, 2) and the measured points (n_images, M, 2) of a problem record, mm (NaN where missing)."""
+    return np.asarray(problem["template"]["xy_mm"], dtype=float), points_from_record(problem["points"]["xy_mm"])
+
+
 def points_from_record(xy) -> np.ndarray:
     """The measured points (n_images, M, 2) of a problem record's ``points.xy_mm``, mm, NaN where missing.
 
@@ -647,7 +657,7 @@ def _calibrate(template_mm, points_mm, *, cost, radial, tangential, psd_radial, 
         known_gains, X, g0 = g0, correct_points(X, g0, *sensor_mm), np.ones(4)
     primary, cands = linear_starts(
         T, X, preliminary=preliminary, normalize=normalize, radial=radial, skew=skew, aspect=aspect,
-        general=fit_gains, f_guess_mm=f_guess_mm, image_ids=ids, point_ids=pids, _checked=True,
+        general=fit_gains, f_guess_mm=f_guess_mm, image_ids=ids, point_ids=pids,
     )
     start = primary
     g0_start = g0
@@ -744,21 +754,16 @@ def subsample_views(T, X, k: int = SUBSAMPLE_POINTS):
     valid = np.all(np.isfinite(X), axis=-1)  # (n_images, M)
     if T.shape[0] <= 2 * k or not np.any(valid.sum(axis=1) > 2 * k):
         return None
-    keep = valid & _subsample_mask(T, k)[None, :]
+    keep = valid & _subsample_mask(*_template_key(T), k)[None, :]
     few = (keep.sum(axis=1) < k // 2) | (valid.sum(axis=1) <= 2 * k)
     keep[few] = valid[few]
     return np.where(keep[..., None], X, np.nan)
 
 
-_SUBSAMPLE_CACHE: dict = {}
-
-
-def _subsample_mask(T, k) -> np.ndarray:
-    """(M,) bool: the template points :func:`subsample_views` keeps (cached per template)."""
-    ckey = (T.shape, T.tobytes(), k)
-    hit = _SUBSAMPLE_CACHE.get(ckey)
-    if hit is not None:
-        return hit
+@functools.lru_cache(maxsize=8)
+def _subsample_mask(shape, data, k) -> np.ndarray:
+    """(M,) bool, read-only: the template points :func:`subsample_views` keeps (cached per template)."""
+    T = _template_of(shape, data)
     # one point per cell of a g x g grid over the plate (the one nearest the cell's centre)
     g = int(np.ceil(np.sqrt(k)))
     lo, hi = T.min(axis=0), T.max(axis=0)
@@ -772,9 +777,6 @@ def _subsample_mask(T, k) -> np.ndarray:
     chosen = np.zeros(T.shape[0], dtype=bool)
     chosen[order[first]] = True
     chosen.flags.writeable = False
-    if len(_SUBSAMPLE_CACHE) >= 8:
-        _SUBSAMPLE_CACHE.pop(next(iter(_SUBSAMPLE_CACHE)))
-    _SUBSAMPLE_CACHE[ckey] = chosen
     return chosen
 
 
@@ -975,7 +977,7 @@ def template_hint(T, X, Hs, point_ids=None) -> str:
 
 
 def linear_starts(T, X, *, preliminary=True, normalize=True, radial=2, skew=False, aspect=False, general=False,
-                  f_guess_mm=None, image_ids=None, point_ids=None, _checked=False):
+                  f_guess_mm=None, image_ids=None, point_ids=None):
     """Starts of the refinement from the linear stages, the first that fail being replaced by ones that cannot.
 
     Returns ``(primary, starts)``: ``primary`` is the :class:`InitialEstimate`
@@ -1012,7 +1014,7 @@ def linear_starts(T, X, *, preliminary=True, normalize=True, radial=2, skew=Fals
     labels = [f"image {i}" for i in ids]
     try:
         est = initial_estimate(T, X, preliminary=preliminary, normalize=normalize, radial_terms=radial,
-                               skew=skew or general, aspect=aspect or general, image_ids=ids, _checked=_checked)
+                               skew=skew or general, aspect=aspect or general, image_ids=ids)
     except DegenerateViewsError as exc:
         closed_error, est = exc, None
     # the views' homographies (after the preliminary step when it applied: the better start); raises on collinear

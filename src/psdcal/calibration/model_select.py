@@ -219,13 +219,12 @@ def cross_validate(result, k: int = 5, *, alpha: float = ALPHA) -> CrossValidati
     from psdcal.calibration._homography import homographies
     from psdcal.calibration.checks import align_to_problem
     from psdcal.calibration.core import _calibrate_record
-    from psdcal.calibration.outliers import _points_array
+    from psdcal.calibration.core import inputs_from_record
     from psdcal.errors import InputError, PsdcalError
 
     res = align_to_problem(result)
     p = res.problem
-    T = np.asarray(p["template"]["xy_mm"], dtype=float)
-    X = _points_array(p)
+    T, X = inputs_from_record(p)
     n = X.shape[0]
     if not 2 <= k <= n:
         raise InputError(f"--cross-validate K needs 2 <= K <= the number of views ({n}), got {k}", field="cross_validate")

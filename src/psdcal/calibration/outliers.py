@@ -263,13 +263,6 @@ def _check_k(k):
         raise InputError(f"the outlier threshold K must be a positive number, got {k!r}", field="k")
 
 
-def _points_array(problem) -> np.ndarray:
-    xy = problem["points"]["xy_mm"]
-    from psdcal.calibration.core import points_from_record
-
-    return points_from_record(xy)
-
-
 def _refit(result, points_mm):
     from psdcal.calibration.core import _jsonable, recalibrate
 
@@ -360,8 +353,10 @@ def reject_outliers(
     _check_k(k)
     if "points" not in (result.problem or {}) or "template" not in (result.problem or {}):
         raise InputError("the calibration holds no problem record (points, template); cannot refit", field="problem")
+    from psdcal.calibration.core import points_from_record
+
     result = align_to_problem(result)
-    X0 = _points_array(result.problem)
+    X0 = points_from_record(result.problem["points"]["xy_mm"])
     X = X0.copy()
     n_valid0 = int(np.all(np.isfinite(X0), axis=-1).sum())
     budget = int(np.floor(max_fraction * n_valid0))

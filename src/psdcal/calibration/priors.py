@@ -536,7 +536,7 @@ def constrain(result, fix: dict, priors: list, solver, merged_gain_fix: dict | N
     skew/aspect on, held fixed).
     """
     from psdcal.calibration._refine import Problem
-    from psdcal.calibration.core import _make_result, points_from_record
+    from psdcal.calibration.core import _make_result, inputs_from_record
 
     spec = result.model
     if "skew" in fix and not spec.skew:
@@ -547,8 +547,7 @@ def constrain(result, fix: dict, priors: list, solver, merged_gain_fix: dict | N
     if gfix and not spec.fit_gains:
         raise InputError(f"fix {gfix[0]}: the gains are fixed unless fitted; give known gains with gains=/--gains", field=gfix[0])
     p = result.problem
-    T = np.asarray(p["template"]["xy_mm"], dtype=float)
-    X = points_from_record(p["points"]["xy_mm"])
+    T, X = inputs_from_record(p)
     sensor = tuple(result.sensor_mm)
     fixed = tuple(n for n in spec.global_names if n in fix)
     prob = Problem(T, X, spec, cost=result.cost, sensor_mm=sensor, fixed=fixed)

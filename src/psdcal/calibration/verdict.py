@@ -151,12 +151,11 @@ class _Linear:
 def _linearise(result, exclude=None) -> _Linear:
     from psdcal.calibration._refine import Evaluator, Problem
     from psdcal.calibration.checks import align_to_problem
-    from psdcal.calibration.outliers import _points_array
+    from psdcal.calibration.core import inputs_from_record
 
     res = align_to_problem(result)
     p = res.problem
-    T = np.asarray(p["template"]["xy_mm"], dtype=float)
-    X = _points_array(p)
+    T, X = inputs_from_record(p)
     gains = np.asarray(res.gains, float) if res.model.fit_gains else np.ones(4)
     spec = res.model
     # the richer model: the terms this one leaves out (the next radial term, tangential, PSD l1, skew) at 0; its
@@ -193,18 +192,17 @@ def _projector(G, Jpose, row_img, n_img):
 
     The pose columns of a view touch only that view's rows: a batched QR of the
     (rows x 6) blocks projects them out view by view; then a QR of the global
-    columns so projected. ``Jpose`` is (m, 6) (each row's own view's pose
-    columns, the compact form) or (m, 6 n_img) (dense). Returns
-    ``(perp, leverages, rank)`` where ``perp(B)`` is ``(I - P) B`` for B (m, k).
+    columns so projected. ``Jpose`` is (m, 6): each row's own view's pose
+    columns (the compact form). Returns ``(perp, leverages, rank)`` where
+    ``perp(B)`` is ``(I - P) B`` for B (m, k).
     """
     m = row_img.size
     counts = np.bincount(row_img, minlength=n_img)
     starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
     pos = np.arange(m) - starts[row_img]
     nr = int(counts.max()) if m else 0
-    cols = 6 * row_img[:, None] + np.arange(6)
     blocks = np.zeros((n_img, nr, 6))
-    blocks[row_img, pos] = Jpose if Jpose.shape[1] == 6 else np.take_along_axis(Jpose, cols, axis=1)
+    blocks[row_img, pos] = Jpose
     blocks /= np.maximum(np.linalg.norm(blocks, axis=1, keepdims=True), 1e-300)
     Qb, Rb = np.linalg.qr(blocks)
     dq = np.abs(np.diagonal(Rb, axis1=1, axis2=2))
@@ -737,12 +735,10 @@ def _diagnose(result, checks, lin, points_kind, bad_view):
 def _homography_hint(result) -> str | None:
     """The linear stage's template diagnosis (:func:`psdcal.calibration.core.template_hint`), None when it says nothing."""
     from psdcal.calibration._homography import homographies
-    from psdcal.calibration.core import template_hint
-    from psdcal.calibration.outliers import _points_array
+    from psdcal.calibration.core import inputs_from_record, template_hint
 
     try:
-        T = np.asarray(result.problem["template"]["xy_mm"], dtype=float)
-        X = _points_array(result.problem)
+        T, X = inputs_from_record(result.problem)
         hint = template_hint(T, X, homographies(T, X), list(result.point_ids))
     except Exception:  # noqa: BLE001 -- a diagnosis that cannot run says nothing
         return None

@@ -306,10 +306,9 @@ def grid_capture(candidates, n_views: int, *, tilt_deg: float = 35.0, step_mm: f
 
 def information_of_calibration(result, *, margin_mm: float = 0.0) -> np.ndarray:
     """Summed information ``S`` (n, n) of the views of a calibration, at its solution (unit noise)."""
-    P = np.asarray(result.problem["template"]["xy_mm"], dtype=float)
-    from psdcal.calibration.core import points_from_record
+    from psdcal.calibration.core import inputs_from_record
 
-    X = points_from_record(result.problem["points"]["xy_mm"])
+    P, X = inputs_from_record(result.problem)
     valid = np.all(np.isfinite(X), axis=-1)
     spec = result.model
     S = view_information(P, result.intrinsics, result.distortion, spec, result.rvecs, result.tvecs_mm, valid=valid,
