@@ -600,6 +600,37 @@ class EmitterMeans:
     scatter_p: np.ndarray
 
 
+def _grouped_means(names, values, var):
+    """Inverse-variance mean of the rows of each name, in order of first appearance.
+
+    Parameters
+    ----------
+    names : (N,) sequence
+    values, var : (N, k) arrays, the rows and their variances
+
+    Returns
+    -------
+    order (list of names), means (n, k), variance of each mean (n, k), rows per name (n,), and the
+    chi-squared p-value of each name's scatter about its mean (NaN for one row)
+    """
+    from scipy.stats import chi2
+
+    names = np.asarray(names, dtype=object)
+    order = list(dict.fromkeys(names.tolist()))
+    means, var_mean, counts, ps = [], [], [], []
+    for nm in order:
+        m = names == nm
+        w = 1.0 / np.maximum(var[m], 1e-300)
+        mu = (w * values[m]).sum(0) / w.sum(0)
+        means.append(mu)
+        var_mean.append(1.0 / w.sum(0))
+        counts.append(int(m.sum()))
+        x2 = float(((values[m] - mu) ** 2 * w).sum())
+        dof = values.shape[1] * (int(m.sum()) - 1)
+        ps.append(float(chi2.sf(x2, dof)) if dof > 0 else math.nan)
+    return order, np.array(means), np.array(var_mean), np.array(counts), np.array(ps)
+
+
 def mean_amplitudes(names, a, var_a, model) -> EmitterMeans:
     """Average amplitude rows per emitter (inverse-variance weights), then impact points (Eq 1-2).
 
@@ -609,49 +640,19 @@ def mean_amplitudes(names, a, var_a, model) -> EmitterMeans:
     a, var_a : (N, 4) arrays
     model : SensorModel
     """
-    from scipy.stats import chi2
-
     from psdcal.measure.aoa import impact_from_amplitudes
 
-    names = np.asarray(names, dtype=object)
-    a = np.asarray(a, dtype=float)
-    var_a = np.asarray(var_a, dtype=float)
-    order = list(dict.fromkeys(names.tolist()))
-    means, varm, counts, ps = [], [], [], []
-    for nm in order:
-        m = names == nm
-        w = 1.0 / np.maximum(var_a[m], 1e-300)
-        mu = (w * a[m]).sum(0) / w.sum(0)
-        means.append(mu)
-        varm.append(1.0 / w.sum(0))
-        counts.append(int(m.sum()))
-        x2 = float(((a[m] - mu) ** 2 * w).sum())
-        dof = 4 * (int(m.sum()) - 1)
-        ps.append(float(chi2.sf(x2, dof)) if dof > 0 else math.nan)
-    imp = impact_from_amplitudes(np.array(means), model, np.array(varm))
-    return EmitterMeans(order, imp.d_mm, imp.cov_d_mm2, imp.dd_dgains, np.array(counts), np.array(ps))
+    order, means, varm, counts, ps = _grouped_means(names, np.asarray(a, dtype=float), np.asarray(var_a, dtype=float))
+    imp = impact_from_amplitudes(means, model, varm)
+    return EmitterMeans(order, imp.d_mm, imp.cov_d_mm2, imp.dd_dgains, counts, ps)
 
 
 def mean_points(names, d_mm, sigma_d_mm) -> EmitterMeans:
     """Average impact-point rows per emitter (inverse-variance weights)."""
-    from scipy.stats import chi2
-
-    names = np.asarray(names, dtype=object)
-    d = np.asarray(d_mm, dtype=float)
-    s = np.asarray(sigma_d_mm, dtype=float)
-    order = list(dict.fromkeys(names.tolist()))
-    means, covs, counts, ps = [], [], [], []
-    for nm in order:
-        m = names == nm
-        w = 1.0 / np.maximum(s[m] ** 2, 1e-300)
-        mu = (w * d[m]).sum(0) / w.sum(0)
-        means.append(mu)
-        covs.append(np.diag(1.0 / w.sum(0)))
-        counts.append(int(m.sum()))
-        dof = 2 * (int(m.sum()) - 1)
-        x2 = float(((d[m] - mu) ** 2 * w).sum())
-        ps.append(float(chi2.sf(x2, dof)) if dof > 0 else math.nan)
-    return EmitterMeans(order, np.array(means), np.array(covs), None, np.array(counts), np.array(ps))
+    order, means, varm, counts, ps = _grouped_means(names, np.asarray(d_mm, dtype=float),
+                                                    np.asarray(sigma_d_mm, dtype=float) ** 2)
+    covs = np.array([np.diag(v) for v in varm])
+    return EmitterMeans(order, means, covs, None, counts, ps)
 
 
 def pose_from_means(means: EmitterMeans, model, names_w, points_w_mm, **kw) -> PoseResult:
