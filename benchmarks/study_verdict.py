@@ -56,23 +56,30 @@ def correct(seed: int) -> dict:
             "failed": [x.name for x in vk.failed], "t_fit": t1 - t0, "t_verdict": t2 - t1}
 
 
-def faulty(args) -> dict:
-    kind, seed = args
+def _planted_fit(kind, seed):
+    """A planted-fault case and its fit: ``(case, result or None, the refusal's message or "")``."""
     from psdcal.calibration.core import calibrate
-    from psdcal.calibration.verdict import assess
     from psdcal.errors import PsdcalError
     from psdcal.study.faults import random_case, wrong_minimum
 
     if kind == "wrong_min":
         c, r = wrong_minimum(seed)
-    else:
-        c = random_case(90_000 + seed, fault=kind)
-        try:
-            r = calibrate(c.template_mm, c.points_mm, **c.model, verdict=False)
-        except PsdcalError as exc:
-            r = getattr(exc, "result", None)
-            if r is None:
-                return {"kind": kind, "seed": seed, "verdict": "refused", "failed": [str(exc)[:60]]}
+        return c, r, ""
+    c = random_case(90_000 + seed, fault=kind)
+    try:
+        return c, calibrate(c.template_mm, c.points_mm, **c.model, verdict=False), ""
+    except PsdcalError as exc:
+        return c, getattr(exc, "result", None), str(exc)
+
+
+def faulty(args) -> dict:
+    kind, seed = args
+    from psdcal.calibration.core import calibrate
+    from psdcal.calibration.verdict import assess
+
+    c, r, refusal = _planted_fit(kind, seed)
+    if r is None:
+        return {"kind": kind, "seed": seed, "verdict": "refused", "failed": [refusal[:60]]}
     v = assess(r, diagnose=False, points_kind="amplitudes" if kind == "gains" else "points")
     out = {"kind": kind, "seed": seed, "verdict": v.verdict, "failed": [x.name for x in v.failed]}
     if kind == "no_k2":  # how many standard errors k2 is from 0 in the fit of the true model (its detectability)
@@ -85,21 +92,9 @@ def faulty(args) -> dict:
 def advice(args) -> dict:
     """Whether the diagnosis (advice of the failed checks, or the refusal's message) names the planted cause."""
     kind, seed = args
-    from psdcal.calibration.core import calibrate
     from psdcal.calibration.verdict import assess
-    from psdcal.errors import PsdcalError
-    from psdcal.study.faults import random_case, wrong_minimum
 
-    text = ""
-    if kind == "wrong_min":
-        c, r = wrong_minimum(seed)
-    else:
-        c = random_case(90_000 + seed, fault=kind)
-        try:
-            r = calibrate(c.template_mm, c.points_mm, **c.model, verdict=False)
-        except PsdcalError as exc:
-            text = str(exc)
-            r = getattr(exc, "result", None)
+    c, r, text = _planted_fit(kind, seed)
     if r is not None:
         v = assess(r, points_kind="amplitudes" if kind == "gains" else "points")
         text += " " + " ".join(ch.advice for ch in v.failed)
