@@ -20,6 +20,7 @@ cross-check, see the tests).
 from __future__ import annotations
 
 import contextlib
+import functools
 import threading
 from dataclasses import dataclass, field
 
@@ -121,11 +122,11 @@ class Problem:
     def n_images(self) -> int:
         return self.points_mm.shape[0]
 
-    @property
+    @functools.cached_property
     def names(self) -> tuple[str, ...]:
         return tuple(n for n in self.spec.global_names if n not in self.fixed)
 
-    @property
+    @functools.cached_property
     def n_global(self) -> int:
         return len(self.names)
 
@@ -766,9 +767,35 @@ def refine(prob: Problem, intr0: Intrinsics, dist0: Distortion, gains0, rvecs0, 
         raise DegenerateViewsError(f"{m // 2} observed points give {m} equations for {n} unknowns: add images or points")
     ev.trial_jacobians = True
     with _single_threaded_blas():
-        sol = levenberg_marquardt(ev.residuals, ev.jacobian_compact, z0, options, normal=ev.block_system)
+        if ev._kernel is not None and COMPILED_LOOP:
+            sol = _lm_compiled(ev, z0, options)
+        else:
+            sol = levenberg_marquardt(ev.residuals, ev.jacobian_compact, z0, options, normal=ev.block_system)
         r, Jc = ev.evaluate_compact(sol.x)
         return _finish(prob, ev, sol, r, Jc, m, n, options, system=sol.system)
+
+
+#: Run the image cost's LM iterations in one compiled call (:mod:`psdcal.calibration._lm_kernel`) when its
+#: kernels are compiled; False: the Python loop :func:`levenberg_marquardt` (the reference) always.
+COMPILED_LOOP = True
+
+
+def _lm_compiled(ev, z0, options) -> "LMResult":
+    """:func:`levenberg_marquardt` on ``ev``'s compiled image cost in one call; ``ev`` is left caching the
+    solution's residuals, Jacobian and model points (as after the Python loop)."""
+    from psdcal.calibration._lm_kernel import MESSAGES, lm_image
+
+    x, F, status, njev, nfev, r, Jc, d, y, U, W, V, gg, gp = lm_image(
+        ev.P, ev.img_idx, ev._theta0, ev._separate_fy, ev._gmap, ev._gain_basis, ev.d_meas,
+        np.ascontiguousarray(z0, dtype=float), ev.prob.n_images, float(options.ftol), float(options.xtol),
+        float(options.gtol), int(options.max_iterations), 1e-13, 50)
+    key = x.tobytes()
+    ev._ckey, ev._cval = key, (r, Jc)
+    ev._dkey, ev._dval, ev._yval = key, d, y
+    ev._anchor = d
+    return LMResult(x=x, cost=float(F), status=2 if status == 5 else int(status),
+                    message=MESSAGES[int(status)], njev=int(njev), nfev=int(nfev),
+                    system=BlockNormal(U, W, V, gg, gp, compiled=True))
 
 
 @contextlib.contextmanager
