@@ -649,7 +649,7 @@ def _calibrate(template_mm, points_mm, *, cost, radial, tangential, psd_radial, 
     pids = tuple(range(T.shape[0])) if point_ids is None else tuple(point_ids)
     g0 = np.ones(4) if gains is None else np.asarray(gains, dtype=float) / float(np.asarray(gains)[0])
     known_gains = None
-    if not fit_gains and not np.allclose(g0, 1.0):
+    if not fit_gains and gains is not None and not np.allclose(g0, 1.0):  # (no gains: g0 is exactly 1)
         # Known gains held fixed: the raw readout is a homography of the equal-gain one
         # (psdcal.calibration.gains); map it back once, so that every stage sees corrected points.
         from psdcal.calibration.gains import correct_points
@@ -1049,7 +1049,9 @@ def linear_starts(T, X, *, preliminary=True, normalize=True, radial=2, skew=Fals
     zero = est.distortion(radial) if est is not None else Distortion()  # the preliminary k with its homographies
     fallback = []
     if fs.size:
-        fallback.append(("centre", float(np.median(fs))))
+        fs = np.sort(fs)  # their median (np.median's arithmetic, without its overhead on a few numbers)
+        h = fs.size // 2
+        fallback.append(("centre", float(fs[h]) if fs.size % 2 else float((fs[h - 1] + fs[h]) / 2.0)))
     if f_guess_mm is not None:
         fallback.append(("f-guess", float(f_guess_mm)))
     if not starts and not fallback:
