@@ -11,6 +11,7 @@ Steps, each usable on its own from its private module:
 from __future__ import annotations
 
 import datetime as _dt
+import math
 import functools
 from dataclasses import dataclass, field, replace
 
@@ -1158,9 +1159,14 @@ def _make_result(prob, ref, start, ids, pids, spec, cost, g0, preliminary, norma
             model = gain_map(model, ref.gains, *prob.sensor_mm)
     res = X - model
     valid = prob.valid
-    sq = np.where(valid, np.sum(np.nan_to_num(res) ** 2, axis=-1), 0.0)
-    n_valid = valid.sum()
-    rms = float(np.sqrt(sq.sum() / max(n_valid, 1)))
+    # squared residual of each valid point (0 elsewhere; a non-finite residual counts as 0, as nan_to_num makes it)
+    rv = res[valid]
+    if not np.isfinite(rv).all():
+        rv = np.nan_to_num(rv)
+    sq = np.zeros(valid.shape)
+    sq[valid] = rv[:, 0] ** 2 + rv[:, 1] ** 2
+    n_valid = int(valid.sum())
+    rms = math.sqrt(float(sq.sum()) / max(n_valid, 1))
     per_image = np.sqrt(sq.sum(axis=1) / np.maximum(valid.sum(axis=1), 1))
     cov = ref.covariance_global  # the reduced (Schur) system's inverse: no matrix of all poses
     std = {n: None for n in ("f_mm", "cx_mm", "cy_mm", "skew", *DISTORTION_NAMES)}
@@ -1168,10 +1174,10 @@ def _make_result(prob, ref, start, ids, pids, spec, cost, g0, preliminary, norma
         std["fy_mm"] = None
     for k, n in enumerate(prob.names):
         std[n] = float(np.sqrt(max(cov[k, k], 0.0)))
-    pose_std = np.sqrt(np.clip(np.einsum("naa->na", ref.pose_covariance), 0, None))
+    pose_std = np.sqrt(np.maximum(np.einsum("naa->na", ref.pose_covariance), 0.0))
     m = 2 * n_valid
     dof = max(m - ref.z.size, 1)
-    sigma_mm = float(np.sqrt(np.sum(sq) / dof)) if cost == "image" else float(rms / np.sqrt(2.0) * np.sqrt(m / dof))
+    sigma_mm = math.sqrt(float(sq.sum()) / dof) if cost == "image" else float(rms / np.sqrt(2.0) * np.sqrt(m / dof))
     stages = {
         "preliminary": {"k1": float(start.preliminary_k[0]), "k2": float(start.preliminary_k[1]), "line_groups": start.n_lines, "applied": bool(preliminary and start.n_lines > 0)},
         "closed_form": {**start.intrinsics.to_dict(), "normalized": bool(normalize)},
