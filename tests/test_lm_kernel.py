@@ -144,3 +144,23 @@ def test_bad_residuals_are_replaced_as_the_python_loop_does():
     assert np.all(np.isfinite(r)) and np.all(np.isfinite(J))
     np.testing.assert_allclose(r, r_ref, rtol=1e-12, atol=1e-12)
     np.testing.assert_allclose(J, J_ref, rtol=1e-10, atol=1e-12)
+
+
+def test_compiled_undistort_is_the_numpy_one_to_the_bit():
+    from psdcal.calibration._image_kernel import undistort_points
+    from psdcal.model.distortion import undistort
+
+    rng = np.random.default_rng(7)
+    d = rng.uniform(-4.5, 4.5, (6, 25, 2))
+    d[2, 3] = np.nan
+    for coef in (np.array([-3e-3, 2e-5, 0, 0, 0, 0, 0]), np.array([2e-3, -1e-5, 3e-7, 1e-4, -2e-4, -1e-3, 4e-6])):
+        c = np.array([0.3, -0.2])
+        np.testing.assert_array_equal(undistort_points(d, coef, c), undistort(d, coef, c))
+
+
+def test_extent_skips_missing_points():
+    from psdcal.calibration.core import _extent
+
+    X = np.array([[[1.0, -3.0], [np.nan, np.nan]], [[0.5, 2.0], [np.nan, np.nan]]])
+    assert _extent(X) == 6.0
+    assert _extent(np.full((2, 3, 2), np.nan)) == 1.0

@@ -119,16 +119,32 @@ def initial_estimate(
             n_lines = st.n_lines
     coef = np.zeros(7)
     coef[:2] = k
-    Xc = undistort(X, coef, c0) if n_lines else X
+    if n_lines:
+        from psdcal import _jit
+
+        if _jit.use_compiled(X.shape[0] * X.shape[1]):
+            from psdcal.calibration._image_kernel import undistort_points
+
+            Xc = undistort_points(X, coef, c0)  # undistort's arithmetic, compiled (tests/test_lm_kernel.py)
+        else:
+            Xc = undistort(X, coef, c0)
+    else:
+        Xc = X
     Hs = homographies(T, Xc, normalize=normalize, labels=[f"image {i}" for i in ids])
     intr = intrinsics_from_homographies(Hs, skew=skew, aspect=aspect)
-    extent = float(np.nanmax(np.abs(X))) * 2 if np.any(np.isfinite(X)) else 1.0
+    extent = _extent(X)
     if not (intr.f_mm < 1e3 * extent and np.hypot(intr.cx_mm, intr.cy_mm) < 10 * extent):
         raise DegenerateViewsError(
             f"the views do not determine the intrinsics (closed form gives f = {intr.f_mm:.3g} mm, "
             f"C = ({intr.cx_mm:.3g}, {intr.cy_mm:.3g}) mm): tilt the template differently between views"
         )
     return InitialEstimate(k, n_lines, Hs, intr, *poses_from_homographies(Hs, intr))
+
+
+def _extent(X) -> float:
+    """Twice the largest |coordinate| of the finite points (1.0 when there is none), mm: a scale of the sensor."""
+    m = float(np.fmax.reduce(np.abs(X), axis=None)) if X.size else math.nan  # fmax skips NaN (missing points)
+    return 2.0 * m if math.isfinite(m) else 1.0
 
 
 def _straightness_lines(T) -> list:
@@ -1045,7 +1061,7 @@ def linear_starts(T, X, *, preliminary=True, normalize=True, radial=2, skew=Fals
         starts.append((label, est_i.intrinsics, est_i.distortion(radial), est_i.rvecs, est_i.tvecs_mm))
     fs = focal_from_homographies(Hs_raw)
     fs = fs[np.isfinite(fs)]
-    extent = float(np.nanmax(np.abs(X))) * 2 if np.any(np.isfinite(X)) else 1.0
+    extent = _extent(X)
     fs = fs[fs < 1e3 * extent]
     zero = est.distortion(radial) if est is not None else Distortion()  # the preliminary k with its homographies
     fallback = []
