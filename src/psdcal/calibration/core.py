@@ -726,8 +726,8 @@ def _calibrate(template_mm, points_mm, *, cost, radial, tangential, psd_radial, 
             dist0 = Distortion.from_array(ri.coeffs)
             rv0, tv0 = ri.rvecs, ri.tvecs
     ref = final_done if final_done is not None and spec.psd_radial == 0 else refine(prob, intr0, dist0, g0, rv0, tv0, solver)
-    result = _make_result(prob, ref, start, ids, pids, spec, cost, g0, preliminary, normalize, solver)
-    result = replace(result, stages={**result.stages, "multistart": start_record})
+    result = _make_result(prob, ref, start, ids, pids, spec, cost, g0, preliminary, normalize, solver,
+                          extra_stages={"multistart": start_record})
     if f_guess_mm is not None:
         result = replace(result, problem={**result.problem, "options": {**result.problem["options"], "f_guess_mm": float(f_guess_mm)}})
     if known_gains is not None:
@@ -1098,8 +1098,9 @@ def implausible(result: CalibrationResult) -> str:
     meaningless stationary point, whatever its convergence test said.
     """
     intr = result.intrinsics
-    values = [intr.f_mm, intr.fy, intr.cx_mm, intr.cy_mm, intr.skew, *result.distortion.as_array()]
-    if not np.all(np.isfinite(values)):
+    dist = result.distortion
+    values = (intr.f_mm, intr.fy, intr.cx_mm, intr.cy_mm, intr.skew, *(getattr(dist, n) for n in DISTORTION_NAMES))
+    if not all(math.isfinite(v) for v in values):
         return "non-finite parameters"
     if not (intr.f_mm > 0 and intr.fy > 0):
         return f"focal length {intr.f_mm:.3g} mm"
@@ -1160,7 +1161,7 @@ def staged_start(spec: ModelSpec) -> ModelSpec | None:
     return core if extra else None
 
 
-def _make_result(prob, ref, start, ids, pids, spec, cost, g0, preliminary, normalize, solver):
+def _make_result(prob, ref, start, ids, pids, spec, cost, g0, preliminary, normalize, solver, extra_stages=None):
     X = prob.points_mm
     intr = ref.intrinsics
     dist = Distortion.from_array(ref.coeffs)
@@ -1198,6 +1199,7 @@ def _make_result(prob, ref, start, ids, pids, spec, cost, g0, preliminary, norma
         "preliminary": {"k1": float(start.preliminary_k[0]), "k2": float(start.preliminary_k[1]), "line_groups": start.n_lines, "applied": bool(preliminary and start.n_lines > 0)},
         "closed_form": {**start.intrinsics.to_dict(), "normalized": bool(normalize)},
         "initial_extrinsics": [{"image_id": _plain(i), "rvec": r.tolist(), "tvec_mm": t.tolist()} for i, r, t in zip(ids, start.rvecs, start.tvecs_mm)],
+        **(extra_stages or {}),
     }
     pids = _plain_ids(pids)
     # the inputs are kept as (read-only) arrays; to_dict() writes them as lists, NaN as null
