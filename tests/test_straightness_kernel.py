@@ -264,3 +264,22 @@ def test_damped_cholesky_solve_equals_numpy(rng):
         with pytest.raises(np.linalg.LinAlgError):
             np.linalg.cholesky(A + np.diag(np.full(n, 1e-3)))
         assert not _damped_solve(A, np.full(n, 1e-3), np.ones(n), np.empty(n))
+
+
+def test_line_normals_of_axis_aligned_and_diagonal_lines():
+    # the kernel's half-angle normals against numpy's atan2 / sin / cos where the angle formula has its
+    # special cases: vertical (b = 0, a < c), horizontal (b = 0, a > c), +-45 degrees (a = c), steep and flat
+    t = np.array([-2.0, -0.5, 1.0, 3.0])
+    dirs = [(0.0, 1.0), (1.0, 0.0), (1.0, 1.0), (1.0, -1.0), (-1.0, 1.0), (1e-9, 1.0), (1.0, 1e-9), (0.3, -2.0), (-2.0, 0.3)]
+    noise = np.array([0.0, 1e-3, -2e-3, 1e-3])
+    d_mm = np.concatenate([np.outer(t, u) + np.outer(noise, (-u[1], u[0])) + [0.5 * j, -0.25 * j] for j, u in enumerate(dirs)])
+    group = np.repeat(np.arange(len(dirs)), t.size)
+    z_scale = np.array([10.0, 100.0])
+    for k in (np.zeros(2), np.array([1e-3, -2e-5])):
+        coef = np.zeros(7)
+        coef[:2] = k
+        x, _, _, du = undistort(d_mm, coef, np.zeros(2), jacobians=True)
+        res_ref, jac_ref = _line_residuals(x, group, len(dirs), du[:, :, :2] / z_scale)
+        res, jac = _radial_line_residuals_jit(d_mm, group, len(dirs), k, np.zeros(2), z_scale, True)
+        np.testing.assert_allclose(res, res_ref, rtol=1e-12, atol=1e-15)
+        np.testing.assert_allclose(jac, jac_ref, rtol=1e-12, atol=1e-15 * np.abs(jac_ref).max())

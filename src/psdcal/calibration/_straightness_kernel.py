@@ -20,7 +20,9 @@ loops for numba (:mod:`psdcal._jit`), so that a whole estimate is one call:
 Results equal the reference's to round-off: the sums run in point order as
 ``np.bincount`` adds them; the products ``J^T J``, ``J^T r``, ``r . r``
 (BLAS there) and the small Cholesky solve differ in the last bits only, and
-so do ``atan2``, ``sin``, ``cos`` (the C library's here, numpy's own there).
+so does each line's normal (``(-sin t, cos t)``, ``t = atan2(2b, a - c) / 2``
+there, the same vector from half-angle formulas here, which spares three
+transcendental functions per line and evaluation).
 """
 from __future__ import annotations
 
@@ -157,6 +159,10 @@ def line_residuals(d_mm, e_mm, r2_mm2, start, k, q_mm, abc, nrm, spread, res):
     q_mm : (N, 2) out: undistorted points minus their group's centroid, mm
     abc : (3, n_groups) out: each group's scatter ``[[a, b], [b, c]]`` as rows a, b, c, mm^2
     nrm : (2, n_groups) out: each line's unit normal ``(-sin t, cos t)``, ``t = atan2(2b, a - c) / 2``
+        (the major axis of the scatter), from ``cos 2t = (a - c) / (2 rad)``, ``sin 2t = b / rad``,
+        ``rad = sqrt(((a - c) / 2)^2 + b^2)``: ``cos t = sqrt((1 + cos 2t) / 2)``, ``sin t = sin 2t / (2 cos t)``
+        when ``a >= c``, else ``sin t = sign(b) sqrt((1 - cos 2t) / 2)``, ``cos t = sin 2t / (2 sin t)``
+        (no cancellation either way; ``atan2`` itself when ``rad`` is 0 or not finite)
     spread : (n_groups,) out: RMS spread along the line, mm
     res : (N,) out: residuals (dimensionless)
     """
@@ -170,9 +176,9 @@ def line_residuals(d_mm, e_mm, r2_mm2, start, k, q_mm, abc, nrm, spread, res):
         sy = 0.0
         for i in range(s, t):
             r2 = r2_mm2[i]
-            rad = r2 * (k1 + r2 * (k2 + r2 * k3))
-            x = d_mm[i, 0] + e_mm[i, 0] * rad
-            y = d_mm[i, 1] + e_mm[i, 1] * rad
+            fac = r2 * (k1 + r2 * (k2 + r2 * k3))
+            x = d_mm[i, 0] + e_mm[i, 0] * fac
+            y = d_mm[i, 1] + e_mm[i, 1] * fac
             q_mm[i, 0] = x
             q_mm[i, 1] = y
             sx += x
@@ -194,13 +200,24 @@ def line_residuals(d_mm, e_mm, r2_mm2, start, k, q_mm, abc, nrm, spread, res):
         abc[0, g] = a
         abc[1, g] = b
         abc[2, g] = c
-        theta = 0.5 * math.atan2(2.0 * b, a - c)
-        nx = -math.sin(theta)
-        ny = math.cos(theta)
+        h = 0.5 * (a - c)
+        rad = math.sqrt(h * h + b * b)
+        if rad > 0.0 and rad < math.inf:
+            # t = atan2(2b, a - c) / 2 by half angles: cos 2t = h / rad, sin 2t = b / rad
+            if h >= 0.0:
+                ny = math.sqrt((rad + h) / (2.0 * rad))
+                nx = -b / (2.0 * rad * ny)
+            else:
+                st = math.copysign(math.sqrt((rad - h) / (2.0 * rad)), b)
+                nx = -st
+                ny = b / (2.0 * rad * st)
+        else:
+            theta = 0.5 * math.atan2(2.0 * b, a - c)
+            nx = -math.sin(theta)
+            ny = math.cos(theta)
         nrm[0, g] = nx
         nrm[1, g] = ny
-        h = 0.5 * (a - c)
-        lmax = 0.5 * (a + c) + math.sqrt(h * h + b * b)
+        lmax = 0.5 * (a + c) + rad
         sp = math.sqrt(lmax / n)
         spread[g] = sp
         wx = nx / sp
