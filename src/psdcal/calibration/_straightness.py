@@ -11,6 +11,7 @@ trivial "shrink everything" solution).
 from __future__ import annotations
 
 import functools
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -178,6 +179,14 @@ def _radial_line_residuals_jit(d_mm, group, n_groups, k, c_mm, z_scale, want_jac
     )
 
 
+@functools.cache
+def _kernel():
+    """:mod:`psdcal.calibration._straightness_kernel`, imported at the first compiled solve (it imports numba)."""
+    from psdcal.calibration import _straightness_kernel
+
+    return _straightness_kernel
+
+
 #: the straightness step's solver settings (a starting value: 1e-9 relative is far below what the
 #: refinement needs; noiseless data still converge to round-off, the residual reaching 0)
 _SOLVER = dict(ftol=1e-9, xtol=1e-9, gtol=1e-10, max_iterations=50)
@@ -207,20 +216,22 @@ def estimate_radial(points_mm, lines, *, c_mm=(0.0, 0.0), n_terms: int = 2) -> S
     """
     pts = np.asarray(points_mm, dtype=float)
     c = np.asarray(c_mm, dtype=float)
-    if lines and n_terms >= 1 and n_terms <= 3 and pts.ndim == 3 and pts.shape[2] == 2 and c.size == 2:
+    if (
+        lines and type(n_terms) in (int, np.int64) and 1 <= n_terms <= 3
+        and pts.ndim == 3 and pts.shape[2] == 2 and c.size == 2
+    ):
         members = np.concatenate(lines)
         if members.dtype.kind in "iu" and _jit.use_compiled(pts.shape[0] * members.size):
-            from psdcal.calibration._straightness_kernel import BAD_INDEX, solve_radial
-
-            k, cost, status, _, n_groups, n_points, _, _ = solve_radial(
+            kernel = _kernel()
+            k, cost, status, _, n_groups, n_points, _, _ = kernel.solve_radial(
                 np.ascontiguousarray(pts), members.astype(np.int64, copy=False),
-                np.array([len(ln) for ln in lines], dtype=np.int64), np.ascontiguousarray(c.reshape(2)),
-                int(n_terms), _SOLVER["ftol"], _SOLVER["xtol"], _SOLVER["gtol"], _SOLVER["max_iterations"],
+                np.fromiter(map(len, lines), dtype=np.int64, count=len(lines)), np.ascontiguousarray(c.reshape(2)),
+                n_terms, _SOLVER["ftol"], _SOLVER["xtol"], _SOLVER["gtol"], _SOLVER["max_iterations"],
             )
-            if status != BAD_INDEX:  # (a bad index: numpy's IndexError below)
+            if status != kernel.BAD_INDEX:  # (a bad index: numpy's IndexError below)
                 if n_groups == 0:
                     return StraightnessResult(np.zeros(n_terms), c, 0, float("nan"), False)
-                return StraightnessResult(k, c, n_groups, float(np.sqrt(2 * cost / max(n_points, 1))), bool(status > 0))
+                return StraightnessResult(k, c, n_groups, math.sqrt(2 * cost / max(n_points, 1)), status > 0)
     return _estimate_radial_reference(pts, lines, c, n_terms)
 
 
