@@ -284,3 +284,33 @@ def test_line_normals_of_axis_aligned_and_diagonal_lines():
         res, jac = _radial_line_residuals_jit(d_mm, group, len(dirs), k, np.zeros(2), z_scale, True)
         np.testing.assert_allclose(res, res_ref, rtol=1e-12, atol=1e-15)
         np.testing.assert_allclose(jac, jac_ref, rtol=1e-12, atol=1e-15 * np.abs(jac_ref).max())
+
+
+@compiled_only
+def test_auto_mode_decides_on_the_grouped_points(monkeypatch):
+    # psdcal._jit's "auto" mode (kernels not loaded) compiles from 3000 observations: those the
+    # straightness cost uses, i.e. the points of (view, line) pairs with >= 3 valid ones
+    import sys
+
+    from psdcal.calibration import _straightness
+
+    monkeypatch.setattr(psdcal._jit, "_MODE", "auto")
+    monkeypatch.delitem(sys.modules, "psdcal.calibration._image_kernel", raising=False)
+    assert not psdcal._jit.use_compiled(0)
+    s = simulate_set("lens2", n_images=80, noise_mm=0.001, seed=2)
+    lines = find_lines(s.template_mm)
+    members = np.concatenate(lines)
+    lengths = np.array([len(ln) for ln in lines] + [0])  # an empty line counts for nothing
+    rng = np.random.default_rng(5)
+    seen = set()
+    for fraction in (0.0, 0.1, 0.3, 1.0):
+        pts = s.points_mm.copy()
+        pts[rng.random(pts.shape[:2]) < fraction] = np.nan
+        n = sum(
+            len(p) for view in pts for ln in lines
+            for p in [view[ln][np.isfinite(view[ln]).all(axis=1)]] if len(p) >= 3
+        )
+        assert _straightness._compiled_for(pts, members, lengths) == (n >= psdcal._jit.AUTO_MIN_OBSERVATIONS)
+        seen.add(n >= psdcal._jit.AUTO_MIN_OBSERVATIONS)
+    assert seen == {True, False}
+    assert pts.shape[0] * members.size >= psdcal._jit.AUTO_MIN_OBSERVATIONS  # the bound alone would compile

@@ -179,6 +179,23 @@ def _radial_line_residuals_jit(d_mm, group, n_groups, k, c_mm, z_scale, want_jac
     )
 
 
+def _compiled_for(pts, members, lengths) -> bool:
+    """``psdcal._jit.use_compiled`` of the number of grouped points (counted only where it decides)."""
+    if not _jit.use_compiled(pts.shape[0] * members.size):  # an upper bound
+        return False
+    if _jit.use_compiled(0):
+        return True
+    # "auto" mode, kernels not loaded: the points of the (view, line) pairs with >= 3 valid ones
+    try:
+        ok = np.all(np.isfinite(pts[:, members]), axis=-1)
+    except IndexError:
+        return False  # (numpy's error, from the reference)
+    ends = np.cumsum(lengths)
+    csum = np.concatenate([np.zeros((ok.shape[0], 1), dtype=np.int64), np.cumsum(ok, axis=1)], axis=1)
+    counts = csum[:, ends] - csum[:, ends - lengths]  # valid points of each (view, line)
+    return _jit.use_compiled(int(counts[counts >= 3].sum()))
+
+
 @functools.cache
 def _kernel():
     """:mod:`psdcal.calibration._straightness_kernel`, imported at the first compiled solve (it imports numba)."""
@@ -221,11 +238,12 @@ def estimate_radial(points_mm, lines, *, c_mm=(0.0, 0.0), n_terms: int = 2) -> S
         and pts.ndim == 3 and pts.shape[2] == 2 and c.size == 2
     ):
         members = np.concatenate(lines)
-        if members.dtype.kind in "iu" and _jit.use_compiled(pts.shape[0] * members.size):
+        lengths = np.fromiter(map(len, lines), dtype=np.int64, count=len(lines))
+        if members.dtype.kind in "iu" and _compiled_for(pts, members, lengths):
             kernel = _kernel()
             k, cost, status, _, n_groups, n_points, _, _ = kernel.solve_radial(
                 np.ascontiguousarray(pts), members.astype(np.int64, copy=False),
-                np.fromiter(map(len, lines), dtype=np.int64, count=len(lines)), np.ascontiguousarray(c.reshape(2)),
+                lengths, np.ascontiguousarray(c.reshape(2)),
                 n_terms, _SOLVER["ftol"], _SOLVER["xtol"], _SOLVER["gtol"], _SOLVER["max_iterations"],
             )
             if status != kernel.BAD_INDEX:  # (a bad index: numpy's IndexError below)
