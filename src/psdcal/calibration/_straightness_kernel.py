@@ -170,7 +170,9 @@ def line_residuals(d_mm, e_mm, r2_mm2, start, k, q_mm, abc, nrm, spread, res):
     k1 = k[0] if nk > 0 else 0.0
     k2 = k[1] if nk > 1 else 0.0
     k3 = k[2] if nk > 2 else 0.0
-    for g in range(start.shape[0] - 1):
+    n_groups = start.shape[0] - 1
+    # one pass over the groups per stage: the groups' short dependency chains then overlap
+    for g in range(n_groups):  # undistorted points and their centroid (in nrm until the normals)
         s, t = start[g], start[g + 1]
         sx = 0.0
         sy = 0.0
@@ -184,8 +186,12 @@ def line_residuals(d_mm, e_mm, r2_mm2, start, k, q_mm, abc, nrm, spread, res):
             sx += x
             sy += y
         n = float(t - s)
-        mx = sx / n
-        my = sy / n
+        nrm[0, g] = sx / n
+        nrm[1, g] = sy / n
+    for g in range(n_groups):  # centred points and scatter
+        s, t = start[g], start[g + 1]
+        mx = nrm[0, g]
+        my = nrm[1, g]
         a = 0.0
         b = 0.0
         c = 0.0
@@ -200,6 +206,8 @@ def line_residuals(d_mm, e_mm, r2_mm2, start, k, q_mm, abc, nrm, spread, res):
         abc[0, g] = a
         abc[1, g] = b
         abc[2, g] = c
+    for g in range(n_groups):  # line normal and spread
+        a, b, c = abc[0, g], abc[1, g], abc[2, g]
         h = 0.5 * (a - c)
         rad = math.sqrt(h * h + b * b)
         if rad > 0.0 and rad < math.inf:
@@ -218,11 +226,11 @@ def line_residuals(d_mm, e_mm, r2_mm2, start, k, q_mm, abc, nrm, spread, res):
         nrm[0, g] = nx
         nrm[1, g] = ny
         lmax = 0.5 * (a + c) + rad
-        sp = math.sqrt(lmax / n)
-        spread[g] = sp
-        wx = nx / sp
-        wy = ny / sp
-        for i in range(s, t):
+        spread[g] = math.sqrt(lmax / float(start[g + 1] - start[g]))
+    for g in range(n_groups):  # residuals
+        wx = nrm[0, g] / spread[g]
+        wy = nrm[1, g] / spread[g]
+        for i in range(start[g], start[g + 1]):
             res[i] = q_mm[i, 0] * wx + q_mm[i, 1] * wy
 
 
