@@ -17,7 +17,6 @@ from dataclasses import dataclass
 import numpy as np
 
 from psdcal import _jit
-from psdcal._jit import lazy_njit
 from psdcal.model.distortion import undistort
 
 
@@ -164,204 +163,50 @@ def _line_residuals(pts, group, n_groups, dpts=None):
     return res, jac
 
 
-@lazy_njit
-def _radial_scatter_kernel(d_mm, group, n_groups, k, c_mm):
-    """Undistort by radial terms and form each group's centred points and scatter (compiled).
-
-    The undistortion is Eq 11-16 with only ``k1..k_n`` (n = ``k.size`` <= 3)
-    non-zero: ``x = d + e (k1 r^2 + k2 r^4 + k3 r^6)``, ``e = d - c``.
-    The sums run in point order, as ``np.bincount`` adds them in
-    :func:`_line_residuals`, so the results equal the numpy reference's.
-
-    Parameters
-    ----------
-    d_mm : (N, 2) float64, measured points, mm
-    group : (N,) int64 in [0, n_groups)
-    n_groups : int
-    k : (n,) float64, radial coefficients k1 [mm^-2], k2 [mm^-4], k3 [mm^-6]
-    c_mm : (2,) float64, centre of distortion, mm
-
-    Returns
-    -------
-    q_mm : (N, 2), undistorted points minus their group's centroid, mm
-    cnt : (n_groups,) float64, points per group
-    abc_mm2 : (3, n_groups), the scatter ``[[a, b], [b, c]]`` of each group as rows a, b, c, mm^2
-    """
-    N = d_mm.shape[0]
-    nk = k.shape[0]
-    k1 = k[0] if nk > 0 else 0.0
-    k2 = k[1] if nk > 1 else 0.0
-    k3 = k[2] if nk > 2 else 0.0
-    x = np.empty((N, 2))
-    cnt = np.zeros(n_groups)
-    mean = np.zeros((n_groups, 2))
-    for i in range(N):
-        ex = d_mm[i, 0] - c_mm[0]
-        ey = d_mm[i, 1] - c_mm[1]
-        r2 = ex * ex + ey * ey
-        rad = r2 * (k1 + r2 * (k2 + r2 * k3))
-        x[i, 0] = d_mm[i, 0] + ex * rad
-        x[i, 1] = d_mm[i, 1] + ey * rad
-        g = group[i]
-        cnt[g] += 1.0
-        mean[g, 0] += x[i, 0]
-        mean[g, 1] += x[i, 1]
-    for g in range(n_groups):
-        mean[g, 0] = mean[g, 0] / cnt[g]
-        mean[g, 1] = mean[g, 1] / cnt[g]
-    q = np.empty((N, 2))
-    abc = np.zeros((3, n_groups))
-    for i in range(N):
-        g = group[i]
-        qx = x[i, 0] - mean[g, 0]
-        qy = x[i, 1] - mean[g, 1]
-        q[i, 0] = qx
-        q[i, 1] = qy
-        abc[0, g] += qx * qx
-        abc[1, g] += qx * qy
-        abc[2, g] += qy * qy
-    return q, cnt, abc
-
-
-@lazy_njit
-def _radial_line_residuals_kernel(d_mm, q_mm, group, cnt, abc, nx, ny, c_mm, z_scale, want_jac):
-    """Compiled :func:`_line_residuals` (and its Jacobian) from :func:`_radial_scatter_kernel`'s output.
-
-    ``(nx, ny)`` is each line's unit normal ``(-sin t, cos t)``,
-    ``t = atan2(2b, a - c) / 2``, computed by the caller with numpy (whose
-    ``arctan2`` need not agree to the last bit with the C library's; using
-    the same one keeps the result equal to the reference's). The
-    derivatives of the undistorted points by ``k_j`` are ``e r^(2j)``;
-    divided by ``z_scale[j]`` (the solver's unknown is ``z_j = k_j z_scale[j]``)
-    they are the ``dpts`` of :func:`_line_residuals`.
-
-    Parameters
-    ----------
-    d_mm : (N, 2) float64, measured points, mm
-    q_mm, group, cnt, abc : as :func:`_radial_scatter_kernel` gives them
-    nx, ny : (n_groups,) float64, line normals
-    c_mm : (2,) float64, centre of distortion, mm
-    z_scale : (n,) float64, scale of the unknowns (mm^2, mm^4, mm^6)
-    want_jac : bool
-
-    Returns
-    -------
-    res : (N,) residuals (dimensionless); jac : (N, n), or (0, n) without ``want_jac``
-    """
-    N = d_mm.shape[0]
-    n_groups = cnt.shape[0]
-    nk = z_scale.shape[0]
-    # spread of each group along its line, sqrt(lmax / cnt), and the residual weights n / spread
-    radg = np.empty(n_groups)
-    lmax = np.empty(n_groups)
-    spread = np.empty(n_groups)
-    wx = np.empty(n_groups)
-    wy = np.empty(n_groups)
-    for g in range(n_groups):
-        h = 0.5 * (abc[0, g] - abc[2, g])
-        radg[g] = math.sqrt(h * h + abc[1, g] * abc[1, g])
-        lmax[g] = 0.5 * (abc[0, g] + abc[2, g]) + radg[g]
-        spread[g] = math.sqrt(lmax[g] / cnt[g])
-        wx[g] = nx[g] / spread[g]
-        wy[g] = ny[g] / spread[g]
-    res = np.empty(N)
-    for i in range(N):
-        g = group[i]
-        res[i] = q_mm[i, 0] * wx[g] + q_mm[i, 1] * wy[g]
-    if not want_jac:
-        return res, np.empty((0, nk))
-    # derivatives of the undistorted points by the unknowns
-    dx = np.empty((N, nk))
-    dy = np.empty((N, nk))
-    for i in range(N):
-        ex = d_mm[i, 0] - c_mm[0]
-        ey = d_mm[i, 1] - c_mm[1]
-        r2 = ex * ex + ey * ey
-        rp = r2
-        for j in range(nk):
-            dx[i, j] = ex * rp / z_scale[j]
-            dy[i, j] = ey * rp / z_scale[j]
-            rp = rp * r2
-    jac = np.empty((N, nk))
-    mdx = np.empty(n_groups)
-    mdy = np.empty(n_groups)
-    da = np.empty(n_groups)
-    db = np.empty(n_groups)
-    dc = np.empty(n_groups)
-    dnx = np.empty(n_groups)
-    dny = np.empty(n_groups)
-    dlog_spread = np.empty(n_groups)
-    ddx = np.empty(N)
-    ddy = np.empty(N)
-    for j in range(nk):
-        mdx[:] = 0.0
-        mdy[:] = 0.0
-        da[:] = 0.0
-        db[:] = 0.0
-        dc[:] = 0.0
-        for i in range(N):
-            g = group[i]
-            mdx[g] += dx[i, j]
-            mdy[g] += dy[i, j]
-        for g in range(n_groups):
-            mdx[g] = mdx[g] / cnt[g]
-            mdy[g] = mdy[g] / cnt[g]
-        # derivatives of the centred points and of the scatter (da, db, dc: halves of d(a), d(c))
-        for i in range(N):
-            g = group[i]
-            qx = q_mm[i, 0]
-            qy = q_mm[i, 1]
-            ddx[i] = dx[i, j] - mdx[g]
-            ddy[i] = dy[i, j] - mdy[g]
-            da[g] += qx * ddx[i]
-            dc[g] += qy * ddy[i]
-            db[g] += qx * ddy[i] + qy * ddx[i]
-        for g in range(n_groups):
-            a, b, c = abc[0, g], abc[1, g], abc[2, g]
-            den = (a - c) * (a - c) + 4.0 * b * b
-            if not den > 0.0:
-                den = 1.0
-            rad_safe = radg[g] if radg[g] > 0.0 else 1.0
-            dag = 2.0 * da[g]
-            dcg = 2.0 * dc[g]
-            # rotation of the line and change of its spread
-            dtheta = ((a - c) * db[g] - b * (dag - dcg)) / den
-            dlmax = 0.5 * (dag + dcg) + (0.25 * (a - c) * (dag - dcg) + b * db[g]) / rad_safe
-            dlog_spread[g] = 0.5 * dlmax / lmax[g]
-            # n = (-sin t, cos t): dn = (-ny, nx) dt
-            dnx[g] = -ny[g] * dtheta
-            dny[g] = nx[g] * dtheta
-        for i in range(N):
-            g = group[i]
-            jac[i, j] = (
-                ddx[i] * wx[g]
-                + ddy[i] * wy[g]
-                + (q_mm[i, 0] * dnx[g] + q_mm[i, 1] * dny[g]) / spread[g]
-                - res[i] * dlog_spread[g]
-            )
-    return res, jac
-
-
-def _radial_line_state(d_mm, group, n_groups, k, c_mm):
-    """Centred undistorted points, group sizes, scatters and line normals at ``k`` (compiled + numpy).
-
-    Returns the arguments ``q_mm, cnt, abc, nx, ny`` of
-    :func:`_radial_line_residuals_kernel`; the normal's angle is numpy's
-    (as in :func:`_line_residuals`).
-    """
-    q, cnt, abc = _radial_scatter_kernel(d_mm, group, n_groups, k, c_mm)
-    theta = 0.5 * np.arctan2(2 * abc[1], abc[0] - abc[2])
-    return q, cnt, abc, -np.sin(theta), np.cos(theta)
-
-
 def _radial_line_residuals_jit(d_mm, group, n_groups, k, c_mm, z_scale, want_jac):
     """Residuals (N,) and, with ``want_jac``, Jacobian (N, n) of the straightness cost, compiled.
 
     Equal to :func:`_line_residuals` of ``undistort(d_mm, k, c_mm)`` with
-    ``dpts`` the derivatives by ``k / z_scale``'s unknowns.
+    ``dpts`` the derivatives by the unknowns ``z_j = k_j z_scale[j]``
+    (:func:`psdcal.calibration._straightness_kernel.radial_residuals`).
     """
-    q, cnt, abc, nx, ny = _radial_line_state(d_mm, group, n_groups, k, c_mm)
-    return _radial_line_residuals_kernel(d_mm, q, group, cnt, abc, nx, ny, c_mm, z_scale, want_jac)
+    from psdcal.calibration._straightness_kernel import radial_residuals
+
+    return radial_residuals(
+        np.ascontiguousarray(d_mm, dtype=float), np.ascontiguousarray(group, dtype=np.int64), int(n_groups),
+        np.ascontiguousarray(k, dtype=float), np.ascontiguousarray(c_mm, dtype=float),
+        np.ascontiguousarray(z_scale, dtype=float), bool(want_jac),
+    )
+
+
+def _compiled_for(pts, members, lengths) -> bool:
+    """``psdcal._jit.use_compiled`` of the number of grouped points (counted only where it decides)."""
+    if not _jit.use_compiled(pts.shape[0] * members.size):  # an upper bound
+        return False
+    if _jit.use_compiled(0):
+        return True
+    # "auto" mode, kernels not loaded: the points of the (view, line) pairs with >= 3 valid ones
+    try:
+        ok = np.all(np.isfinite(pts[:, members]), axis=-1)
+    except IndexError:
+        return False  # (numpy's error, from the reference)
+    ends = np.cumsum(lengths)
+    csum = np.concatenate([np.zeros((ok.shape[0], 1), dtype=np.int64), np.cumsum(ok, axis=1)], axis=1)
+    counts = csum[:, ends] - csum[:, ends - lengths]  # valid points of each (view, line)
+    return _jit.use_compiled(int(counts[counts >= 3].sum()))
+
+
+@functools.cache
+def _kernel():
+    """:mod:`psdcal.calibration._straightness_kernel`, imported at the first compiled solve (it imports numba)."""
+    from psdcal.calibration import _straightness_kernel
+
+    return _straightness_kernel
+
+
+#: the straightness step's solver settings (a starting value: 1e-9 relative is far below what the
+#: refinement needs; noiseless data still converge to round-off, the residual reaching 0)
+_SOLVER = dict(ftol=1e-9, xtol=1e-9, gtol=1e-10, max_iterations=50)
 
 
 def estimate_radial(points_mm, lines, *, c_mm=(0.0, 0.0), n_terms: int = 2) -> StraightnessResult:
@@ -379,12 +224,37 @@ def estimate_radial(points_mm, lines, *, c_mm=(0.0, 0.0), n_terms: int = 2) -> S
     -------
     StraightnessResult (k has ``n_terms`` entries; zeros when there is no line).
 
-    With :func:`psdcal._jit.enabled`, the cost and its Jacobian come from
-    compiled kernels that reproduce :func:`_line_residuals` of
-    :func:`~psdcal.model.distortion.undistort` (the reference, used otherwise).
+    With :func:`psdcal._jit.use_compiled`, the whole estimate (grouping, cost,
+    Jacobian, solver) is one compiled call,
+    :func:`psdcal.calibration._straightness_kernel.solve_radial`; the numpy
+    reference (:func:`_line_residuals` of
+    :func:`~psdcal.model.distortion.undistort`, minimised by
+    :func:`psdcal.calibration._refine.levenberg_marquardt`) runs otherwise.
     """
     pts = np.asarray(points_mm, dtype=float)
     c = np.asarray(c_mm, dtype=float)
+    if (
+        lines and type(n_terms) in (int, np.int64) and 1 <= n_terms <= 3
+        and pts.ndim == 3 and pts.shape[2] == 2 and c.size == 2
+    ):
+        members = np.concatenate(lines)
+        lengths = np.fromiter(map(len, lines), dtype=np.int64, count=len(lines))
+        if members.dtype.kind in "iu" and _compiled_for(pts, members, lengths):
+            kernel = _kernel()
+            k, cost, status, _, n_groups, n_points, _, _ = kernel.solve_radial(
+                np.ascontiguousarray(pts), members.astype(np.int64, copy=False),
+                lengths, np.ascontiguousarray(c.reshape(2)),
+                n_terms, _SOLVER["ftol"], _SOLVER["xtol"], _SOLVER["gtol"], _SOLVER["max_iterations"],
+            )
+            if status != kernel.BAD_INDEX:  # (a bad index: numpy's IndexError below)
+                if n_groups == 0:
+                    return StraightnessResult(np.zeros(n_terms), c, 0, float("nan"), False)
+                return StraightnessResult(k, c, n_groups, math.sqrt(2 * cost / max(n_points, 1)), status > 0)
+    return _estimate_radial_reference(pts, lines, c, n_terms)
+
+
+def _estimate_radial_reference(pts, lines, c, n_terms) -> StraightnessResult:
+    """:func:`estimate_radial` in numpy (the reference of the compiled solve), ``pts`` and ``c`` float arrays."""
     n_groups = 0
     if lines and n_terms >= 1:
         # every (image, line) pair is a group of its valid points; keep those with >= 3
@@ -404,51 +274,19 @@ def estimate_radial(points_mm, lines, *, c_mm=(0.0, 0.0), n_terms: int = 2) -> S
     # unknowns scaled so that k_i * rmax^(2i) is O(1)
     scale = np.array([rmax2 ** (i + 1) for i in range(n_terms)])
 
-    if _jit.use_compiled(flat.shape[0]) and n_terms <= 3:
-        # the compiled kernel: same residuals and Jacobian as the numpy reference below
-        d_c = np.ascontiguousarray(flat)
-        g_c = np.ascontiguousarray(group, dtype=np.int64)
-        c_c = np.ascontiguousarray(np.broadcast_to(c, (2,)), dtype=float)
-        last = {}  # the solver asks for the Jacobian where it has just evaluated the residuals
+    def fun(z):
+        coef = np.zeros(7)
+        coef[:n_terms] = z / scale
+        return _line_residuals(undistort(flat, coef, c), group, n_groups)
 
-        def state(z):
-            key = z.tobytes()
-            if last.get("key") != key:
-                last["key"], last["state"] = key, _radial_line_state(d_c, g_c, n_groups, z / scale, c_c)
-            return last["state"]
-
-        def fun(z):
-            # the Jacobian comes with the residuals (one pass): LM asks for it at the accepted points,
-            # which are most of the points it evaluates
-            q, cnt, abc, nx, ny = state(z)
-            res, jz = _radial_line_residuals_kernel(d_c, q, g_c, cnt, abc, nx, ny, c_c, scale, True)
-            last["jac"] = (z.tobytes(), jz)
-            return res
-
-        def jac(z):
-            hit = last.get("jac")
-            if hit is not None and hit[0] == z.tobytes():
-                return hit[1]
-            q, cnt, abc, nx, ny = state(z)
-            return _radial_line_residuals_kernel(d_c, q, g_c, cnt, abc, nx, ny, c_c, scale, True)[1]
-
-    else:
-
-        def fun(z):
-            coef = np.zeros(7)
-            coef[:n_terms] = z / scale
-            return _line_residuals(undistort(flat, coef, c), group, n_groups)
-
-        def jac(z):
-            coef = np.zeros(7)
-            coef[:n_terms] = z / scale
-            u, _, _, du_dk = undistort(flat, coef, c, jacobians=True)
-            return _line_residuals(u, group, n_groups, du_dk[:, :, :n_terms] / scale)[1]
+    def jac(z):
+        coef = np.zeros(7)
+        coef[:n_terms] = z / scale
+        u, _, _, du_dk = undistort(flat, coef, c, jacobians=True)
+        return _line_residuals(u, group, n_groups, du_dk[:, :, :n_terms] / scale)[1]
 
     from psdcal.calibration._refine import SolverOptions, levenberg_marquardt
 
-    # A starting value: 1e-9 relative is far below what the refinement needs
-    # (noiseless data still converge to round-off, the residual reaching 0).
-    sol = levenberg_marquardt(fun, jac, np.zeros(n_terms), SolverOptions(ftol=1e-9, xtol=1e-9, gtol=1e-10, max_iterations=50))
+    sol = levenberg_marquardt(fun, jac, np.zeros(n_terms), SolverOptions(**_SOLVER))
     k = sol.x / scale
     return StraightnessResult(k, c, n_groups, float(np.sqrt(2 * sol.cost / max(len(flat), 1))), bool(sol.status > 0))
