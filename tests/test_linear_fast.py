@@ -31,6 +31,8 @@ def numpy_only(monkeypatch):
     """A context in which the compiled kernels are switched off (the numpy reference runs)."""
 
     def use():
+        # what the dispatch reads (use_compiled checks AVAILABLE; enabled() reports it)
+        monkeypatch.setattr(psdcal._jit, "AVAILABLE", False)
         monkeypatch.setattr(psdcal._jit, "enabled", lambda: False)
 
     return use

@@ -229,6 +229,41 @@ def test_coincident_points_end_without_a_step():
     st = estimate_radial(pts, [np.array([0, 1, 2]), np.array([3, 4, 5])])
     assert st.n_lines == 2 and np.isnan(st.rms_rel)
     np.testing.assert_array_equal(st.k, np.zeros(2))
+    assert not st.success  # a NaN cost is no solution (it used to say success)
+
+
+def test_coincident_points_fail_the_same_on_the_numpy_path(monkeypatch):
+    import psdcal._jit
+
+    monkeypatch.setattr(psdcal._jit, "AVAILABLE", False)
+    pts = np.zeros((1, 6, 2))
+    pts[0, 3:] = [[0.0, 0.0], [1.0, 1.0], [2.0, 2.1]]
+    st = estimate_radial(pts, [np.array([0, 1, 2]), np.array([3, 4, 5])])
+    assert np.isnan(st.rms_rel) and not st.success
+
+
+def test_lm_ends_when_no_damping_makes_the_system_positive_definite():
+    from psdcal.calibration._refine import SolverOptions, levenberg_marquardt
+
+    # a NaN in the normal matrix: every damped solve fails; the loop must end (it used to spin forever
+    # with a LAPACK that rejects NaN pivots), with the damping-overflow status, not a solution
+    def normal(J, r):
+        A = np.array([[np.nan, 0.0], [0.0, 1.0]])
+        return A, np.array([1.0, 1.0])
+
+    class _NoSolve:  # as DenseNormal, with a Cholesky that rejects the NaN
+        def __init__(self, A, g):
+            self.A, self.g = A, g
+
+        def diagonal(self):
+            return np.array([1.0, 1.0])
+
+        def solve(self, damp):
+            return None
+
+    sol = levenberg_marquardt(lambda x: np.array([1.0, 2.0, 3.0]), lambda x: np.ones((3, 2)), np.zeros(2),
+                              SolverOptions(max_iterations=20), normal=lambda J, r: _NoSolve(*normal(J, r)))
+    assert sol.status == 2 and "overflow" in sol.message
 
 
 @pytest.mark.parametrize("n_terms", [1, 2, 3])

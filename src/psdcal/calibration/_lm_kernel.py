@@ -161,6 +161,9 @@ def lm_image(P, img, theta0, separate_fy, gmap, gain_basis, meas, z0, n_views, f
         if not ok:  # not positive definite at this damping
             mu *= nu
             nu *= 2.0
+            if not np.isfinite(mu) or mu > 1e200:  # (a system with NaN in it fails at every damping)
+                status = 5
+                break
             continue
         h = np.empty(x.size)
         for a in range(ng):

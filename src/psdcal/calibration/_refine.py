@@ -922,6 +922,9 @@ def levenberg_marquardt(fun, jac, x0, options: SolverOptions = SolverOptions(), 
         if h is None:  # not positive definite at this damping
             mu *= nu
             nu *= 2.0
+            if not np.isfinite(mu) or mu > 1e200:  # (a system with NaN in it fails at every damping)
+                status, message = 2, "no further progress possible (damping overflow)"
+                break
             continue
         h = -h
         if np.sqrt((sD * h) @ (sD * h)) <= options.xtol * (x_scale + options.xtol):

@@ -249,7 +249,8 @@ def estimate_radial(points_mm, lines, *, c_mm=(0.0, 0.0), n_terms: int = 2) -> S
             if status != kernel.BAD_INDEX:  # (a bad index: numpy's IndexError below)
                 if n_groups == 0:
                     return StraightnessResult(np.zeros(n_terms), c, 0, float("nan"), False)
-                return StraightnessResult(k, c, n_groups, math.sqrt(2 * cost / max(n_points, 1)), status > 0)
+                rms = math.sqrt(2 * cost / max(n_points, 1))
+                return StraightnessResult(k, c, n_groups, rms, bool(status > 0 and math.isfinite(rms) and np.all(np.isfinite(k))))
     return _estimate_radial_reference(pts, lines, c, n_terms)
 
 
@@ -289,4 +290,6 @@ def _estimate_radial_reference(pts, lines, c, n_terms) -> StraightnessResult:
 
     sol = levenberg_marquardt(fun, jac, np.zeros(n_terms), SolverOptions(**_SOLVER))
     k = sol.x / scale
-    return StraightnessResult(k, c, n_groups, float(np.sqrt(2 * sol.cost / max(len(flat), 1))), bool(sol.status > 0))
+    rms = float(np.sqrt(2 * sol.cost / max(len(flat), 1)))
+    # a non-finite cost is no solution, whatever the stopping test said
+    return StraightnessResult(k, c, n_groups, rms, bool(sol.status > 0 and np.isfinite(rms) and np.all(np.isfinite(k))))

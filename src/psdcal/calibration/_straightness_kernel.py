@@ -486,8 +486,9 @@ def solve_radial(pts_mm, members, line_len, c_mm, n_terms, ftol, xtol, gtol, max
         if not _damped_solve(A, damp, g, h):  # not positive definite at this damping
             mu *= nu
             nu *= 2.0
-            if math.isinf(nu):  # only a system with NaN fails this often (levenberg_marquardt would not end)
-                status = 0
+            if not math.isfinite(mu) or mu > 1e200:  # (a system with NaN in it fails at every damping)
+                status = 2
+                overflow = True
                 break
             continue
         s = 0.0
