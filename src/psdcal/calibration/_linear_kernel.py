@@ -519,7 +519,8 @@ def _nearest_rotation(Mx, W, V, R):
     ``Mx V = W`` with orthogonal columns (Jacobi, det V = +1); the columns of U
     are W's normalised, except the one of the smallest singular value, which
     is the cross product of the other two (so det U = +1, and U V^T is the
-    rotation nearest to Mx whatever the sign of det Mx).
+    rotation nearest to Mx whatever the sign of det Mx). False (R untouched) when Mx
+    has rank <= 1 (no unique nearest rotation).
     """
     for i in range(3):
         for j in range(3):
@@ -537,6 +538,8 @@ def _nearest_rotation(Mx, W, V, R):
     kb = (kmin + 2) % 3
     na = n0 if ka == 0 else (n1 if ka == 1 else n2)
     nb = n0 if kb == 0 else (n1 if kb == 1 else n2)
+    if not (na > 0 and nb > 0):
+        return False
     for i in range(3):
         W[i, ka] /= na
         W[i, kb] /= nb
@@ -547,6 +550,7 @@ def _nearest_rotation(Mx, W, V, R):
     for i in range(3):
         for j in range(3):
             R[i, j] = W[i, 0] * V[j, 0] + W[i, 1] * V[j, 1] + W[i, 2] * V[j, 2]
+    return True
 
 
 @njit
@@ -591,6 +595,8 @@ def poses_kernel(Hs, f, skew, cx, fy, cy):
             a[2, j] = h2
         norm1 = math.sqrt(a[0, 0] * a[0, 0] + a[1, 0] * a[1, 0] + a[2, 0] * a[2, 0])
         norm2 = math.sqrt(a[0, 1] * a[0, 1] + a[1, 1] * a[1, 1] + a[2, 1] * a[2, 1])
+        if not norm1 + norm2 > 0:  # a zero homography: the reference's SVD raises
+            return rv, tv, near_pi, False
         lam = 2.0 / (norm1 + norm2)
         if a[2, 2] * lam < 0:  # template in front: t_z > 0
             lam = -lam
@@ -605,7 +611,8 @@ def poses_kernel(Hs, f, skew, cx, fy, cy):
             for j in range(3):
                 if not math.isfinite(Mx[i, j]):  # a zero homography: the reference's SVD raises
                     return rv, tv, near_pi, False
-        _nearest_rotation(Mx, W, V, R)
+        if not _nearest_rotation(Mx, W, V, R):  # rank <= 1: no unique nearest rotation; the reference decides
+            return rv, tv, near_pi, False
         r0, r1, r2 = _rotation_vector(R)
         rv[v, 0] = r0
         rv[v, 1] = r1
@@ -632,6 +639,9 @@ def focal_kernel(Hs, cx, cy):
         g11 = Hs[v, 1, 1] - cy * Hs[v, 2, 1]
         g21 = Hs[v, 2, 1]
         nrm = math.sqrt(g00 * g00 + g01 * g01 + g10 * g10 + g11 * g11 + g20 * g20 + g21 * g21)
+        out[v] = np.nan
+        if not nrm > 0:
+            continue
         g00 /= nrm
         g10 /= nrm
         g20 /= nrm
@@ -643,7 +653,6 @@ def focal_kernel(Hs, cx, cy):
         b0 = g20 * g21
         b1 = g20 * g20 - g21 * g21
         den = a0 * a0 + a1 * a1
-        out[v] = np.nan
         if den > 0:
             w = -(a0 * b0 + a1 * b1) / den  # 1/f^2: a w + b = 0
             if math.isfinite(w) and w > 0:
