@@ -393,7 +393,7 @@ def test_focal_kernel_equals_core(rng):
     for c in ((0.0, 0.0), (0.3, -0.2)):
         with np.errstate(all="ignore"):
             ref = focal_from_homographies(Hs, c)
-        got = lk.focal_kernel(np.ascontiguousarray(Hs), *c)
+        got = lk.focal_from_homographies_kernel(np.ascontiguousarray(Hs), *c)
         assert np.array_equal(np.isnan(got), np.isnan(ref))
         np.testing.assert_allclose(got, ref, rtol=1e-13)
     assert np.isnan(got[3]) and np.isnan(got[4])

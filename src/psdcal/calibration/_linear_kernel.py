@@ -623,7 +623,7 @@ def poses_kernel(Hs, f, skew, cx, fy, cy):
 
 
 @njit
-def focal_kernel(Hs, cx, cy):
+def focal_from_homographies_kernel(Hs, cx, cy):
     """:func:`psdcal.calibration.core.focal_from_homographies` of Hs (n, 3, 3) with C = (cx, cy) mm.
 
     Returns f (n,) mm, NaN where a view does not fix it.
