@@ -416,3 +416,33 @@ def test_calibrate_same_solution_with_the_compiled_linear_stage(monkeypatch):
         np.testing.assert_allclose(getattr(a.intrinsics, name), getattr(b.intrinsics, name), rtol=1e-9)
     np.testing.assert_allclose(a.distortion.k1, b.distortion.k1, rtol=1e-8)
     np.testing.assert_allclose(a.rvecs, b.rvecs, rtol=1e-8, atol=1e-10)
+
+
+# -- an SVD that does not converge is handed to the reference ------------------------------------
+
+
+def test_jacobi_reports_non_convergence_on_nan():
+    lk = linear_kernels()
+    W = np.eye(3)
+    W[0, 1] = np.nan
+    assert not lk._jacobi_svd(W, np.zeros((3, 3)), 3)
+    assert lk._jacobi_svd(np.diag([3.0, 1.0, 2.0]), np.zeros((3, 3)), 3)
+
+
+def test_unconverged_kernels_fall_back_to_the_reference(path, monkeypatch):
+    s = simulate_set("lens2", n_images=4, noise_mm=0.002, seed=1)
+    path("numpy")
+    H_ref = homographies(s.template_mm, s.points_mm)
+    intr_ref = intrinsics_from_homographies(H_ref)
+    lk = linear_kernels()
+    monkeypatch.setattr(lk, "homographies_kernel", lambda *a: (np.zeros((4, 3, 3)), lk.H_USE_REFERENCE, 2, 14))
+    monkeypatch.setattr(lk, "intrinsics_kernel", lambda *a: (np.zeros(5), lk.I_USE_REFERENCE))
+    monkeypatch.setattr(lk, "poses_kernel", lambda H, *a: (np.zeros((len(H), 3)),) * 2 + (np.zeros(len(H), bool), False))
+    path("compiled")
+    np.testing.assert_array_equal(homographies(s.template_mm, s.points_mm), H_ref)
+    assert intrinsics_from_homographies(H_ref) == intr_ref
+    rv, tv = poses_from_homographies(H_ref, intr_ref)
+    path("numpy")
+    rv0, tv0 = poses_from_homographies(H_ref, intr_ref)
+    np.testing.assert_array_equal(rv, rv0)
+    np.testing.assert_array_equal(tv, tv0)

@@ -90,7 +90,7 @@ def intrinsics_from_homographies(Hs, *, skew: bool = False, aspect: bool = False
                 raise DegenerateViewsError("closed-form intrinsics: B is not positive definite (degenerate or noisy views)")
             if code == lk.I_NEGATIVE_FOCAL:
                 raise DegenerateViewsError("closed-form intrinsics: negative focal length squared (degenerate views)")
-            # a non-finite or zero homography: the reference below decides
+            # a non-finite or zero homography, or an SVD that did not converge: the reference below decides
     Hs = [np.asarray(H, dtype=float) / np.linalg.norm(H) for H in Hs]
     if len(Hs) < need:
         raise DegenerateViewsError(f"{len(Hs)} usable views; the closed-form intrinsics need at least {need}")

@@ -139,12 +139,13 @@ def homographies(src, dst, *, normalize: bool = True, labels=None) -> np.ndarray
         H, code, i, cnt = lk.homographies_kernel(np.ascontiguousarray(src), np.ascontiguousarray(dst), bool(normalize))
         if code == lk.H_OK:
             return H
-        labels = [f"image {j}" for j in range(n)] if labels is None else list(labels)
-        if code == lk.H_FEW_POINTS:
-            raise DegenerateViewsError(f"{labels[i]}: {cnt} points, a homography needs at least 4")
-        if code == lk.H_COLLINEAR:
-            raise DegenerateViewsError(f"{labels[i]}: its points are collinear, a homography needs points spread on the plane")
-        raise DegenerateViewsError(f"{labels[i]}: the points do not determine a homography (rank-deficient DLT)")
+        if code != lk.H_USE_REFERENCE:  # (an SVD that did not converge: the numpy code below decides)
+            labels = [f"image {j}" for j in range(n)] if labels is None else list(labels)
+            if code == lk.H_FEW_POINTS:
+                raise DegenerateViewsError(f"{labels[i]}: {cnt} points, a homography needs at least 4")
+            if code == lk.H_COLLINEAR:
+                raise DegenerateViewsError(f"{labels[i]}: its points are collinear, a homography needs points spread on the plane")
+            raise DegenerateViewsError(f"{labels[i]}: the points do not determine a homography (rank-deficient DLT)")
     labels = [f"image {i}" for i in range(n)] if labels is None else list(labels)
     ok = np.all(np.isfinite(dst), axis=-1)  # (n, M)
     n_valid = ok.sum(axis=1)

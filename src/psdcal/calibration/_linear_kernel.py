@@ -31,9 +31,9 @@ import numpy as np
 from psdcal._jit import njit, njit_inline
 
 #: codes returned by :func:`homographies_kernel`
-H_OK, H_FEW_POINTS, H_COLLINEAR, H_RANK_DEFICIENT = 0, 1, 2, 3
+H_OK, H_FEW_POINTS, H_COLLINEAR, H_RANK_DEFICIENT, H_USE_REFERENCE = 0, 1, 2, 3, 4
 #: codes returned by :func:`intrinsics_kernel`
-I_OK, I_UNDETERMINED, I_NOT_POSITIVE_DEFINITE, I_NEGATIVE_FOCAL, I_NOT_FINITE = 0, 1, 2, 3, 4
+I_OK, I_UNDETERMINED, I_NOT_POSITIVE_DEFINITE, I_NEGATIVE_FOCAL, I_USE_REFERENCE = 0, 1, 2, 3, 4
 
 #: poses_kernel marks views whose rotation angle is within this of pi (rad): there the reference's
 #: rotation vector (arccos of the trace, then ``theta / (2 sin theta)``) turns round-off in R into
@@ -82,7 +82,8 @@ def _jacobi_svd(W, V, k):
     """One-sided Jacobi on the (k, k) W in place: afterwards W = W_in V with orthogonal columns.
 
     V (k, k) is set to the accumulated rotations (orthogonal, det +1). The
-    singular values are the column norms of the result.
+    singular values are the column norms of the result. Returns whether it
+    converged (a sweep without rotation; False for non-finite input).
     """
     for i in range(k):
         for j in range(k):
@@ -119,7 +120,8 @@ def _jacobi_svd(W, V, k):
                     V[i, p] = c * vp - s * vq
                     V[i, q] = s * vp + c * vq
         if not rotated:
-            break
+            return True
+    return False
 
 
 @njit_inline
@@ -205,7 +207,9 @@ def homographies_kernel(src, dst, normalize):
     Returns
     -------
     H : (n, 3, 3) unit Frobenius norm, ``H[2, 2] >= 0`` (valid when code == 0).
-    code : :data:`H_OK`, :data:`H_FEW_POINTS`, :data:`H_COLLINEAR` or :data:`H_RANK_DEFICIENT`.
+    code : :data:`H_OK`, :data:`H_FEW_POINTS`, :data:`H_COLLINEAR`, :data:`H_RANK_DEFICIENT`,
+        or :data:`H_USE_REFERENCE` when the SVD of a view did not converge (non-finite
+        arithmetic): the caller runs the numpy reference, which decides.
     view : the first view that fails (the checks of all views come before any DLT).
     count : its number of valid points.
     """
@@ -281,7 +285,8 @@ def homographies_kernel(src, dst, normalize):
         for i in range(9):
             for j in range(9):
                 Wm[i, j] = A[i, j]
-        _jacobi_svd(Wm, Vm, 9)
+        if not _jacobi_svd(Wm, Vm, 9):  # non-finite or unconverged: the reference decides
+            return H, H_USE_REFERENCE, v, r // 2
         _column_norms(Wm, 9, sv)
         # the largest, the smallest and the second smallest singular values (numpy's s[0], s[8], s[7])
         i_max = 0
@@ -343,13 +348,14 @@ def homographies_kernel(src, dst, normalize):
 def _null_vector_small(G, m, k, Wm, Vm, sv, z):
     """The right singular vector z (k,) of G's smallest singular value (G (m, k), m >= k; G overwritten).
 
-    Returns the largest and the second smallest singular values (numpy's s[0], s[k-2]).
+    Returns the largest and the second smallest singular values (numpy's s[0], s[k-2])
+    and whether the SVD converged.
     """
     _householder_r(G, m, k)
     for i in range(k):
         for j in range(k):
             Wm[i, j] = G[i, j]
-    _jacobi_svd(Wm[:k, :k], Vm[:k, :k], k)
+    converged = _jacobi_svd(Wm[:k, :k], Vm[:k, :k], k)
     _column_norms(Wm[:k, :k], k, sv)
     i_max = 0
     i_min = 0
@@ -364,7 +370,7 @@ def _null_vector_small(G, m, k, Wm, Vm, sv, z):
             s_second = sv[j]
     for i in range(k):
         z[i] = Vm[i, i_min]
-    return sv[i_max], s_second
+    return sv[i_max], s_second, converged
 
 
 @njit
@@ -381,7 +387,7 @@ def intrinsics_kernel(Hs, skew, aspect):
     out : (5,) ``alpha, u0, v0, gamma, beta`` (mm; valid when code == 0); the
         one-focal-length model's ``f`` is ``sqrt(alpha beta)``, computed by the caller.
     code : :data:`I_OK`, :data:`I_UNDETERMINED`, :data:`I_NOT_POSITIVE_DEFINITE`,
-        :data:`I_NEGATIVE_FOCAL`, or :data:`I_NOT_FINITE` for a non-finite entry or a
+        :data:`I_NEGATIVE_FOCAL`, or :data:`I_USE_REFERENCE` for a non-finite entry or a
         zero homography (the caller then runs the reference, which decides).
     """
     n = Hs.shape[0]
@@ -391,10 +397,10 @@ def intrinsics_kernel(Hs, skew, aspect):
         for i in range(3):
             for j in range(3):
                 if not math.isfinite(Hs[v, i, j]):
-                    return out, I_NOT_FINITE
+                    return out, I_USE_REFERENCE
                 nz = nz or Hs[v, i, j] != 0.0
         if not nz:
-            return out, I_NOT_FINITE
+            return out, I_USE_REFERENCE
     # the reduced unknown's columns: [b11 (+ b22)], [b12], [b22], b13, b23, b33
     k = 4 + (1 if skew else 0) + (1 if aspect else 0)
     G = np.zeros((2 * n, 6))
@@ -441,7 +447,9 @@ def intrinsics_kernel(Hs, skew, aspect):
     Vm = np.zeros((6, 6))
     sv = np.zeros(6)
     z = np.zeros(6)
-    s_max, s_second = _null_vector_small(G, 2 * n, k, Wm, Vm, sv, z)
+    s_max, s_second, converged = _null_vector_small(G, 2 * n, k, Wm, Vm, sv, z)
+    if not converged:
+        return out, I_USE_REFERENCE
     if not (s_second > 1e-12 * s_max):
         return out, I_UNDETERMINED
     for j in range(k):
@@ -519,13 +527,14 @@ def _nearest_rotation(Mx, W, V, R):
     ``Mx V = W`` with orthogonal columns (Jacobi, det V = +1); the columns of U
     are W's normalised, except the one of the smallest singular value, which
     is the cross product of the other two (so det U = +1, and U V^T is the
-    rotation nearest to Mx whatever the sign of det Mx). False (R untouched) when Mx
-    has rank <= 1 (no unique nearest rotation).
+    rotation nearest to Mx whatever the sign of det Mx). False (R not set) when Mx
+    has rank <= 1 (no unique nearest rotation) or the SVD did not converge.
     """
     for i in range(3):
         for j in range(3):
             W[i, j] = Mx[i, j]
-    _jacobi_svd(W, V, 3)
+    if not _jacobi_svd(W, V, 3):
+        return False
     n0 = math.sqrt(W[0, 0] * W[0, 0] + W[1, 0] * W[1, 0] + W[2, 0] * W[2, 0])
     n1 = math.sqrt(W[0, 1] * W[0, 1] + W[1, 1] * W[1, 1] + W[2, 1] * W[2, 1])
     n2 = math.sqrt(W[0, 2] * W[0, 2] + W[1, 2] * W[1, 2] + W[2, 2] * W[2, 2])
@@ -611,7 +620,7 @@ def poses_kernel(Hs, f, skew, cx, fy, cy):
             for j in range(3):
                 if not math.isfinite(Mx[i, j]):  # a zero homography: the reference's SVD raises
                     return rv, tv, near_pi, False
-        if not _nearest_rotation(Mx, W, V, R):  # rank <= 1: no unique nearest rotation; the reference decides
+        if not _nearest_rotation(Mx, W, V, R):  # rank <= 1 (no unique nearest rotation) or unconverged: the reference decides
             return rv, tv, near_pi, False
         r0, r1, r2 = _rotation_vector(R)
         rv[v, 0] = r0
