@@ -816,3 +816,30 @@ def schur_covariance(U, W, V):
                     acc -= Y[v, a, c] * Cx[v, c, b]
                 Cp[v, a, b] = col[a] + acc
     return True, Cg, Cp, Cx
+
+
+@njit
+def undistort_points(d, coef, c):
+    """:func:`psdcal.model.distortion.undistort` of (n, M, 2) points (no Jacobians), the same operations in the
+    same order (so the same bits); NaN points stay NaN.
+
+    Parameters
+    ----------
+    d : (n, M, 2) measured points, mm; coef : (7,) k1, k2, k3, p1, p2, l1, l2; c : (2,) optical centre, mm
+    """
+    k1, k2, k3, p1, p2, l1, l2 = coef[0], coef[1], coef[2], coef[3], coef[4], coef[5], coef[6]
+    out = np.empty(d.shape)
+    for i in range(d.shape[0]):
+        for j in range(d.shape[1]):
+            d0, d1 = d[i, j, 0], d[i, j, 1]
+            h2 = d0 * d0 + d1 * d1
+            s = 1.0 + l1 * h2 + l2 * h2 * h2  # Eq 7-10
+            u0, u1 = d0 * s, d1 * s
+            e0, e1 = u0 - c[0], u1 - c[1]
+            r2 = e0 * e0 + e1 * e1
+            rad = r2 * (k1 + r2 * (k2 + r2 * k3))  # Eq 11-16
+            tx = p1 * (r2 + 2 * e0 * e0) + 2 * p2 * e0 * e1
+            ty = p2 * (r2 + 2 * e1 * e1) + 2 * p1 * e0 * e1
+            out[i, j, 0] = u0 + e0 * rad + tx
+            out[i, j, 1] = u1 + e1 * rad + ty
+    return out

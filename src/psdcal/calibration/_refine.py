@@ -20,6 +20,8 @@ cross-check, see the tests).
 from __future__ import annotations
 
 import contextlib
+import functools
+import math
 import threading
 from dataclasses import dataclass, field
 
@@ -121,11 +123,11 @@ class Problem:
     def n_images(self) -> int:
         return self.points_mm.shape[0]
 
-    @property
+    @functools.cached_property
     def names(self) -> tuple[str, ...]:
         return tuple(n for n in self.spec.global_names if n not in self.fixed)
 
-    @property
+    @functools.cached_property
     def n_global(self) -> int:
         return len(self.names)
 
@@ -141,7 +143,7 @@ class Problem:
         return np.concatenate([head, poses])
 
     def unpack(self, z, base_intr: Intrinsics, base_dist: Distortion, base_gains):
-        vals = dict(zip(self.names, z[: self.n_global]))
+        vals = dict(zip(self.names, z[: self.n_global].tolist()))
         intr = Intrinsics(
             f_mm=float(vals.get("f_mm", base_intr.f_mm)),
             cx_mm=float(vals.get("cx_mm", base_intr.cx_mm)),
@@ -149,16 +151,30 @@ class Problem:
             skew=float(vals.get("skew", base_intr.skew if self.spec.skew else 0.0)),
             fy_mm=float(vals["fy_mm"]) if "fy_mm" in vals else (base_intr.fy_mm if self.spec.aspect else None),
         )
-        coef = base_dist.as_array().copy()
-        for i, n in enumerate(DISTORTION_NAMES):
-            if n in vals:
+        coef = base_dist.as_array()  # a new array
+        gains = np.array(base_gains, dtype=float)  # a copy
+        for i, n in self._free_slots:
+            if i < 0:
+                gains[-i] = vals[n]
+            else:
                 coef[i] = vals[n]
-        gains = np.asarray(base_gains, dtype=float).copy()
-        for n, i in _GAIN_IDX.items():
-            if n in vals:
-                gains[i] = vals[n]
         poses = z[self.n_global :].reshape(self.n_images, 6)
         return intr, coef, gains, poses[:, :3], poses[:, 3:]
+
+    @functools.cached_property
+    def _free_slots(self) -> tuple:
+        """``(i, name)`` of the free distortion terms (``i``: index in DISTORTION_NAMES) and gains (``-i``: index
+        in the four gains, 1-3)."""
+        free = set(self.names)
+        return (tuple((i, n) for i, n in enumerate(DISTORTION_NAMES) if n in free)
+                + tuple((-i, n) for n, i in _GAIN_IDX.items() if n in free))
+
+    @functools.cached_property
+    def observations(self) -> tuple:
+        """``(img_idx, pt_idx, d_meas, P)``: view (N,) and template point (N,) of each valid observation, its
+        measured point (N, 2) and template point (N, 2), mm (computed once per problem; do not modify)."""
+        img_idx, pt_idx = np.nonzero(self.valid)
+        return img_idx, pt_idx, self.points_mm[img_idx, pt_idx], self.template_mm[pt_idx]
 
 
 def _global_columns(names, d_dintr5, d_dcoef7, d_dgains4=None):
@@ -180,9 +196,7 @@ class Evaluator:
     def __init__(self, prob: Problem, base_intr: Intrinsics, base_dist: Distortion, base_gains):
         self.prob = prob
         self.base = (base_intr, base_dist, np.asarray(base_gains, dtype=float))
-        self.img_idx, self.pt_idx = np.nonzero(prob.valid)
-        self.d_meas = prob.points_mm[self.img_idx, self.pt_idx]
-        self.P = prob.template_mm[self.pt_idx]
+        self.img_idx, self.pt_idx, self.d_meas, self.P = prob.observations
         self._key = None
         self._val = None
         self._rkey = self._rval = None
@@ -766,9 +780,35 @@ def refine(prob: Problem, intr0: Intrinsics, dist0: Distortion, gains0, rvecs0, 
         raise DegenerateViewsError(f"{m // 2} observed points give {m} equations for {n} unknowns: add images or points")
     ev.trial_jacobians = True
     with _single_threaded_blas():
-        sol = levenberg_marquardt(ev.residuals, ev.jacobian_compact, z0, options, normal=ev.block_system)
+        if ev._kernel is not None and COMPILED_LOOP:
+            sol = _lm_compiled(ev, z0, options)
+        else:
+            sol = levenberg_marquardt(ev.residuals, ev.jacobian_compact, z0, options, normal=ev.block_system)
         r, Jc = ev.evaluate_compact(sol.x)
         return _finish(prob, ev, sol, r, Jc, m, n, options, system=sol.system)
+
+
+#: Run the image cost's LM iterations in one compiled call (:mod:`psdcal.calibration._lm_kernel`) when its
+#: kernels are compiled; False: the Python loop :func:`levenberg_marquardt` (the reference) always.
+COMPILED_LOOP = True
+
+
+def _lm_compiled(ev, z0, options) -> "LMResult":
+    """:func:`levenberg_marquardt` on ``ev``'s compiled image cost in one call; ``ev`` is left caching the
+    solution's residuals, Jacobian and model points (as after the Python loop)."""
+    from psdcal.calibration._lm_kernel import MESSAGES, lm_image
+
+    x, F, status, njev, nfev, r, Jc, d, y, U, W, V, gg, gp = lm_image(
+        ev.P, ev.img_idx, ev._theta0, ev._separate_fy, ev._gmap, ev._gain_basis, ev.d_meas,
+        np.ascontiguousarray(z0, dtype=float), ev.prob.n_images, float(options.ftol), float(options.xtol),
+        float(options.gtol), int(options.max_iterations), 1e-13, 50)
+    key = x.tobytes()
+    ev._ckey, ev._cval = key, (r, Jc)
+    ev._dkey, ev._dval, ev._yval = key, d, y
+    ev._anchor = d
+    return LMResult(x=x, cost=float(F), status=2 if status == 5 else int(status),
+                    message=MESSAGES[int(status)], njev=int(njev), nfev=int(nfev),
+                    system=BlockNormal(U, W, V, gg, gp, compiled=True))
 
 
 @contextlib.contextmanager
@@ -942,7 +982,7 @@ def _finish(prob, ev, sol, r, Jc, m, n, options, system=None):
         pose_covariance=sigma2 * Cp,
         cross_covariance=sigma2 * Cx,
         sigma2=sigma2,
-        cost_rms=float(np.sqrt(np.mean(r**2)) * np.sqrt(2.0)),
+        cost_rms=math.sqrt(float(np.add.reduce(r * r)) / r.size) * math.sqrt(2.0),  # np.mean's sum, then the rms
         iterations=iterations,
         converged=converged,
         message=str(sol.message),

@@ -11,6 +11,7 @@ Steps, each usable on its own from its private module:
 from __future__ import annotations
 
 import datetime as _dt
+import math
 import functools
 from dataclasses import dataclass, field, replace
 
@@ -118,16 +119,32 @@ def initial_estimate(
             n_lines = st.n_lines
     coef = np.zeros(7)
     coef[:2] = k
-    Xc = undistort(X, coef, c0) if n_lines else X
+    if n_lines:
+        from psdcal import _jit
+
+        if _jit.use_compiled(X.shape[0] * X.shape[1]):
+            from psdcal.calibration._image_kernel import undistort_points
+
+            Xc = undistort_points(X, coef, c0)  # undistort's arithmetic, compiled (tests/test_lm_kernel.py)
+        else:
+            Xc = undistort(X, coef, c0)
+    else:
+        Xc = X
     Hs = homographies(T, Xc, normalize=normalize, labels=[f"image {i}" for i in ids])
     intr = intrinsics_from_homographies(Hs, skew=skew, aspect=aspect)
-    extent = float(np.nanmax(np.abs(X))) * 2 if np.any(np.isfinite(X)) else 1.0
+    extent = _extent(X)
     if not (intr.f_mm < 1e3 * extent and np.hypot(intr.cx_mm, intr.cy_mm) < 10 * extent):
         raise DegenerateViewsError(
             f"the views do not determine the intrinsics (closed form gives f = {intr.f_mm:.3g} mm, "
             f"C = ({intr.cx_mm:.3g}, {intr.cy_mm:.3g}) mm): tilt the template differently between views"
         )
     return InitialEstimate(k, n_lines, Hs, intr, *poses_from_homographies(Hs, intr))
+
+
+def _extent(X) -> float:
+    """Twice the largest |coordinate| of the finite points (1.0 when there is none), mm: a scale of the sensor."""
+    m = float(np.fmax.reduce(np.abs(X), axis=None)) if X.size else math.nan  # fmax skips NaN (missing points)
+    return 2.0 * m if math.isfinite(m) else 1.0
 
 
 def _straightness_lines(T) -> list:
@@ -649,7 +666,7 @@ def _calibrate(template_mm, points_mm, *, cost, radial, tangential, psd_radial, 
     pids = tuple(range(T.shape[0])) if point_ids is None else tuple(point_ids)
     g0 = np.ones(4) if gains is None else np.asarray(gains, dtype=float) / float(np.asarray(gains)[0])
     known_gains = None
-    if not fit_gains and not np.allclose(g0, 1.0):
+    if not fit_gains and gains is not None and not np.allclose(g0, 1.0):  # (no gains: g0 is exactly 1)
         # Known gains held fixed: the raw readout is a homography of the equal-gain one
         # (psdcal.calibration.gains); map it back once, so that every stage sees corrected points.
         from psdcal.calibration.gains import correct_points
@@ -709,8 +726,8 @@ def _calibrate(template_mm, points_mm, *, cost, radial, tangential, psd_radial, 
             dist0 = Distortion.from_array(ri.coeffs)
             rv0, tv0 = ri.rvecs, ri.tvecs
     ref = final_done if final_done is not None and spec.psd_radial == 0 else refine(prob, intr0, dist0, g0, rv0, tv0, solver)
-    result = _make_result(prob, ref, start, ids, pids, spec, cost, g0, preliminary, normalize, solver)
-    result = replace(result, stages={**result.stages, "multistart": start_record})
+    result = _make_result(prob, ref, start, ids, pids, spec, cost, g0, preliminary, normalize, solver,
+                          extra_stages={"multistart": start_record})
     if f_guess_mm is not None:
         result = replace(result, problem={**result.problem, "options": {**result.problem["options"], "f_guess_mm": float(f_guess_mm)}})
     if known_gains is not None:
@@ -1044,12 +1061,14 @@ def linear_starts(T, X, *, preliminary=True, normalize=True, radial=2, skew=Fals
         starts.append((label, est_i.intrinsics, est_i.distortion(radial), est_i.rvecs, est_i.tvecs_mm))
     fs = focal_from_homographies(Hs_raw)
     fs = fs[np.isfinite(fs)]
-    extent = float(np.nanmax(np.abs(X))) * 2 if np.any(np.isfinite(X)) else 1.0
+    extent = _extent(X)
     fs = fs[fs < 1e3 * extent]
     zero = est.distortion(radial) if est is not None else Distortion()  # the preliminary k with its homographies
     fallback = []
     if fs.size:
-        fallback.append(("centre", float(np.median(fs))))
+        fs = np.sort(fs)  # their median (np.median's arithmetic, without its overhead on a few numbers)
+        h = fs.size // 2
+        fallback.append(("centre", float(fs[h]) if fs.size % 2 else float((fs[h - 1] + fs[h]) / 2.0)))
     if f_guess_mm is not None:
         fallback.append(("f-guess", float(f_guess_mm)))
     if not starts and not fallback:
@@ -1079,8 +1098,9 @@ def implausible(result: CalibrationResult) -> str:
     meaningless stationary point, whatever its convergence test said.
     """
     intr = result.intrinsics
-    values = [intr.f_mm, intr.fy, intr.cx_mm, intr.cy_mm, intr.skew, *result.distortion.as_array()]
-    if not np.all(np.isfinite(values)):
+    dist = result.distortion
+    values = (intr.f_mm, intr.fy, intr.cx_mm, intr.cy_mm, intr.skew, *(getattr(dist, n) for n in DISTORTION_NAMES))
+    if not all(math.isfinite(v) for v in values):
         return "non-finite parameters"
     if not (intr.f_mm > 0 and intr.fy > 0):
         return f"focal length {intr.f_mm:.3g} mm"
@@ -1141,7 +1161,7 @@ def staged_start(spec: ModelSpec) -> ModelSpec | None:
     return core if extra else None
 
 
-def _make_result(prob, ref, start, ids, pids, spec, cost, g0, preliminary, normalize, solver):
+def _make_result(prob, ref, start, ids, pids, spec, cost, g0, preliminary, normalize, solver, extra_stages=None):
     X = prob.points_mm
     intr = ref.intrinsics
     dist = Distortion.from_array(ref.coeffs)
@@ -1156,9 +1176,14 @@ def _make_result(prob, ref, start, ids, pids, spec, cost, g0, preliminary, norma
             model = gain_map(model, ref.gains, *prob.sensor_mm)
     res = X - model
     valid = prob.valid
-    sq = np.where(valid, np.sum(np.nan_to_num(res) ** 2, axis=-1), 0.0)
-    n_valid = valid.sum()
-    rms = float(np.sqrt(sq.sum() / max(n_valid, 1)))
+    # squared residual of each valid point (0 elsewhere; a non-finite residual counts as 0, as nan_to_num makes it)
+    rv = res[valid]
+    if not np.isfinite(rv).all():
+        rv = np.nan_to_num(rv)
+    sq = np.zeros(valid.shape)
+    sq[valid] = rv[:, 0] ** 2 + rv[:, 1] ** 2
+    n_valid = int(valid.sum())
+    rms = math.sqrt(float(sq.sum()) / max(n_valid, 1))
     per_image = np.sqrt(sq.sum(axis=1) / np.maximum(valid.sum(axis=1), 1))
     cov = ref.covariance_global  # the reduced (Schur) system's inverse: no matrix of all poses
     std = {n: None for n in ("f_mm", "cx_mm", "cy_mm", "skew", *DISTORTION_NAMES)}
@@ -1166,14 +1191,15 @@ def _make_result(prob, ref, start, ids, pids, spec, cost, g0, preliminary, norma
         std["fy_mm"] = None
     for k, n in enumerate(prob.names):
         std[n] = float(np.sqrt(max(cov[k, k], 0.0)))
-    pose_std = np.sqrt(np.clip(np.einsum("naa->na", ref.pose_covariance), 0, None))
+    pose_std = np.sqrt(np.maximum(np.einsum("naa->na", ref.pose_covariance), 0.0))
     m = 2 * n_valid
     dof = max(m - ref.z.size, 1)
-    sigma_mm = float(np.sqrt(np.sum(sq) / dof)) if cost == "image" else float(rms / np.sqrt(2.0) * np.sqrt(m / dof))
+    sigma_mm = math.sqrt(float(sq.sum()) / dof) if cost == "image" else float(rms / np.sqrt(2.0) * np.sqrt(m / dof))
     stages = {
         "preliminary": {"k1": float(start.preliminary_k[0]), "k2": float(start.preliminary_k[1]), "line_groups": start.n_lines, "applied": bool(preliminary and start.n_lines > 0)},
         "closed_form": {**start.intrinsics.to_dict(), "normalized": bool(normalize)},
         "initial_extrinsics": [{"image_id": _plain(i), "rvec": r.tolist(), "tvec_mm": t.tolist()} for i, r, t in zip(ids, start.rvecs, start.tvecs_mm)],
+        **(extra_stages or {}),
     }
     pids = _plain_ids(pids)
     # the inputs are kept as (read-only) arrays; to_dict() writes them as lists, NaN as null

@@ -4,7 +4,9 @@ Change them with :func:`dataclasses.replace`; they are never mutated.
 """
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field
+import functools
+
+from dataclasses import dataclass, field, fields
 
 import numpy as np
 
@@ -71,7 +73,8 @@ class Distortion:
         return cls(**{n: float(v) for n, v in zip(DISTORTION_NAMES, np.asarray(a, dtype=float))})
 
     def to_dict(self) -> dict:
-        return asdict(self)
+        """``{name: value}`` in the order of :data:`DISTORTION_NAMES` (as ``dataclasses.asdict``, without its deep copies)."""
+        return {n: getattr(self, n) for n in DISTORTION_NAMES}
 
 
 @dataclass(frozen=True)
@@ -107,7 +110,7 @@ class ModelSpec:
         if not 0 <= int(self.psd_radial) <= 2:
             raise ValueError(f"psd_radial must be 0..2, got {self.psd_radial}")
 
-    @property
+    @functools.cached_property
     def intrinsic_names(self) -> tuple[str, ...]:
         names = ["f_mm", "cx_mm", "cy_mm"]
         if self.skew:
@@ -116,7 +119,7 @@ class ModelSpec:
             names.append("fy_mm")
         return tuple(names)
 
-    @property
+    @functools.cached_property
     def distortion_names(self) -> tuple[str, ...]:
         names = [f"k{i + 1}" for i in range(self.radial)]
         if self.tangential:
@@ -124,17 +127,18 @@ class ModelSpec:
         names += [f"l{i + 1}" for i in range(self.psd_radial)]
         return tuple(names)
 
-    @property
+    @functools.cached_property
     def gain_names(self) -> tuple[str, ...]:
         return ("g_x2", "g_y1", "g_y2") if self.fit_gains else ()
 
-    @property
+    @functools.cached_property
     def global_names(self) -> tuple[str, ...]:
         """Names of the free parameters shared by all images, in state order."""
         return self.intrinsic_names + self.distortion_names + self.gain_names
 
     def to_dict(self) -> dict:
-        return asdict(self)
+        """The six switches by name (as ``dataclasses.asdict``, without its deep copies)."""
+        return {f.name: getattr(self, f.name) for f in fields(self)}
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,203 @@
+"""The image-cost refinement's Levenberg-Marquardt loop in one compiled call.
+
+:func:`psdcal.calibration._refine.levenberg_marquardt`, driven by the compiled
+image cost (``Evaluator`` with ``trial_jacobians``), spends a small set's time
+in Python between kernel calls: on 5 views of 14 points an iteration's
+kernels (residuals and Jacobian, block normal equations, Schur step) take
+about 15 us and the Python around them as much again. :func:`lm_image` runs
+the same iterations inside numba: the same kernels
+(:func:`~psdcal.calibration._image_kernel.image_model`,
+:func:`~psdcal.calibration._image_kernel.block_normal`,
+:func:`~psdcal.calibration._image_kernel.schur_solve`), the same damping and
+stopping rules in the same order, the Newton inverse of each trial point
+warm-started from the last accepted point, as the Python loop does.
+
+The Python loop stays the reference (and the path of every other cost, of
+priors and of the numpy model); the tests compare the two.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from psdcal._jit import njit
+from psdcal.calibration._image_kernel import block_normal, image_model, schur_solve
+
+#: status codes of :func:`lm_image` (those of ``levenberg_marquardt``, and 5: its damping overflow, a 2 there)
+MESSAGES = {
+    0: "iteration limit reached",
+    1: "gradient below gtol",
+    2: "step below xtol",
+    3: "relative cost reduction below ftol",
+    4: "zero residual",
+    5: "no further progress possible (damping overflow)",
+}
+
+_BIG = np.finfo(np.float64).max
+
+
+@njit
+def _evaluate(P, img, theta0, separate_fy, gmap, gain_basis, meas, z, n_views, warm, tol_mm, max_newton):
+    """Residuals (2N,), compact Jacobian (2N, ng + 6), model points d and y (N, 2) at the state ``z``.
+
+    As ``Evaluator.evaluate_compact`` with the compiled kernel: non-finite
+    residuals become 1e3 with zero Jacobian rows, and then the Jacobian's
+    non-finite entries are replaced as ``np.nan_to_num`` does.
+    """
+    ng = gmap.shape[0]
+    theta = theta0.copy()
+    for k in range(ng):
+        theta[gmap[k]] = z[k]
+    poses = np.empty((n_views, 6))
+    for v in range(n_views):
+        for a in range(6):
+            poses[v, a] = z[ng + 6 * v + a]
+    d, ok, y, J = image_model(P, img, theta, separate_fy, poses, warm, meas, gmap, True, tol_mm, max_newton,
+                              gain_basis)
+    N = meas.shape[0]
+    r = np.empty(2 * N)
+    any_bad = False
+    for i in range(N):
+        r[2 * i] = y[i, 0] - meas[i, 0]
+        r[2 * i + 1] = y[i, 1] - meas[i, 1]
+    for j in range(2 * N):
+        if not np.isfinite(r[j]):
+            any_bad = True
+            r[j] = 1e3
+            for c in range(J.shape[1]):
+                J[j, c] = 0.0
+    if any_bad:
+        for j in range(2 * N):
+            for c in range(J.shape[1]):
+                e = J[j, c]
+                if np.isnan(e):
+                    J[j, c] = 0.0
+                elif np.isinf(e):
+                    J[j, c] = _BIG if e > 0 else -_BIG
+    return r, J, d, y
+
+
+@njit
+def _system_vectors(U, V, gg, gp):
+    """``g`` and ``diag(A)`` of block normal equations, in the state's order (globals, then 6 per view)."""
+    ng = U.shape[0]
+    n = V.shape[0]
+    g = np.empty(ng + 6 * n)
+    dg = np.empty(ng + 6 * n)
+    for a in range(ng):
+        g[a] = gg[a]
+        dg[a] = U[a, a]
+    for v in range(n):
+        for a in range(6):
+            g[ng + 6 * v + a] = gp[v, a]
+            dg[ng + 6 * v + a] = V[v, a, a]
+    return g, dg
+
+
+@njit
+def lm_image(P, img, theta0, separate_fy, gmap, gain_basis, meas, z0, n_views, ftol, xtol, gtol, max_iterations,
+             tol_mm, max_newton):
+    """Levenberg-Marquardt on the image cost, all iterations in one call.
+
+    The algorithm of ``levenberg_marquardt`` (Marquardt scaling by the running
+    maximum of ``diag(J^T J)``, Nielsen's damping rule, MINPACK's gtol / xtol
+    / ftol tests and the last round-off step) with the poses eliminated by
+    the Schur complement at every step.
+
+    Parameters
+    ----------
+    P, img, theta0, separate_fy, gmap, gain_basis, meas :
+        as :func:`~psdcal.calibration._image_kernel.image_model` (``theta0``:
+        the 16 global parameters, of which those in ``gmap`` are the state's).
+    z0 : (ng + 6 n_views,) start: the free globals, then (r, t) of each view
+    n_views : int
+    ftol, xtol, gtol, max_iterations : ``SolverOptions``
+    tol_mm, max_newton : the Newton inverse of the distortion
+
+    Returns
+    -------
+    x, F (0.5 |r|^2), status (:data:`MESSAGES`), njev, nfev, and at ``x``:
+    r (2N,), Jc (2N, ng + 6), d and y (N, 2), and the block normal equations
+    U, W, V, gg, gp.
+    """
+    ng = gmap.shape[0]
+    x = z0.copy()
+    no_warm = np.full(meas.shape, np.nan)
+    r, J, d, y = _evaluate(P, img, theta0, separate_fy, gmap, gain_basis, meas, x, n_views, no_warm, tol_mm,
+                           max_newton)
+    nfev = 1
+    njev = 1
+    F = 0.5 * np.dot(r, r)
+    U, W, V, gg, gp = block_normal(J, r, img, n_views)
+    g, diagA = _system_vectors(U, V, gg, gp)
+    D = np.maximum(diagA, 1e-300)
+    mu = 1e-8
+    nu = 2.0
+    status = 0
+    max_nfev = 4 * max_iterations + 10
+    fresh = True
+    sD = np.sqrt(D)
+    x_scale = 0.0
+    damp_p = np.empty((n_views, 6))
+    while njev <= max_iterations and nfev < max_nfev:
+        if F == 0.0:
+            status = 4
+            break
+        if fresh:
+            colnorm = np.sqrt(np.maximum(diagA, 1e-300))
+            if np.max(np.abs(g) / colnorm) <= gtol * np.sqrt(2 * F):
+                status = 1
+                break
+            sD = np.sqrt(D)
+            sx = sD * x
+            x_scale = np.sqrt(np.dot(sx, sx))
+            fresh = False
+        damp = mu * D
+        for v in range(n_views):
+            for a in range(6):
+                damp_p[v, a] = damp[ng + 6 * v + a]
+        ok, hg, hp = schur_solve(U, W, V, gg, gp, damp[:ng].copy(), damp_p)
+        if not ok:  # not positive definite at this damping
+            mu *= nu
+            nu *= 2.0
+            continue
+        h = np.empty(x.size)
+        for a in range(ng):
+            h[a] = -hg[a]
+        for v in range(n_views):
+            for a in range(6):
+                h[ng + 6 * v + a] = -hp[v, a]
+        sh = sD * h
+        if np.sqrt(np.dot(sh, sh)) <= xtol * (x_scale + xtol):
+            status = 2
+            break
+        x_new = x + h
+        r_new, J_new, d_new, y_new = _evaluate(P, img, theta0, separate_fy, gmap, gain_basis, meas, x_new, n_views,
+                                               d, tol_mm, max_newton)
+        nfev += 1
+        F_new = 0.5 * np.dot(r_new, r_new)
+        pred = 0.5 * np.dot(h, mu * D * h - g)
+        rho = (F - F_new) / pred if pred > 0 else -1.0
+        # the last round-off step (see levenberg_marquardt)
+        final = nu == 2.0 and 0 < pred <= ftol * F and abs(F - F_new) <= ftol * F
+        if (rho > 0 or final) and np.isfinite(F_new):
+            small = final or ((F - F_new) <= ftol * F and pred <= ftol * F)
+            x, r, F, J, d, y = x_new, r_new, F_new, J_new, d_new, y_new
+            njev += 1
+            U, W, V, gg, gp = block_normal(J, r, img, n_views)
+            g, diagA = _system_vectors(U, V, gg, gp)
+            D = np.maximum(D, diagA)
+            fresh = True
+            mu *= max(1.0 / 3.0, 1.0 - math.pow(2.0 * rho - 1.0, 3.0))
+            nu = 2.0
+            if small:
+                status = 3
+                break
+        else:
+            mu *= nu
+            nu *= 2.0
+            if not np.isfinite(mu) or mu > 1e200:
+                status = 5
+                break
+    return x, F, status, njev, nfev, r, J, d, y, U, W, V, gg, gp
