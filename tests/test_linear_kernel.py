@@ -144,9 +144,32 @@ def test_homographies_property_compiled_equal_numpy(seed, n_views, n_points, noi
     if isinstance(ref, Exception) or isinstance(got, Exception):
         assert type(got) is type(ref) and str(got) == str(ref)
         return
-    # the null vector's conditioning: second smallest over largest singular value of the normalised DLT
-    np.testing.assert_allclose(got, ref, rtol=1e-10, atol=1e-10)
+    # both null vectors are within eps times the conditioning s0 / (s7 - s8) of the normalised DLT
+    # (the 1e-12 factor also covers the de-normalisation; 2826 random sets reached 1e-13)
+    tol = 1e-12 * (1.0 + _dlt_conditioning(T, X))
+    assert np.all(np.abs(got - ref).max(axis=(1, 2)) <= tol)
     assert np.all(got[:, 2, 2] >= 0)
+
+
+def _dlt_conditioning(T, X):
+    """``s0 / (s7 - s8)`` of each view's Hartley-normalised DLT matrix (numpy's SVD), (n_views,)."""
+    out = []
+    for x in X:
+        ok = np.all(np.isfinite(x), axis=1)
+
+        def normalised(p):
+            m = p.mean(axis=0)
+            return (p - m) * (np.sqrt(2.0) / np.hypot(*(p - m).T).mean())
+
+        P, Q = normalised(T[ok]), normalised(x[ok])
+        M = len(P)
+        A = np.zeros((2 * M + 1, 9))  # one zero row: 9 singular values even for 4 points
+        A[:M, 0:2], A[:M, 2], A[M:2 * M, 3:5], A[M:2 * M, 5] = P, 1.0, P, 1.0
+        A[:M, 6:8], A[:M, 8] = -Q[:, :1] * P, -Q[:, 0]
+        A[M:2 * M, 6:8], A[M:2 * M, 8] = -Q[:, 1:] * P, -Q[:, 1]
+        s = np.linalg.svd(A, compute_uv=False)
+        out.append(s[0] / (s[7] - s[8]))
+    return np.array(out)
 
 
 def _spoilt(spoil):
