@@ -13,8 +13,12 @@ six-element ``b`` (Zhang, IEEE PAMI 22(11), 2000, Appendix B) is used.
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
+from psdcal import _jit
+from psdcal.calibration._homography import linear_kernels
 from psdcal.errors import DegenerateViewsError
 from psdcal.model.params import Intrinsics
 from psdcal.model.projection import nearest_rotation, nearest_rotation_batch, r_from_R, r_from_R_batch
@@ -60,9 +64,34 @@ def intrinsics_from_homographies(Hs, *, skew: bool = False, aspect: bool = False
     DegenerateViewsError
         Too few views, or views that do not constrain the intrinsics (e.g. all
         parallel to the sensor), or a solution that is not a real camera.
+
+    With :func:`psdcal._jit.use_compiled`, one compiled call
+    (:func:`psdcal.calibration._linear_kernel.intrinsics_kernel`) does it all;
+    the numpy code below is its reference (same errors).
     """
-    Hs = [np.asarray(H, dtype=float) / np.linalg.norm(H) for H in Hs]
     need = 2 if not (skew or aspect) else 3
+    if not isinstance(Hs, np.ndarray):
+        Hs = list(Hs)
+    if _jit.use_compiled(len(Hs)):
+        H = np.asarray(Hs, dtype=float)
+        if H.ndim == 3 and H.shape[1:] == (3, 3) and H.shape[0] >= need:
+            lk = linear_kernels()
+            out, code = lk.intrinsics_kernel(np.ascontiguousarray(H), bool(skew), bool(aspect))
+            if code == lk.I_OK:
+                alpha, u0, v0, gamma, beta = out.tolist()
+                if aspect:
+                    return Intrinsics(f_mm=alpha, cx_mm=u0, cy_mm=v0, skew=gamma if skew else 0.0, fy_mm=beta)
+                return Intrinsics(f_mm=math.sqrt(alpha * beta), cx_mm=u0, cy_mm=v0, skew=gamma if skew else 0.0)
+            if code == lk.I_UNDETERMINED:
+                raise DegenerateViewsError(
+                    "the views do not determine the intrinsics (too few distinct orientations of the template)"
+                )
+            if code == lk.I_NOT_POSITIVE_DEFINITE:
+                raise DegenerateViewsError("closed-form intrinsics: B is not positive definite (degenerate or noisy views)")
+            if code == lk.I_NEGATIVE_FOCAL:
+                raise DegenerateViewsError("closed-form intrinsics: negative focal length squared (degenerate views)")
+            # a non-finite or zero homography, or an SVD that did not converge: the reference below decides
+    Hs = [np.asarray(H, dtype=float) / np.linalg.norm(H) for H in Hs]
     if len(Hs) < need:
         raise DegenerateViewsError(f"{len(Hs)} usable views; the closed-form intrinsics need at least {need}")
     # two rows per view, v12 and v11 - v22 (Eq 22), for all views at once
@@ -148,10 +177,28 @@ def poses_from_homographies(Hs, intr: Intrinsics):
     Returns
     -------
     rvecs, tvecs_mm : (n_views, 3) arrays (rad, mm)
+
+    With :func:`psdcal._jit.use_compiled`, one compiled call
+    (:func:`psdcal.calibration._linear_kernel.poses_kernel`: the nearest
+    rotations by a 3 x 3 Jacobi SVD); the numpy code below is its reference.
     """
     H = np.asarray(Hs, dtype=float).reshape(-1, 3, 3)
     if H.shape[0] == 0:
         return np.zeros((0, 3)), np.zeros((0, 3))
+    if _jit.use_compiled(H.shape[0]):
+        rv, tv, near_pi, ok = linear_kernels().poses_kernel(np.ascontiguousarray(H), float(intr.f_mm), float(intr.skew),
+                                                            float(intr.cx_mm), float(intr.fy), float(intr.cy_mm))
+        if ok:
+            if near_pi.any():  # rotations near a half turn: the reference's own rounding (NEAR_PI_RAD)
+                idx = np.flatnonzero(near_pi)
+                rv[idx], tv[idx] = _poses_numpy(H[idx], intr)
+            return rv, tv
+        # non-finite input or a singular A: the reference below decides
+    return _poses_numpy(H, intr)
+
+
+def _poses_numpy(H, intr: Intrinsics):
+    """The numpy code of :func:`poses_from_homographies` (its reference), H (n, 3, 3) with n >= 1."""
     Ainv = np.linalg.inv(intr.matrix())
     # a[:, j] = A^-1 h_j (Eq 26-28 before scaling), as matrix-vector products (the one-view
     # function's, which round as a matrix-matrix product need not)

@@ -9,7 +9,20 @@ from __future__ import annotations
 
 import numpy as np
 
+from psdcal import _jit
 from psdcal.errors import DegenerateViewsError
+
+_kernels = None  # psdcal.calibration._linear_kernel, imported at the first compiled call (it imports numba)
+
+
+def linear_kernels():
+    """The compiled linear-stage module :mod:`psdcal.calibration._linear_kernel` (imported once, on demand)."""
+    global _kernels
+    if _kernels is None:
+        from psdcal.calibration import _linear_kernel
+
+        _kernels = _linear_kernel
+    return _kernels
 
 
 def collinearity(pts) -> float:
@@ -112,10 +125,27 @@ def homographies(src, dst, *, normalize: bool = True, labels=None) -> np.ndarray
     Returns
     -------
     (n_views, 3, 3) ndarray, each as :func:`homography` returns it.
+
+    With :func:`psdcal._jit.use_compiled`, the checks and the DLT of all
+    views are one compiled call (:func:`psdcal.calibration._linear_kernel.homographies_kernel`:
+    Householder QR and one-sided Jacobi SVD instead of LAPACK's); the numpy code
+    below is its reference, with the same errors on the same views.
     """
     src = np.asarray(src, dtype=float)
     dst = np.asarray(dst, dtype=float)
     n, M = dst.shape[:2]
+    if n and dst.shape == (n, M, 2) and src.shape == (M, 2) and _jit.use_compiled(n * M):
+        lk = linear_kernels()
+        H, code, i, cnt = lk.homographies_kernel(np.ascontiguousarray(src), np.ascontiguousarray(dst), bool(normalize))
+        if code == lk.H_OK:
+            return H
+        if code != lk.H_USE_REFERENCE:  # (an SVD that did not converge: the numpy code below decides)
+            labels = [f"image {j}" for j in range(n)] if labels is None else list(labels)
+            if code == lk.H_FEW_POINTS:
+                raise DegenerateViewsError(f"{labels[i]}: {cnt} points, a homography needs at least 4")
+            if code == lk.H_COLLINEAR:
+                raise DegenerateViewsError(f"{labels[i]}: its points are collinear, a homography needs points spread on the plane")
+            raise DegenerateViewsError(f"{labels[i]}: the points do not determine a homography (rank-deficient DLT)")
     labels = [f"image {i}" for i in range(n)] if labels is None else list(labels)
     ok = np.all(np.isfinite(dst), axis=-1)  # (n, M)
     n_valid = ok.sum(axis=1)
