@@ -408,8 +408,11 @@ def test_qr_jacobi_singular_values_and_null_vector(seed, m, decades):
 # -- per-view focal lengths and the whole calibration --------------------------------------------
 
 
-def test_focal_kernel_equals_core(rng):
+def test_focal_kernel_equals_core(rng, monkeypatch):
+    import psdcal._jit
+
     lk = linear_kernels()
+    monkeypatch.setattr(psdcal._jit, "use_compiled", lambda n: False)  # core's numpy lines, the reference
     path_H = [homographies(T, X) for T, X in _sets()]
     Hs = np.concatenate(path_H + [rng.normal(size=(40, 3, 3))])
     Hs[3, 2, :2] = 0.0  # parallel to the sensor: NaN
@@ -421,6 +424,9 @@ def test_focal_kernel_equals_core(rng):
         assert np.array_equal(np.isnan(got), np.isnan(ref))
         np.testing.assert_allclose(got, ref, rtol=1e-13)
     assert np.isnan(got[3]) and np.isnan(got[4])
+    monkeypatch.undo()
+    if psdcal._jit.enabled():  # and core dispatches to the kernel
+        np.testing.assert_array_equal(focal_from_homographies(Hs, (0.3, -0.2)), got)
 
 
 def test_calibrate_same_solution_with_the_compiled_linear_stage(monkeypatch):

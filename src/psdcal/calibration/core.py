@@ -895,6 +895,12 @@ def focal_from_homographies(Hs, c_mm=(0.0, 0.0)) -> np.ndarray:
     ``f^2 <= 0`` (noise, distortion): both give NaN, never an error.
     """
     Hs = np.asarray(Hs, dtype=float).reshape(-1, 3, 3)
+    from psdcal import _jit
+
+    if _jit.use_compiled(Hs.shape[0]):  # one compiled call; the numpy lines below are its reference
+        from psdcal.calibration._homography import linear_kernels
+
+        return linear_kernels().focal_from_homographies_kernel(np.ascontiguousarray(Hs), float(c_mm[0]), float(c_mm[1]))
     Tc = np.array([[1.0, 0.0, -c_mm[0]], [0.0, 1.0, -c_mm[1]], [0.0, 0.0, 1.0]])
     G = Tc @ Hs
     G = G / np.linalg.norm(G[:, :, :2], axis=(1, 2))[:, None, None]
