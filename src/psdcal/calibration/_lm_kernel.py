@@ -22,7 +22,7 @@ import math
 import numpy as np
 
 from psdcal._jit import njit
-from psdcal.calibration._image_kernel import block_normal, image_model, schur_solve
+from psdcal.calibration._image_kernel import block_normal, image_model, schur_covariance, schur_solve
 
 #: status codes of :func:`lm_image` (those of ``levenberg_marquardt``, and 5: its damping overflow, a 2 there)
 MESSAGES = {
@@ -118,8 +118,8 @@ def lm_image(P, img, theta0, separate_fy, gmap, gain_basis, meas, z0, n_views, f
     Returns
     -------
     x, F (0.5 |r|^2), status (:data:`MESSAGES`), njev, nfev, and at ``x``:
-    r (2N,), Jc (2N, ng + 6), d and y (N, 2), and the block normal equations
-    U, W, V, gg, gp.
+    r (2N,), Jc (2N, ng + 6), d and y (N, 2), the block normal equations
+    U, W, V, gg, gp, and their inverse's blocks (``schur_covariance``): cov_ok, Cg, Cp, Cx.
     """
     ng = gmap.shape[0]
     x = z0.copy()
@@ -203,4 +203,5 @@ def lm_image(P, img, theta0, separate_fy, gmap, gain_basis, meas, z0, n_views, f
             if not np.isfinite(mu) or mu > 1e200:
                 status = 5
                 break
-    return x, F, status, njev, nfev, r, J, d, y, U, W, V, gg, gp
+    cov_ok, Cg, Cp, Cx = schur_covariance(U, W, V)
+    return x, F, status, njev, nfev, r, J, d, y, U, W, V, gg, gp, cov_ok, Cg, Cp, Cx

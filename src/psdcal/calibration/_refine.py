@@ -170,6 +170,13 @@ class Problem:
                 + tuple((-i, n) for n, i in _GAIN_IDX.items() if n in free))
 
     @functools.cached_property
+    def global_map(self) -> np.ndarray:
+        """``gmap`` of the compiled kernels for :attr:`names` (psdcal.calibration._image_kernel.global_map)."""
+        from psdcal.calibration._image_kernel import global_map
+
+        return global_map(self.names)
+
+    @functools.cached_property
     def observations(self) -> tuple:
         """``(img_idx, pt_idx, d_meas, P)``: view (N,) and template point (N,) of each valid observation, its
         measured point (N, 2) and template point (N, 2), mm (computed once per problem; do not modify)."""
@@ -213,7 +220,7 @@ class Evaluator:
             from psdcal import _jit
 
             if _jit.use_compiled(len(self.img_idx)):  # the compiled costs (psdcal.calibration._image_kernel); this class's numpy code is their reference
-                from psdcal.calibration._image_kernel import (block_normal, global_map, image_model, normal_equations,
+                from psdcal.calibration._image_kernel import (block_normal, image_model, normal_equations,
                                                               template_model)
 
                 if prob.cost == "image":
@@ -222,7 +229,7 @@ class Evaluator:
                     self._tkernel = template_model
                 self._normal = normal_equations
                 self._blocks = block_normal
-                self._gmap = global_map(prob.names)
+                self._gmap = prob.global_map
                 self._no_warm = np.full(self.d_meas.shape, np.nan)
                 self._separate_fy = prob.spec.aspect
                 skew = base_intr.skew if prob.spec.skew else 0.0
@@ -647,6 +654,7 @@ class BlockNormal:
     def __init__(self, U, W, V, gg, gp, compiled: bool = True):
         self.U, self.W, self.V, self.gg, self.gp = U, W, V, gg, gp
         self.compiled = compiled
+        self._covariance = None  # (Cg, Cp, Cx) when already computed with the blocks (psdcal.calibration._lm_kernel)
 
     @property
     def n_global(self) -> int:
@@ -679,7 +687,9 @@ class BlockNormal:
         When A is singular (an unidentifiable direction) the blocks come from
         the pseudo-inverse of the dense A (rare; memory quadratic in views).
         """
-        if self.compiled:
+        if self._covariance is not None:
+            ok, (Cg, Cp, Cx) = True, self._covariance
+        elif self.compiled:
             from psdcal.calibration._image_kernel import schur_covariance
 
             ok, Cg, Cp, Cx = schur_covariance(self.U, self.W, self.V)
@@ -798,7 +808,7 @@ def _lm_compiled(ev, z0, options) -> "LMResult":
     solution's residuals, Jacobian and model points (as after the Python loop)."""
     from psdcal.calibration._lm_kernel import MESSAGES, lm_image
 
-    x, F, status, njev, nfev, r, Jc, d, y, U, W, V, gg, gp = lm_image(
+    x, F, status, njev, nfev, r, Jc, d, y, U, W, V, gg, gp, cov_ok, Cg, Cp, Cx = lm_image(
         ev.P, ev.img_idx, ev._theta0, ev._separate_fy, ev._gmap, ev._gain_basis, ev.d_meas,
         np.ascontiguousarray(z0, dtype=float), ev.prob.n_images, float(options.ftol), float(options.xtol),
         float(options.gtol), int(options.max_iterations), 1e-13, 50)
@@ -806,9 +816,11 @@ def _lm_compiled(ev, z0, options) -> "LMResult":
     ev._ckey, ev._cval = key, (r, Jc)
     ev._dkey, ev._dval, ev._yval = key, d, y
     ev._anchor = d
+    system = BlockNormal(U, W, V, gg, gp, compiled=True)
+    if cov_ok:  # the kernel's schur_covariance of these blocks (what covariance_blocks() would compute)
+        system._covariance = (Cg, Cp, Cx)
     return LMResult(x=x, cost=float(F), status=2 if status == 5 else int(status),
-                    message=MESSAGES[int(status)], njev=int(njev), nfev=int(nfev),
-                    system=BlockNormal(U, W, V, gg, gp, compiled=True))
+                    message=MESSAGES[int(status)], njev=int(njev), nfev=int(nfev), system=system)
 
 
 @contextlib.contextmanager
