@@ -16,8 +16,9 @@ Sizes: 5 ... 1000 views of the 14-point default template, and 20 views of a
 square grid of 14 ... 1024 points. The last rows are real data: Zhang's five
 views of 256 corners with fx, fy, k1, k2, p1, p2 (OpenCV: ``FIX_K3``) and,
 when present, the chessboard sets of ``tests/data/chessboards``. Times are
-the median of ``--repeats`` calls after a warm-up, one thread each. The
-growth exponent is the slope of log(time) against log(views) from 30 views up.
+the median of ``--repeats`` calls after a warm-up (at least 5 calls and
+50 ms, for every library), one thread each. The growth exponent is the
+slope of log(time) against log(views) from 30 views up.
 
 Usage::
 
@@ -57,8 +58,19 @@ def grid_template(m: int) -> np.ndarray:
     return np.stack([X.ravel(), Y.ravel()], axis=1)
 
 
+#: Warm-up before timing: at least this many calls and this long (the same rule in _mrcal_reference.py), so that
+#: every library is timed in its steady state (CPython specialises a function's bytecode after its first calls;
+#: caches and branch predictors settle), not in its first calls.
+WARMUP_CALLS = 5
+WARMUP_S = 0.05
+
+
 def _timed(fn, repeats: int) -> float:
-    fn()
+    t_end = time.perf_counter() + WARMUP_S
+    for k in range(10_000):
+        fn()
+        if k + 1 >= WARMUP_CALLS and time.perf_counter() >= t_end:
+            break
     ts = []
     for _ in range(repeats):
         t0 = time.perf_counter()

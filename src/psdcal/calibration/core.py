@@ -687,7 +687,10 @@ def _calibrate(template_mm, points_mm, *, cost, radial, tangential, psd_radial, 
     # (the basins of the cost are those of the whole set), and the final refinement takes every point.
     Xs = subsample_views(T, X)
     sub = Xs is not None
-    pfirst = Problem(T, X if Xs is None else Xs, first, cost="image", sensor_mm=tuple(sensor_mm))
+    if Xs is None and first is spec and cost == "image":
+        pfirst = prob  # the same problem (and its per-problem caches)
+    else:
+        pfirst = Problem(T, X if Xs is None else Xs, first, cost="image", sensor_mm=tuple(sensor_mm))
     # a start stage only seeds the final refinement: looser tolerances (_stage_solver) unless it is the final one
     final_start = staged is None and cost == "image" and not sub
     tried = _refine_starts(pfirst, first, cands, g0_start, solver if final_start else _stage_solver(solver))
@@ -829,7 +832,7 @@ def _refine_starts(pfirst, first, cands, g0, solver):
     and a start in another valley gets its full refinement.
     """
     tried = []
-    probe = replace(solver, max_iterations=min(PROBE_ITERATIONS, solver.max_iterations))
+    probe = _probe_solver(solver)
     seen = []  # (start (f, C), solution (f, C)) of the converged refinements
     for label, i0, d0, rv, tv in cands:
         if first.aspect and i0.fy_mm is None:
@@ -1153,6 +1156,13 @@ def _psd_multistart(T, X, spec, sensor_mm, start, intr0, dist0, g0, rv0, tv0, so
     return min(ok, key=lambda c: c.cost_rms) if ok else None
 
 
+@functools.lru_cache(maxsize=16)
+def _probe_solver(solver: SolverOptions) -> SolverOptions:
+    """``solver`` limited to :data:`PROBE_ITERATIONS` iterations (a probe of a further start)."""
+    return replace(solver, max_iterations=min(PROBE_ITERATIONS, solver.max_iterations))
+
+
+@functools.lru_cache(maxsize=16)
 def _stage_solver(solver: SolverOptions) -> SolverOptions:
     """Tolerances of a start stage: its solution only seeds the final refinement, which
     converges to the same optimum, so it stops at a relative cost change of 1e-7
