@@ -89,16 +89,20 @@ def _jacobi_svd(W, V, k):
         for j in range(k):
             V[i, j] = 1.0 if i == j else 0.0
     n = W.shape[0]
+    nrm2 = np.empty(k)  # squared column norms: exact at each sweep's start, updated by each rotation
     for _sweep in range(_JACOBI_MAX_SWEEPS):
+        for j in range(k):
+            acc = 0.0
+            for i in range(n):
+                acc += W[i, j] * W[i, j]
+            nrm2[j] = acc
         rotated = False
         for p in range(k - 1):
             for q in range(p + 1, k):
-                a = 0.0
-                b = 0.0
+                a = nrm2[p]
+                b = nrm2[q]
                 g = 0.0
                 for i in range(n):
-                    a += W[i, p] * W[i, p]
-                    b += W[i, q] * W[i, q]
                     g += W[i, p] * W[i, q]
                 if g == 0.0 or abs(g) <= _JACOBI_TOL * math.sqrt(a) * math.sqrt(b):
                     continue
@@ -109,6 +113,9 @@ def _jacobi_svd(W, V, k):
                     t = -t
                 c = 1.0 / math.sqrt(1.0 + t * t)
                 s = c * t
+                # the rotated columns' squared norms: a - t g and b + t g (t solves t^2 + 2 zeta t = 1)
+                nrm2[p] = a - t * g
+                nrm2[q] = b + t * g
                 for i in range(n):
                     wp = W[i, p]
                     wq = W[i, q]
