@@ -114,8 +114,8 @@ def _jacobi_svd(W, V, k):
                 c = 1.0 / math.sqrt(1.0 + t * t)
                 s = c * t
                 # the rotated columns' squared norms: a - t g and b + t g (t solves t^2 + 2 zeta t = 1)
-                nrm2[p] = a - t * g
-                nrm2[q] = b + t * g
+                nrm2[p] = max(a - t * g, 0.0)  # (round-off can take a null column's below 0)
+                nrm2[q] = max(b + t * g, 0.0)
                 for i in range(n):
                     wp = W[i, p]
                     wq = W[i, q]
