@@ -4,7 +4,7 @@ import cycles, and sub-packages layered along the data flow.
 Layering (top-level imports only; imports inside functions are how a lower
 layer may use a higher one lazily, e.g. the CLI's commands):
 
-    base: psdcal.errors, psdcal._atomic, psdcal._jit, psdcal._limits   (import no other psdcal module but each other)
+    base: psdcal.errors, psdcal._atomic, psdcal._jit, psdcal._limits, psdcal._cache   (import no other psdcal module but each other)
     psdcal (the root package): base and psdcal.model only (everything else is lazy)
     psdcal.model  <-  psdcal.io  <-  calibration  <-  signal  <-  measure  <-  study  <-  report  <-  cli
 
@@ -26,7 +26,7 @@ import psdcal
 ROOT = Path(__file__).resolve().parents[1]
 SRC = ROOT / "src"
 PKG = SRC / "psdcal"
-BASE = {"psdcal.errors", "psdcal._atomic", "psdcal._jit", "psdcal.schema", "psdcal._stats", "psdcal._limits"}
+BASE = {"psdcal.errors", "psdcal._atomic", "psdcal._jit", "psdcal.schema", "psdcal._stats", "psdcal._limits", "psdcal._cache"}
 LAYERS = ["model", "io", "calibration", "signal", "measure", "study", "report", "cli"]
 
 

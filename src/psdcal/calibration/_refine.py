@@ -20,13 +20,13 @@ cross-check, see the tests).
 from __future__ import annotations
 
 import contextlib
-import functools
 import math
 import threading
 from dataclasses import dataclass, field
 
 import numpy as np
 
+from psdcal._cache import cached_attribute
 from psdcal.model.distortion import distort, distort_jacobians, undistort
 from psdcal.model.params import DISTORTION_NAMES, Distortion, Intrinsics, ModelSpec
 from psdcal.model.readout import LX_MM, LY_MM, gain_homography, gain_map
@@ -123,11 +123,11 @@ class Problem:
     def n_images(self) -> int:
         return self.points_mm.shape[0]
 
-    @functools.cached_property
+    @cached_attribute
     def names(self) -> tuple[str, ...]:
         return tuple(n for n in self.spec.global_names if n not in self.fixed)
 
-    @functools.cached_property
+    @cached_attribute
     def n_global(self) -> int:
         return len(self.names)
 
@@ -161,7 +161,7 @@ class Problem:
         poses = z[self.n_global :].reshape(self.n_images, 6)
         return intr, coef, gains, poses[:, :3], poses[:, 3:]
 
-    @functools.cached_property
+    @cached_attribute
     def _free_slots(self) -> tuple:
         """``(i, name)`` of the free distortion terms (``i``: index in DISTORTION_NAMES) and gains (``-i``: index
         in the four gains, 1-3)."""
@@ -169,14 +169,14 @@ class Problem:
         return (tuple((i, n) for i, n in enumerate(DISTORTION_NAMES) if n in free)
                 + tuple((-i, n) for n, i in _GAIN_IDX.items() if n in free))
 
-    @functools.cached_property
+    @cached_attribute
     def global_map(self) -> np.ndarray:
         """``gmap`` of the compiled kernels for :attr:`names` (psdcal.calibration._image_kernel.global_map)."""
         from psdcal.calibration._image_kernel import global_map
 
         return global_map(self.names)
 
-    @functools.cached_property
+    @cached_attribute
     def observations(self) -> tuple:
         """``(img_idx, pt_idx, d_meas, P)``: view (N,) and template point (N,) of each valid observation, its
         measured point (N, 2) and template point (N, 2), mm (computed once per problem; do not modify)."""

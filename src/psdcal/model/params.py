@@ -4,11 +4,11 @@ Change them with :func:`dataclasses.replace`; they are never mutated.
 """
 from __future__ import annotations
 
-import functools
-
 from dataclasses import dataclass, field, fields
 
 import numpy as np
+
+from psdcal._cache import cached_attribute
 
 DISTORTION_NAMES = ("k1", "k2", "k3", "p1", "p2", "l1", "l2")
 
@@ -110,7 +110,7 @@ class ModelSpec:
         if not 0 <= int(self.psd_radial) <= 2:
             raise ValueError(f"psd_radial must be 0..2, got {self.psd_radial}")
 
-    @functools.cached_property
+    @cached_attribute
     def intrinsic_names(self) -> tuple[str, ...]:
         names = ["f_mm", "cx_mm", "cy_mm"]
         if self.skew:
@@ -119,7 +119,7 @@ class ModelSpec:
             names.append("fy_mm")
         return tuple(names)
 
-    @functools.cached_property
+    @cached_attribute
     def distortion_names(self) -> tuple[str, ...]:
         names = [f"k{i + 1}" for i in range(self.radial)]
         if self.tangential:
@@ -127,11 +127,11 @@ class ModelSpec:
         names += [f"l{i + 1}" for i in range(self.psd_radial)]
         return tuple(names)
 
-    @functools.cached_property
+    @cached_attribute
     def gain_names(self) -> tuple[str, ...]:
         return ("g_x2", "g_y1", "g_y2") if self.fit_gains else ()
 
-    @functools.cached_property
+    @cached_attribute
     def global_names(self) -> tuple[str, ...]:
         """Names of the free parameters shared by all images, in state order."""
         return self.intrinsic_names + self.distortion_names + self.gain_names
