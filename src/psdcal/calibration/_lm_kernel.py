@@ -118,8 +118,8 @@ def lm_image(P, img, theta0, separate_fy, gmap, gain_basis, meas, z0, n_views, f
     Returns
     -------
     x, F (0.5 |r|^2), status (:data:`MESSAGES`), njev, nfev, and at ``x``:
-    r (2N,), Jc (2N, ng + 6), d and y (N, 2), the block normal equations
-    U, W, V, gg, gp, and their inverse's blocks (``schur_covariance``): cov_ok, Cg, Cp, Cx.
+    r (2N,), Jc (2N, ng + 6), d and y (N, 2), and the blocks of the inverse of
+    the normal equations (``schur_covariance``): cov_ok, Cg, Cp, Cx.
     """
     ng = gmap.shape[0]
     x = z0.copy()
@@ -204,4 +204,4 @@ def lm_image(P, img, theta0, separate_fy, gmap, gain_basis, meas, z0, n_views, f
                 status = 5
                 break
     cov_ok, Cg, Cp, Cx = schur_covariance(U, W, V)
-    return x, F, status, njev, nfev, r, J, d, y, U, W, V, gg, gp, cov_ok, Cg, Cp, Cx
+    return x, F, status, njev, nfev, r, J, d, y, cov_ok, Cg, Cp, Cx

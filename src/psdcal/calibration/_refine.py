@@ -170,11 +170,18 @@ class Problem:
                 + tuple((-i, n) for n, i in _GAIN_IDX.items() if n in free))
 
     @cached_attribute
-    def global_map(self) -> np.ndarray:
-        """``gmap`` of the compiled kernels for :attr:`names` (psdcal.calibration._image_kernel.global_map)."""
+    def kernel_constants(self) -> tuple:
+        """What the compiled kernels take of this problem: ``gmap`` for :attr:`names`
+        (psdcal.calibration._image_kernel.global_map), an all-NaN warm start (N, 2) (none) and the gain basis
+        ((4, 3, 3) when the gains are fitted: gain_homography is linear in the gains, these are its values at
+        the unit vectors; else (0, 3, 3)). Do not modify them."""
         from psdcal.calibration._image_kernel import global_map
 
-        return global_map(self.names)
+        if self.spec.fit_gains:
+            basis = np.stack([gain_homography(e, *self.sensor_mm) for e in np.eye(4)])
+        else:
+            basis = np.zeros((0, 3, 3))
+        return global_map(self.names), np.full(self.observations[2].shape, np.nan), basis
 
     @cached_attribute
     def observations(self) -> tuple:
@@ -229,16 +236,12 @@ class Evaluator:
                     self._tkernel = template_model
                 self._normal = normal_equations
                 self._blocks = block_normal
-                self._gmap = prob.global_map
-                self._no_warm = np.full(self.d_meas.shape, np.nan)
+                self._gmap, self._no_warm, self._gain_basis = prob.kernel_constants
                 self._separate_fy = prob.spec.aspect
                 skew = base_intr.skew if prob.spec.skew else 0.0
-                self._theta0 = np.array([base_intr.f_mm, base_intr.cx_mm, base_intr.cy_mm, skew, base_intr.fy,
-                                         *base_dist.as_array(), *np.asarray(base_gains, dtype=float)], dtype=float)
-                if prob.spec.fit_gains:  # gain_homography is linear in the gains: its values at the unit vectors
-                    self._gain_basis = np.stack([gain_homography(e, *prob.sensor_mm) for e in np.eye(4)])
-                else:
-                    self._gain_basis = np.zeros((0, 3, 3))
+                d = base_dist
+                self._theta0 = np.array((base_intr.f_mm, base_intr.cx_mm, base_intr.cy_mm, skew, base_intr.fy,
+                                         d.k1, d.k2, d.k3, d.p1, d.p2, d.l1, d.l2, *self.base[2].tolist()), dtype=float)
 
     def unpack(self, z):
         return self.prob.unpack(z, *self.base)
@@ -654,7 +657,6 @@ class BlockNormal:
     def __init__(self, U, W, V, gg, gp, compiled: bool = True):
         self.U, self.W, self.V, self.gg, self.gp = U, W, V, gg, gp
         self.compiled = compiled
-        self._covariance = None  # (Cg, Cp, Cx) when already computed with the blocks (psdcal.calibration._lm_kernel)
 
     @property
     def n_global(self) -> int:
@@ -687,9 +689,7 @@ class BlockNormal:
         When A is singular (an unidentifiable direction) the blocks come from
         the pseudo-inverse of the dense A (rare; memory quadratic in views).
         """
-        if self._covariance is not None:
-            ok, (Cg, Cp, Cx) = True, self._covariance
-        elif self.compiled:
+        if self.compiled:
             from psdcal.calibration._image_kernel import schur_covariance
 
             ok, Cg, Cp, Cx = schur_covariance(self.U, self.W, self.V)
@@ -808,7 +808,7 @@ def _lm_compiled(ev, z0, options) -> "LMResult":
     solution's residuals, Jacobian and model points (as after the Python loop)."""
     from psdcal.calibration._lm_kernel import MESSAGES, lm_image
 
-    x, F, status, njev, nfev, r, Jc, d, y, U, W, V, gg, gp, cov_ok, Cg, Cp, Cx = lm_image(
+    x, F, status, njev, nfev, r, Jc, d, y, cov_ok, Cg, Cp, Cx = lm_image(
         ev.P, ev.img_idx, ev._theta0, ev._separate_fy, ev._gmap, ev._gain_basis, ev.d_meas,
         np.ascontiguousarray(z0, dtype=float), ev.prob.n_images, float(options.ftol), float(options.xtol),
         float(options.gtol), int(options.max_iterations), 1e-13, 50)
@@ -816,9 +816,8 @@ def _lm_compiled(ev, z0, options) -> "LMResult":
     ev._ckey, ev._cval = key, (r, Jc)
     ev._dkey, ev._dval, ev._yval = key, d, y
     ev._anchor = d
-    system = BlockNormal(U, W, V, gg, gp, compiled=True)
-    if cov_ok:  # the kernel's schur_covariance of these blocks (what covariance_blocks() would compute)
-        system._covariance = (Cg, Cp, Cx)
+    # the kernel's schur_covariance of the solution's normal equations (else _finish forms them and inverts)
+    system = _Solved((Cg, Cp, Cx)) if cov_ok else None
     return LMResult(x=x, cost=float(F), status=2 if status == 5 else int(status),
                     message=MESSAGES[int(status)], njev=int(njev), nfev=int(nfev), system=system)
 
@@ -977,11 +976,22 @@ def levenberg_marquardt(fun, jac, x0, options: SolverOptions = SolverOptions(), 
     return LMResult(x=x, cost=F, status=status, message=message, njev=njev, nfev=nfev, system=sysm)
 
 
+class _Solved:
+    """The normal equations at a compiled LM's solution, represented by their inverse's blocks (computed with
+    them in the same call): what :func:`_finish` asks of a :class:`BlockNormal`."""
+
+    def __init__(self, blocks):
+        self._blocks = blocks
+
+    def covariance_blocks(self):
+        return self._blocks
+
+
 def _finish(prob, ev, sol, r, Jc, m, n, options, system=None):
     dof = max(m - n, 1)
     sigma2 = float(r @ r) / dof
     # the solver's last normal equations are those at the solution (it forms them at accepted points only)
-    sysm = system if isinstance(system, BlockNormal) else ev.block_system(Jc, r)
+    sysm = system if isinstance(system, (BlockNormal, _Solved)) else ev.block_system(Jc, r)
     Cg, Cp, Cx = sysm.covariance_blocks()
     intr, coef, gains, rv, tv = ev.unpack(sol.x)
     iterations = int(sol.njev) if sol.njev is not None else int(sol.nfev)
