@@ -164,3 +164,11 @@ def test_extent_skips_missing_points():
     X = np.array([[[1.0, -3.0], [np.nan, np.nan]], [[0.5, 2.0], [np.nan, np.nan]]])
     assert _extent(X) == 6.0
     assert _extent(np.full((2, 3, 2), np.nan)) == 1.0
+
+
+def test_ragged_points_are_an_input_error_not_a_numpy_one():
+    from psdcal.calibration.core import calibrate
+    from psdcal.errors import InputError
+
+    with pytest.raises(InputError, match="numeric arrays"):
+        calibrate(np.zeros((4, 2)), [[[0.0, 0.0]], [[1.0, 1.0], [2.0, 2.0]]], verdict=False)

@@ -823,17 +823,18 @@ def _lm_compiled(ev, z0, options) -> "LMResult":
 
 
 @contextlib.contextmanager
-def _single_threaded_blas():
+def _single_threaded_blas(needed: bool = True):
     """Small dense problems run fastest on one BLAS thread (and do not fight
     other processes of a Monte Carlo run for cores).
 
     Nested uses (a refinement inside a calibration) cost nothing: only the
-    outermost one of a thread asks threadpoolctl (about 50 us per call, even
-    when the limit is already set)."""
+    outermost one of a thread asks threadpoolctl (some 6-50 us per call, even
+    when the limit is already set). ``needed=False`` (a problem too small for
+    any BLAS call to use threads) skips threadpoolctl for the whole block."""
     depth = getattr(_DEPTH, "n", 0)
     _DEPTH.n = depth + 1
     try:
-        if depth:
+        if depth or not needed:
             yield
         else:
             with _blas_limit():

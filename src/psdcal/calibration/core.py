@@ -65,8 +65,12 @@ class InitialEstimate:
 
 
 def _check_inputs(template_mm, points_mm, image_ids, min_images):
-    T = np.asarray(template_mm, dtype=float)
-    X = np.asarray(points_mm, dtype=float)
+    try:
+        T = np.asarray(template_mm, dtype=float)
+        X = np.asarray(points_mm, dtype=float)
+    except (ValueError, TypeError) as exc:  # ragged nested lists, non-numbers
+        raise InputError(f"template_mm and points_mm must be numeric arrays of shape (M, 2) and "
+                         f"(n_images, M, 2): {exc}") from None
     if T.ndim != 2 or T.shape[1] != 2:
         raise InputError(f"template_mm must have shape (M, 2), got {T.shape}")
     if X.ndim != 3 or X.shape[2] != 2 or X.shape[1] != T.shape[0]:
@@ -578,7 +582,11 @@ def calibrate(
             gains=gains, image_ids=image_ids, point_ids=point_ids, sensor_mm=sensor_mm, solver=solver,
             fix=fix, priors=priors, f_guess_mm=f_guess_mm, verdict=verdict, noise_mm=noise_mm,
         )
-    with _single_threaded_blas():  # small dense linear algebra: one BLAS thread is fastest
+    # small dense linear algebra: one BLAS thread is fastest. Without the verdict, a problem of fewer than
+    # BLAS_THREADS_MIN_POINTS points makes no BLAS call that OpenBLAS would thread (its work is in the compiled
+    # kernels and 9 x 9 factorisations), and the limit itself would cost some 6 us.
+    needed = verdict or _n_points(points_mm) >= BLAS_THREADS_MIN_POINTS
+    with _single_threaded_blas(needed):
         res = _calibrate(
             template_mm, points_mm, cost=cost, radial=radial, tangential=tangential, psd_radial=psd_radial,
             skew=skew, preliminary=preliminary, normalize=normalize, aspect=aspect, fit_gains=fit_gains,
@@ -588,6 +596,15 @@ def calibrate(
         if verdict:
             res = with_verdict(res, noise_mm=noise_mm, diagnose=False)
         return res
+
+
+def _n_points(points_mm) -> float:
+    """n_images x M of a points array (inf when it has no such shape: the checks report that)."""
+    try:
+        shape = np.shape(points_mm)
+    except ValueError:  # ragged
+        return math.inf
+    return shape[0] * shape[1] if len(shape) >= 2 else math.inf
 
 
 def with_verdict(res: CalibrationResult, *, noise_mm: float | None = None, points_kind: str | None = None,
@@ -750,6 +767,10 @@ def _calibrate(template_mm, points_mm, *, cost, radial, tangential, psd_radial, 
         )
     return result
 
+
+#: Below this many observations (and without the verdict) :func:`calibrate` does not ask threadpoolctl for one
+#: BLAS thread: no BLAS call of such a problem is large enough for OpenBLAS to thread.
+BLAS_THREADS_MIN_POINTS = 1000
 
 #: Points per view on which the starts of the refinement are compared when a view has more than twice as
 #: many (:func:`subsample_views`); the final refinement always takes every point.
