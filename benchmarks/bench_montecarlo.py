@@ -17,16 +17,23 @@ Run: ``.venv/bin/python benchmarks/bench_montecarlo.py [--trials N]``
 """
 from __future__ import annotations
 
-import argparse
-import time
+import os
 
-import numpy as np
+# one BLAS thread, as every benchmark here: CPU time is process time, which also counts the busy-waiting of
+# idle OpenBLAS worker threads (it made the simulation look 1.7x slower than it is)
+for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
 
-from psdcal.calibration.core import calibrate
-from psdcal.errors import PsdcalError
-from psdcal.study.reproduce import chain_settings, simulate_trial
-from psdcal.signal.chain import channel_gains, measure_amplitudes
-from psdcal.study.simulate import simulate_set
+import argparse  # noqa: E402
+import time  # noqa: E402
+
+import numpy as np  # noqa: E402
+
+from psdcal.calibration.core import calibrate  # noqa: E402
+from psdcal.errors import PsdcalError  # noqa: E402
+from psdcal.study.reproduce import chain_settings, simulate_trial  # noqa: E402
+from psdcal.signal.chain import channel_gains, measure_amplitudes  # noqa: E402
+from psdcal.study.simulate import simulate_set  # noqa: E402
 
 
 def _cpu(fn, n):
