@@ -63,7 +63,7 @@ def solve(d):
         )
         return intr, stats
 
-    t_end = time.perf_counter() + 0.05  # warm-up: at least 5 calls and 50 ms, as bench_scaling.py's _timed
+    t_end = time.perf_counter() + 0.05  # warm-up: at least 5 calls and 50 ms, the rule of _timing.py
     for k in range(10_000):
         run()
         if k + 1 >= 5 and time.perf_counter() >= t_end:

@@ -24,7 +24,6 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMB
 
 import argparse  # noqa: E402
 import sys  # noqa: E402
-import time  # noqa: E402
 import types  # noqa: E402
 from pathlib import Path  # noqa: E402
 
@@ -32,6 +31,7 @@ import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _table import print_table  # noqa: E402
+from _timing import median_seconds  # noqa: E402
 
 import psdcal._jit  # noqa: E402
 from psdcal.calibration import _closed_form, _homography  # noqa: E402
@@ -41,15 +41,7 @@ from psdcal.study.simulate import simulate_set  # noqa: E402
 ZHANG = Path(__file__).resolve().parent.parent / "tests" / "data" / "zhang1998"
 
 
-def _median_s(fn, repeats: int) -> float:
-    for _ in range(20):
-        fn()
-    ts = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        ts.append(time.perf_counter() - t0)
-    return float(np.median(ts))
+_median_s = median_seconds  # (the rule of benchmarks/_timing.py)
 
 
 def _grid(nx: int, ny: int) -> np.ndarray:

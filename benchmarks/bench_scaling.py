@@ -33,13 +33,13 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
 
 import argparse  # noqa: E402
 import sys  # noqa: E402
-import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _table import print_table  # noqa: E402
+from _timing import median_seconds  # noqa: E402
 
 from psdcal.calibration.core import calibrate  # noqa: E402
 from psdcal.study.simulate import simulate_set  # noqa: E402
@@ -58,25 +58,7 @@ def grid_template(m: int) -> np.ndarray:
     return np.stack([X.ravel(), Y.ravel()], axis=1)
 
 
-#: Warm-up before timing: at least this many calls and this long (the same rule in _mrcal_reference.py), so that
-#: every library is timed in its steady state (CPython specialises a function's bytecode after its first calls;
-#: caches and branch predictors settle), not in its first calls.
-WARMUP_CALLS = 5
-WARMUP_S = 0.05
-
-
-def _timed(fn, repeats: int) -> float:
-    t_end = time.perf_counter() + WARMUP_S
-    for k in range(10_000):
-        fn()
-        if k + 1 >= WARMUP_CALLS and time.perf_counter() >= t_end:
-            break
-    ts = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        ts.append(time.perf_counter() - t0)
-    return float(np.median(ts))
+_timed = median_seconds  # (the rule of benchmarks/_timing.py)
 
 
 def _opencv_inputs(template, points, origin_px):

@@ -7,6 +7,7 @@ result to round-off, and raise the same errors.
 """
 import numpy as np
 import pytest
+from _degenerate_views import spoilt_set
 
 import psdcal._jit
 from psdcal.calibration._closed_form import extrinsics_from_homography, poses_from_homographies, poses_from_homographies_reference
@@ -247,20 +248,7 @@ def _homography_errors_by_loop(src, dst, labels):
     ],
 )
 def test_homography_errors_name_the_first_bad_view(spoil):
-    s = simulate_set("lens2", n_images=6, noise_mm=0.002, seed=5)
-    T, pts = s.template_mm, s.points_mm.copy()
-    line = np.array([0, 1, 2, 3, 4])  # a row of the template: collinear on the plate and on the sensor
-    for i, how in spoil.items():
-        if how == "few":
-            pts[i, 3:] = np.nan
-        elif how == "none":
-            pts[i] = np.nan
-        elif how == "line":
-            keep = np.zeros(T.shape[0], bool)
-            keep[line] = True
-            pts[i, ~keep] = np.nan
-        elif how == "line-template":
-            pts[i] = np.outer(np.linspace(-2, 2, T.shape[0]), [1.0, 0.5])  # points on one line on the sensor
+    T, pts = spoilt_set(spoil)
     labels = [f"image {i + 10}" for i in range(6)]
     expected = _homography_errors_by_loop(T, pts, labels)
     assert expected is not None

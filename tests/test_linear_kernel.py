@@ -18,6 +18,7 @@ relative (about 1e-15 is reached on calibration sets).
 """
 import numpy as np
 import pytest
+from _degenerate_views import spoilt_set
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -172,32 +173,11 @@ def _dlt_conditioning(T, X):
     return np.array(out)
 
 
-def _spoilt(spoil):
-    s = simulate_set("lens2", n_images=6, noise_mm=0.002, seed=5)
-    T, pts = s.template_mm, s.points_mm.copy()
-    line = np.array([0, 1, 2, 3, 4])  # a row of the template: collinear on the plate and on the sensor
-    for i, how in spoil.items():
-        if how == "few":
-            pts[i, 3:] = np.nan
-        elif how == "none":
-            pts[i] = np.nan
-        elif how == "line":
-            keep = np.zeros(T.shape[0], bool)
-            keep[line] = True
-            pts[i, ~keep] = np.nan
-        elif how == "line-template":
-            pts[i] = np.outer(np.linspace(-2, 2, T.shape[0]), [1.0, 0.5])
-        elif how == "rank":  # 4 points, 3 of them on a line (exactly): not collinear, yet no unique homography
-            pts[i] = np.nan
-            pts[i, [0, 1, 2, 5]] = 0.05 * T[[0, 1, 2, 5]]
-    return T, pts
-
-
 @pytest.mark.parametrize("spoil", [{2: "few"}, {1: "line"}, {3: "few", 1: "line"}, {1: "few", 3: "line"},
                                    {0: "line-template"}, {4: "none"}, {2: "rank"}, {4: "rank", 5: "few"},
                                    {1: "rank", 3: "rank"}])
 def test_homography_errors_same_on_both_paths(path, spoil):
-    T, pts = _spoilt(spoil)
+    T, pts = spoilt_set(spoil)
     labels = [f"image {i + 10}" for i in range(6)]
     got, ref = _both(path, lambda: _outcome(lambda: homographies(T, pts, labels=labels)))
     assert isinstance(ref, DegenerateViewsError)

@@ -141,17 +141,24 @@ def _column_norms(W, k, out):
 
 
 @njit_inline
+def _valid_sums(P, valid, row):
+    """Count and coordinate sums of the valid points of P (M, 2) (valid[row] (M,)): ``(cnt, sx, sy)``."""
+    cnt = 0
+    sx = 0.0
+    sy = 0.0
+    for m in range(P.shape[0]):
+        if valid[row, m]:
+            cnt += 1
+            sx += P[m, 0]
+            sy += P[m, 1]
+    return cnt, sx, sy
+
+
+@njit_inline
 def _collinearity(P, valid, row):
     """:func:`~psdcal.calibration._homography.collinearity_batch` of one set: P (M, 2), valid[row] (M,)."""
     M = P.shape[0]
-    cnt = 0
-    mx = 0.0
-    my = 0.0
-    for m in range(M):
-        if valid[row, m]:
-            cnt += 1
-            mx += P[m, 0]
-            my += P[m, 1]
+    cnt, mx, my = _valid_sums(P, valid, row)
     cnt = max(cnt, 1)
     mx /= cnt
     my /= cnt
@@ -183,14 +190,7 @@ def _collinearity(P, valid, row):
 def _similarity(P, valid, row):
     """Hartley's normalisation of the valid points of P (M, 2): scale s, mean (mx, my)."""
     M = P.shape[0]
-    cnt = 0
-    mx = 0.0
-    my = 0.0
-    for m in range(M):
-        if valid[row, m]:
-            cnt += 1
-            mx += P[m, 0]
-            my += P[m, 1]
+    cnt, mx, my = _valid_sums(P, valid, row)
     mx /= cnt
     my /= cnt
     dist = 0.0

@@ -17,12 +17,12 @@ priors and of the numpy model); the tests compare the two.
 """
 from __future__ import annotations
 
-import math
 
 import numpy as np
 
 from psdcal._jit import njit
 from psdcal.calibration._image_kernel import block_normal, image_model, schur_covariance, schur_solve
+from psdcal.calibration._lm_rules import next_damping, trial_verdict
 
 #: status codes of :func:`lm_image` (those of ``levenberg_marquardt``, and 5: its damping overflow, a 2 there)
 MESSAGES = {
@@ -181,27 +181,20 @@ def lm_image(P, img, theta0, separate_fy, gmap, gain_basis, meas, z0, n_views, f
         nfev += 1
         F_new = 0.5 * np.dot(r_new, r_new)
         pred = 0.5 * np.dot(h, mu * D * h - g)
-        rho = (F - F_new) / pred if pred > 0 else -1.0
-        # the last round-off step (see levenberg_marquardt)
-        final = nu == 2.0 and 0 < pred <= ftol * F and abs(F - F_new) <= ftol * F
-        if (rho > 0 or final) and np.isfinite(F_new):
-            small = final or ((F - F_new) <= ftol * F and pred <= ftol * F)
+        accept, small, rho = trial_verdict(F, F_new, pred, nu, ftol)
+        mu, nu = next_damping(mu, nu, rho, accept)
+        if accept:
             x, r, F, J, d, y = x_new, r_new, F_new, J_new, d_new, y_new
             njev += 1
             U, W, V, gg, gp = block_normal(J, r, img, n_views)
             g, diagA = _system_vectors(U, V, gg, gp)
             D = np.maximum(D, diagA)
             fresh = True
-            mu *= max(1.0 / 3.0, 1.0 - math.pow(2.0 * rho - 1.0, 3.0))
-            nu = 2.0
             if small:
                 status = 3
                 break
-        else:
-            mu *= nu
-            nu *= 2.0
-            if not np.isfinite(mu) or mu > 1e200:
-                status = 5
-                break
+        elif not np.isfinite(mu) or mu > 1e200:
+            status = 5
+            break
     cov_ok, Cg, Cp, Cx = schur_covariance(U, W, V)
     return x, F, status, njev, nfev, r, J, d, y, cov_ok, Cg, Cp, Cx

@@ -31,6 +31,7 @@ import math
 import numpy as np
 
 from psdcal._jit import njit
+from psdcal.calibration._lm_rules import next_damping, trial_verdict
 
 #: status of :func:`solve_radial` when a line index is outside the template (the caller
 #: then takes the numpy path, which raises numpy's IndexError)
@@ -509,11 +510,9 @@ def solve_radial(pts_mm, members, line_len, c_mm, n_terms, ftol, xtol, gtol, max
         for j in range(nk):
             s += h[j] * (mu * D[j] * h[j] - g[j])
         pred = 0.5 * s
-        rho = (F - F_new) / pred if pred > 0 else -1.0
-        # the last step at the optimum to round-off (see levenberg_marquardt)
-        final = nu == 2.0 and 0 < pred <= ftol * F and abs(F - F_new) <= ftol * F
-        if (rho > 0 or final) and math.isfinite(F_new):
-            small = final or ((F - F_new) <= ftol * F and pred <= ftol * F)
+        accept, small, rho = trial_verdict(F, F_new, pred, nu, ftol)
+        mu, nu = next_damping(mu, nu, rho, accept)
+        if accept:
             for j in range(nk):
                 x[j] = x_new[j]
             F = F_new
@@ -527,18 +526,13 @@ def solve_radial(pts_mm, members, line_len, c_mm, n_terms, ftol, xtol, gtol, max
                 elif diagA[j] > D[j]:
                     D[j] = diagA[j]
             fresh = True
-            mu *= max(1.0 / 3.0, 1.0 - math.pow(2.0 * rho - 1.0, 3.0))
-            nu = 2.0
             if small:
                 status = 3
                 break
-        else:
-            mu *= nu
-            nu *= 2.0
-            if not math.isfinite(mu) or mu > 1e200:
-                status = 2
-                overflow = True
-                break
+        elif not math.isfinite(mu) or mu > 1e200:
+            status = 2
+            overflow = True
+            break
     for j in range(nk):
         k[j] = x[j] / scale[j]
     return k, F, status, overflow, n_groups, N, njev, nfev
