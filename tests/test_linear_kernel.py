@@ -446,7 +446,7 @@ def test_unconverged_kernels_fall_back_to_the_reference(path, monkeypatch):
     lk = linear_kernels()
     monkeypatch.setattr(lk, "homographies_kernel", lambda *a: (np.zeros((4, 3, 3)), lk.H_USE_REFERENCE, 2, 14))
     monkeypatch.setattr(lk, "intrinsics_kernel", lambda *a: (np.zeros(5), lk.I_USE_REFERENCE))
-    monkeypatch.setattr(lk, "poses_kernel", lambda H, *a: (np.zeros((len(H), 3)),) * 2 + (np.zeros(len(H), bool), False))
+    monkeypatch.setattr(lk, "poses_kernel", lambda H, *a: (np.zeros((len(H), 3)),) * 2 + (False,))
     path("compiled")
     np.testing.assert_array_equal(homographies(s.template_mm, s.points_mm), H_ref)
     assert intrinsics_from_homographies(H_ref) == intr_ref

@@ -20,6 +20,29 @@ def test_rotation_round_trip(r):
     np.testing.assert_allclose(R_from_r(r_from_R(R)), R, atol=1e-9)
 
 
+@pytest.mark.parametrize("gap_rad", [2.0, 1.0, 1e-1, 1e-3, 1e-5, 1e-6, 2e-6, 1e-7, 1e-9, 0.0])
+def test_rotation_vector_is_accurate_up_to_a_half_turn(gap_rad):
+    # theta = pi - gap: the arccos-of-the-trace formula lost up to 5e-4 relative within 1e-6 rad of pi
+    # (a sensor looking straight down is rotated by about pi); atan2 and the symmetric part do not
+    rng = np.random.default_rng(int(gap_rad * 1e9) % 1000)
+    for _ in range(50):
+        u = rng.normal(size=3)
+        u /= np.linalg.norm(u)
+        r = u * (np.pi - gap_rad)
+        got = r_from_R(R_from_r(r))
+        err = np.linalg.norm(got - r) if gap_rad > 0 else min(np.linalg.norm(got - r), np.linalg.norm(got + r))
+        assert err <= 1e-14 * np.pi
+
+
+@pytest.mark.parametrize("angle_rad", [0.0, 1e-12, 1e-9, 1e-7, 1e-4, 0.5, 2.0])
+def test_rotation_vector_is_accurate_near_zero_and_in_between(angle_rad):
+    rng = np.random.default_rng(3)
+    for _ in range(20):
+        u = rng.normal(size=3)
+        r = u / np.linalg.norm(u) * angle_rad
+        np.testing.assert_allclose(r_from_R(R_from_r(r)), r, rtol=1e-14, atol=1e-30)
+
+
 @given(r=rvecs)
 def test_rotation_derivative_matches_finite_differences(r):
     _, dR = R_from_r(r, jacobian=True)

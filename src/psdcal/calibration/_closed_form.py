@@ -186,12 +186,9 @@ def poses_from_homographies(Hs, intr: Intrinsics):
     if H.shape[0] == 0:
         return np.zeros((0, 3)), np.zeros((0, 3))
     if _jit.use_compiled(H.shape[0]):
-        rv, tv, near_pi, ok = linear_kernels().poses_kernel(np.ascontiguousarray(H), float(intr.f_mm), float(intr.skew),
-                                                            float(intr.cx_mm), float(intr.fy), float(intr.cy_mm))
+        rv, tv, ok = linear_kernels().poses_kernel(np.ascontiguousarray(H), float(intr.f_mm), float(intr.skew),
+                                                   float(intr.cx_mm), float(intr.fy), float(intr.cy_mm))
         if ok:
-            if near_pi.any():  # rotations near a half turn: the reference's own rounding (NEAR_PI_RAD)
-                idx = np.flatnonzero(near_pi)
-                rv[idx], tv[idx] = _poses_numpy(H[idx], intr)
             return rv, tv
         # non-finite input or a singular A: the reference below decides
     return _poses_numpy(H, intr)

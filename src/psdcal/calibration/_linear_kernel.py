@@ -35,10 +35,6 @@ H_OK, H_FEW_POINTS, H_COLLINEAR, H_RANK_DEFICIENT, H_USE_REFERENCE = 0, 1, 2, 3,
 #: codes returned by :func:`intrinsics_kernel`
 I_OK, I_UNDETERMINED, I_NOT_POSITIVE_DEFINITE, I_NEGATIVE_FOCAL, I_USE_REFERENCE = 0, 1, 2, 3, 4
 
-#: poses_kernel marks views whose rotation angle is within this of pi (rad): there the reference's
-#: rotation vector (arccos of the trace, then ``theta / (2 sin theta)``) turns round-off in R into
-#: a relative error of about eps / (pi - theta)^2, so the caller recomputes them with the reference
-NEAR_PI_RAD = 0.05
 _JACOBI_TOL = 2e-15  # columns p, q count as orthogonal when |w_p . w_q| <= tol |w_p| |w_q| (about 9 eps)
 _JACOBI_MAX_SWEEPS = 60
 
@@ -496,35 +492,32 @@ def intrinsics_kernel(Hs, skew, aspect):
 
 @njit_inline
 def _rotation_vector(R):
-    """:func:`~psdcal.model.projection.r_from_R` of R (3, 3), as a tuple."""
-    cos_t = (R[0, 0] + R[1, 1] + R[2, 2] - 1.0) / 2.0
-    cos_t = min(max(cos_t, -1.0), 1.0)
-    theta = math.acos(cos_t)
+    """:func:`~psdcal.model.projection.r_from_R_batch` of R (3, 3) (the same formulas), as a tuple."""
     w0 = R[2, 1] - R[1, 2]
     w1 = R[0, 2] - R[2, 0]
     w2 = R[1, 0] - R[0, 1]
+    s = 0.5 * math.sqrt(w0 * w0 + w1 * w1 + w2 * w2)  # sin(theta)
+    c = 0.5 * (R[0, 0] + R[1, 1] + R[2, 2] - 1.0)  # cos(theta)
+    theta = math.atan2(s, c)
     if theta < 1e-8:
         return 0.5 * w0, 0.5 * w1, 0.5 * w2
-    if np.pi - theta < 1e-6:
-        # near pi: the axis from the symmetric part B = (R + I) / 2, its largest diagonal's column
-        d0 = math.sqrt(max((R[0, 0] + 1.0) / 2.0, 0.0))
-        d1 = math.sqrt(max((R[1, 1] + 1.0) / 2.0, 0.0))
-        d2 = math.sqrt(max((R[2, 2] + 1.0) / 2.0, 0.0))
-        kk = 0
-        if d1 > d0:
-            kk = 1
-        if d2 > max(d0, d1):
-            kk = 2
-        bkk = (R[kk, kk] + 1.0) / 2.0
-        sq = math.sqrt(bkk)
-        ax0 = ((R[0, kk] + (1.0 if kk == 0 else 0.0)) / 2.0) / sq
-        ax1 = ((R[1, kk] + (1.0 if kk == 1 else 0.0)) / 2.0) / sq
-        ax2 = ((R[2, kk] + (1.0 if kk == 2 else 0.0)) / 2.0) / sq
-        if ax0 * w0 + ax1 * w1 + ax2 * w2 < 0:
-            ax0, ax1, ax2 = -ax0, -ax1, -ax2
-        return ax0 * theta, ax1 * theta, ax2 * theta
-    f = theta / (2.0 * math.sin(theta))
-    return w0 * f, w1 * f, w2 * f
+    if not c < -0.5:
+        f = theta / (2.0 * s)
+        return w0 * f, w1 * f, w2 * f
+    # beyond 120 degrees: the axis is the largest column of (R + R^T) / 2 - c I = (1 - c) u u^T, signed like w
+    kk = 0
+    best = R[0, 0] - c
+    for j in range(1, 3):
+        if R[j, j] - c > best:
+            best = R[j, j] - c
+            kk = j
+    a0 = 0.5 * (R[0, kk] + R[kk, 0]) - (c if kk == 0 else 0.0)
+    a1 = 0.5 * (R[1, kk] + R[kk, 1]) - (c if kk == 1 else 0.0)
+    a2 = 0.5 * (R[2, kk] + R[kk, 2]) - (c if kk == 2 else 0.0)
+    nrm = math.sqrt(a0 * a0 + a1 * a1 + a2 * a2)
+    if a0 * w0 + a1 * w1 + a2 * w2 < 0:
+        nrm = -nrm
+    return a0 / nrm * theta, a1 / nrm * theta, a2 / nrm * theta
 
 
 @njit_inline
@@ -574,22 +567,20 @@ def poses_kernel(Hs, f, skew, cx, fy, cy):
     """:func:`~psdcal.calibration._closed_form.poses_from_homographies` of Hs (n, 3, 3) (Eq 26-28).
 
     ``A = [[f, skew, cx], [0, fy, cy], [0, 0, 1]]`` (mm). Returns rvecs (n, 3)
-    rad, tvecs (n, 3) mm, ``near_pi`` (n,) bool: the views whose rotation angle is
-    within :data:`NEAR_PI_RAD` of pi (see there), and whether the input was usable
-    (finite, ``f fy != 0``); when not, the caller runs the reference, which decides.
+    rad, tvecs (n, 3) mm and whether the input was usable (finite, ``f fy != 0``);
+    when not, the caller runs the reference, which decides.
     """
     n = Hs.shape[0]
     rv = np.zeros((n, 3))
     tv = np.zeros((n, 3))
-    near_pi = np.zeros(n, dtype=np.bool_)
     if not (math.isfinite(f) and math.isfinite(skew) and math.isfinite(cx) and math.isfinite(fy)
             and math.isfinite(cy) and f != 0.0 and fy != 0.0):
-        return rv, tv, near_pi, False
+        return rv, tv, False
     for v in range(n):
         for i in range(3):
             for j in range(3):
                 if not math.isfinite(Hs[v, i, j]):
-                    return rv, tv, near_pi, False
+                    return rv, tv, False
     # A^-1 of the upper triangular A
     i00 = 1.0 / f
     i11 = 1.0 / fy
@@ -612,7 +603,7 @@ def poses_kernel(Hs, f, skew, cx, fy, cy):
         norm1 = math.sqrt(a[0, 0] * a[0, 0] + a[1, 0] * a[1, 0] + a[2, 0] * a[2, 0])
         norm2 = math.sqrt(a[0, 1] * a[0, 1] + a[1, 1] * a[1, 1] + a[2, 1] * a[2, 1])
         if not norm1 + norm2 > 0:  # a zero homography: the reference's SVD raises
-            return rv, tv, near_pi, False
+            return rv, tv, False
         lam = 2.0 / (norm1 + norm2)
         if a[2, 2] * lam < 0:  # template in front: t_z > 0
             lam = -lam
@@ -626,16 +617,14 @@ def poses_kernel(Hs, f, skew, cx, fy, cy):
         for i in range(3):
             for j in range(3):
                 if not math.isfinite(Mx[i, j]):  # a zero homography: the reference's SVD raises
-                    return rv, tv, near_pi, False
+                    return rv, tv, False
         if not _nearest_rotation(Mx, W, V, R):  # rank <= 1 (no unique nearest rotation) or unconverged: the reference decides
-            return rv, tv, near_pi, False
+            return rv, tv, False
         r0, r1, r2 = _rotation_vector(R)
         rv[v, 0] = r0
         rv[v, 1] = r1
         rv[v, 2] = r2
-        cos_t = min(max((R[0, 0] + R[1, 1] + R[2, 2] - 1.0) / 2.0, -1.0), 1.0)
-        near_pi[v] = np.pi - math.acos(cos_t) < NEAR_PI_RAD
-    return rv, tv, near_pi, True
+    return rv, tv, True
 
 
 @njit
