@@ -166,3 +166,22 @@ def test_bad_arguments():
         mc.run_trials(gaussian_trial, 2, seed=1, executor="serial", value=3)
     with pytest.raises(KeyError):
         mc.run_trials(gaussian_trial, 2, seed=1, executor="serial", progress=False).values("c")
+
+
+def _blas_threads_trial(rng):
+    from threadpoolctl import threadpool_info
+
+    blas = [i["num_threads"] for i in threadpool_info() if i.get("user_api") == "blas"]
+    return {"blas_threads": float(max(blas)) if blas else 1.0}
+
+
+@pytest.mark.parametrize("executor", ["serial", "pool"])
+def test_trials_run_on_one_blas_thread(executor):
+    # the executor's workers are the parallelism: a BLAS thread pool in each would oversubscribe the cores
+    pytest.importorskip("threadpoolctl")
+    if executor == "pool":
+        with cf.ProcessPoolExecutor(max_workers=2) as ex:
+            table = mc.run_trials(_blas_threads_trial, 4, seed=0, executor=ex, progress=False)
+    else:
+        table = mc.run_trials(_blas_threads_trial, 4, seed=0, executor="serial", progress=False)
+    assert np.all(table.values("blas_threads") == 1.0)

@@ -288,7 +288,19 @@ def summarise(table: TrialTable, by: Iterable[str] | None = None) -> list[Parame
 
 
 def _run_chunk(trial_fn: Callable, first: int, seeds: list, kwargs: dict) -> list:
-    """Run trials ``first, first + 1, ...`` in this process; never raises for a trial."""
+    """Run trials ``first, first + 1, ...`` in this process; never raises for a trial.
+
+    BLAS runs on one thread meanwhile: the parallelism is the executor's workers, and a BLAS
+    thread pool per worker would only oversubscribe the cores (idle OpenBLAS threads also
+    busy-wait between calls, burning CPU).
+    """
+    from psdcal.calibration._refine import _single_threaded_blas
+
+    with _single_threaded_blas():
+        return _run_trials_here(trial_fn, first, seeds, kwargs)
+
+
+def _run_trials_here(trial_fn: Callable, first: int, seeds: list, kwargs: dict) -> list:
     out = []
     for k, ss in enumerate(seeds):
         try:
