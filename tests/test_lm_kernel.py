@@ -1,4 +1,4 @@
-"""The compiled LM loop of the image cost against the Python loop it replaces.
+"""The compiled LM loop (image and template costs) against the Python loop it replaces.
 
 :func:`psdcal.calibration._lm_kernel.lm_image` runs the iterations of
 :func:`psdcal.calibration._refine.levenberg_marquardt` (with the compiled
@@ -82,6 +82,37 @@ def test_compiled_loop_equals_python_loop(both, lens, n, spec):
     _assert_same(a, b)
     # the solution is the truth to within its standard errors (the loop solved the problem, not only agreed)
     assert abs(a.intrinsics.f_mm - s.intrinsics.f_mm) < 6 * np.sqrt(a.covariance_global[0, 0])
+
+
+@pytest.mark.parametrize("lens, n, spec", [
+    ("lens2", 9, ModelSpec(radial=2, tangential=False)),
+    ("lens1", 7, ModelSpec(radial=2, tangential=True, aspect=True)),
+])
+def test_compiled_loop_equals_python_loop_on_the_template_cost(both, lens, n, spec):
+    s = simulate_set(lens, n_images=n, noise_mm=0.002, seed=n + 1)
+    pts = s.points_mm.copy()
+    pts[2, 4] = np.nan
+    prob = Problem(s.template_mm, pts, spec, cost="template")
+    intr, dist, rv, tv = _start(s, spec, seed=n)
+    a, b = both(prob, intr, dist, np.ones(4), rv, tv)
+    assert b.converged and a.model_mm is None and b.model_mm is None
+    sd = np.sqrt(np.diag(b.covariance_global))
+    assert a.converged == b.converged and a.message == b.message and abs(a.iterations - b.iterations) <= 1
+    np.testing.assert_allclose(a.z[: sd.size], b.z[: sd.size], rtol=0, atol=1e-6 * sd.min())
+    np.testing.assert_allclose(a.z, b.z, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(a.cost_rms, b.cost_rms, rtol=1e-10)
+    np.testing.assert_allclose(a.covariance_global, b.covariance_global, rtol=1e-7, atol=1e-7 * np.abs(b.covariance_global).max())
+    np.testing.assert_allclose(a.residuals, b.residuals, rtol=0, atol=1e-12)
+
+
+def test_template_cost_iteration_limit_stops_both_at_the_same_point(both):
+    s = simulate_set("lens1", n_images=7, noise_mm=0.002, seed=5)
+    spec = ModelSpec(radial=2, tangential=False)
+    prob = Problem(s.template_mm, s.points_mm, spec, cost="template")
+    intr, dist, rv, tv = _start(s, spec, seed=5)
+    a, b = both(prob, intr, dist, np.ones(4), rv, tv, SolverOptions(max_iterations=2))
+    assert not a.converged and not b.converged and a.iterations == b.iterations
+    np.testing.assert_allclose(a.z, b.z, rtol=1e-10, atol=1e-13)
 
 
 def test_compiled_loop_with_fitted_gains_and_fixed_parameters(both):

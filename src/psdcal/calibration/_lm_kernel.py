@@ -21,7 +21,7 @@ from __future__ import annotations
 import numpy as np
 
 from psdcal._jit import njit
-from psdcal.calibration._image_kernel import block_normal, image_model, schur_covariance, schur_solve
+from psdcal.calibration._image_kernel import block_normal, image_model, schur_covariance, schur_solve, template_model
 from psdcal.calibration._lm_rules import next_damping, trial_verdict
 
 #: status codes of :func:`lm_image` (those of ``levenberg_marquardt``, and 5: its damping overflow, a 2 there)
@@ -57,25 +57,52 @@ def _evaluate(P, img, theta0, separate_fy, gmap, gain_basis, meas, z, n_views, w
                               gain_basis)
     N = meas.shape[0]
     r = np.empty(2 * N)
-    any_bad = False
     for i in range(N):
         r[2 * i] = y[i, 0] - meas[i, 0]
         r[2 * i + 1] = y[i, 1] - meas[i, 1]
-    for j in range(2 * N):
+    _clean(r, J)
+    return r, J, d, y
+
+
+@njit
+def _clean(r, J):
+    """In place, as ``Evaluator`` does: a non-finite residual becomes 1e3 with a zero Jacobian row (J may be
+    (0, 0): residuals only), and when there was one, the Jacobian's non-finite entries become what
+    ``np.nan_to_num`` makes of them."""
+    any_bad = False
+    has_jac = J.shape[0] == r.shape[0]
+    for j in range(r.shape[0]):
         if not np.isfinite(r[j]):
             any_bad = True
             r[j] = 1e3
-            for c in range(J.shape[1]):
-                J[j, c] = 0.0
-    if any_bad:
-        for j in range(2 * N):
+            if has_jac:
+                for c in range(J.shape[1]):
+                    J[j, c] = 0.0
+    if any_bad and has_jac:
+        for j in range(r.shape[0]):
             for c in range(J.shape[1]):
                 e = J[j, c]
                 if np.isnan(e):
                     J[j, c] = 0.0
                 elif np.isinf(e):
                     J[j, c] = _BIG if e > 0 else -_BIG
-    return r, J, d, y
+
+
+@njit
+def _evaluate_template(P, img, theta0, separate_fy, gmap, meas, z, n_views, want_jac):
+    """Residuals (2N,) of the template cost (Eq 29) and, with ``want_jac``, the compact Jacobian at ``z``
+    (cleaned as :func:`_clean`)."""
+    ng = gmap.shape[0]
+    theta = theta0.copy()
+    for k in range(ng):
+        theta[gmap[k]] = z[k]
+    poses = np.empty((n_views, 6))
+    for v in range(n_views):
+        for a in range(6):
+            poses[v, a] = z[ng + 6 * v + a]
+    r, J = template_model(P, img, theta, separate_fy, poses, meas, gmap, want_jac)
+    _clean(r, J)
+    return r, J
 
 
 @njit
@@ -97,7 +124,7 @@ def _system_vectors(U, V, gg, gp):
 
 @njit
 def lm_image(P, img, theta0, separate_fy, gmap, gain_basis, meas, z0, n_views, ftol, xtol, gtol, max_iterations,
-             tol_mm, max_newton):
+             tol_mm, max_newton, template):
     """Levenberg-Marquardt on the image cost, all iterations in one call.
 
     The algorithm of ``levenberg_marquardt`` (Marquardt scaling by the running
@@ -114,6 +141,10 @@ def lm_image(P, img, theta0, separate_fy, gmap, gain_basis, meas, z0, n_views, f
     n_views : int
     ftol, xtol, gtol, max_iterations : ``SolverOptions``
     tol_mm, max_newton : the Newton inverse of the distortion
+    template : bool
+        The template-plane cost (Eq 29, :func:`~psdcal.calibration._image_kernel.template_model`)
+        instead of the image cost. As the Python loop does for it, trial points get residuals only
+        and an accepted point then its Jacobian; d and y are then empty (0, 2).
 
     Returns
     -------
@@ -124,8 +155,14 @@ def lm_image(P, img, theta0, separate_fy, gmap, gain_basis, meas, z0, n_views, f
     ng = gmap.shape[0]
     x = z0.copy()
     no_warm = np.full(meas.shape, np.nan)
-    r, J, d, y = _evaluate(P, img, theta0, separate_fy, gmap, gain_basis, meas, x, n_views, no_warm, tol_mm,
-                           max_newton)
+    if template:
+        r, _ = _evaluate_template(P, img, theta0, separate_fy, gmap, meas, x, n_views, False)
+        _, J = _evaluate_template(P, img, theta0, separate_fy, gmap, meas, x, n_views, True)
+        d = np.empty((0, 2))
+        y = d
+    else:
+        r, J, d, y = _evaluate(P, img, theta0, separate_fy, gmap, gain_basis, meas, x, n_views, no_warm, tol_mm,
+                               max_newton)
     nfev = 1
     njev = 1
     F = 0.5 * np.dot(r, r)
@@ -176,15 +213,24 @@ def lm_image(P, img, theta0, separate_fy, gmap, gain_basis, meas, z0, n_views, f
             status = 2
             break
         x_new = x + h
-        r_new, J_new, d_new, y_new = _evaluate(P, img, theta0, separate_fy, gmap, gain_basis, meas, x_new, n_views,
-                                               d, tol_mm, max_newton)
+        if template:  # residuals only (the Jacobian once the step is taken)
+            r_new, J_new = _evaluate_template(P, img, theta0, separate_fy, gmap, meas, x_new, n_views, False)
+            d_new = d
+            y_new = y
+        else:
+            r_new, J_new, d_new, y_new = _evaluate(P, img, theta0, separate_fy, gmap, gain_basis, meas, x_new,
+                                                   n_views, d, tol_mm, max_newton)
         nfev += 1
         F_new = 0.5 * np.dot(r_new, r_new)
         pred = 0.5 * np.dot(h, mu * D * h - g)
         accept, small, rho = trial_verdict(F, F_new, pred, nu, ftol)
         mu, nu = next_damping(mu, nu, rho, accept)
         if accept:
-            x, r, F, J, d, y = x_new, r_new, F_new, J_new, d_new, y_new
+            x, r, F, d, y = x_new, r_new, F_new, d_new, y_new
+            if template:
+                _, J = _evaluate_template(P, img, theta0, separate_fy, gmap, meas, x, n_views, True)
+            else:
+                J = J_new
             njev += 1
             U, W, V, gg, gp = block_normal(J, r, img, n_views)
             g, diagA = _system_vectors(U, V, gg, gp)

@@ -790,7 +790,7 @@ def refine(prob: Problem, intr0: Intrinsics, dist0: Distortion, gains0, rvecs0, 
         raise DegenerateViewsError(f"{m // 2} observed points give {m} equations for {n} unknowns: add images or points")
     ev.trial_jacobians = True
     with _single_threaded_blas():
-        if ev._kernel is not None and COMPILED_LOOP:
+        if (ev._kernel is not None or ev._tkernel is not None) and COMPILED_LOOP:
             sol = _lm_compiled(ev, z0, options)
         else:
             sol = levenberg_marquardt(ev.residuals, ev.jacobian_compact, z0, options, normal=ev.block_system)
@@ -811,11 +811,12 @@ def _lm_compiled(ev, z0, options) -> "LMResult":
     x, F, status, njev, nfev, r, Jc, d, y, cov_ok, Cg, Cp, Cx = lm_image(
         ev.P, ev.img_idx, ev._theta0, ev._separate_fy, ev._gmap, ev._gain_basis, ev.d_meas,
         np.ascontiguousarray(z0, dtype=float), ev.prob.n_images, float(options.ftol), float(options.xtol),
-        float(options.gtol), int(options.max_iterations), 1e-13, 50)
+        float(options.gtol), int(options.max_iterations), 1e-13, 50, ev._kernel is None)
     key = x.tobytes()
     ev._ckey, ev._cval = key, (r, Jc)
-    ev._dkey, ev._dval, ev._yval = key, d, y
-    ev._anchor = d
+    if ev._kernel is not None:  # the image cost's model points (the template cost has none)
+        ev._dkey, ev._dval, ev._yval = key, d, y
+        ev._anchor = d
     # the kernel's schur_covariance of the solution's normal equations (else _finish forms them and inverts)
     system = _Solved((Cg, Cp, Cx)) if cov_ok else None
     return LMResult(x=x, cost=float(F), status=2 if status == 5 else int(status),
