@@ -38,13 +38,8 @@ _BIG = np.finfo(np.float64).max
 
 
 @njit
-def _evaluate(P, img, theta0, separate_fy, gmap, gain_basis, meas, z, n_views, warm, tol_mm, max_newton):
-    """Residuals (2N,), compact Jacobian (2N, ng + 6), model points d and y (N, 2) at the state ``z``.
-
-    As ``Evaluator.evaluate_compact`` with the compiled kernel: non-finite
-    residuals become 1e3 with zero Jacobian rows, and then the Jacobian's
-    non-finite entries are replaced as ``np.nan_to_num`` does.
-    """
+def _state(theta0, gmap, z, n_views):
+    """The kernels' 16 global parameters (``theta0`` with the state's free ones) and poses (n_views, 6) of ``z``."""
     ng = gmap.shape[0]
     theta = theta0.copy()
     for k in range(ng):
@@ -53,6 +48,18 @@ def _evaluate(P, img, theta0, separate_fy, gmap, gain_basis, meas, z, n_views, w
     for v in range(n_views):
         for a in range(6):
             poses[v, a] = z[ng + 6 * v + a]
+    return theta, poses
+
+
+@njit
+def _evaluate(P, img, theta0, separate_fy, gmap, gain_basis, meas, z, n_views, warm, tol_mm, max_newton):
+    """Residuals (2N,), compact Jacobian (2N, ng + 6), model points d and y (N, 2) at the state ``z``.
+
+    As ``Evaluator.evaluate_compact`` with the compiled kernel: non-finite
+    residuals become 1e3 with zero Jacobian rows, and then the Jacobian's
+    non-finite entries are replaced as ``np.nan_to_num`` does.
+    """
+    theta, poses = _state(theta0, gmap, z, n_views)
     d, ok, y, J = image_model(P, img, theta, separate_fy, poses, warm, meas, gmap, True, tol_mm, max_newton,
                               gain_basis)
     N = meas.shape[0]
@@ -92,14 +99,7 @@ def _clean(r, J):
 def _evaluate_template(P, img, theta0, separate_fy, gmap, meas, z, n_views, want_jac):
     """Residuals (2N,) of the template cost (Eq 29) and, with ``want_jac``, the compact Jacobian at ``z``
     (cleaned as :func:`_clean`)."""
-    ng = gmap.shape[0]
-    theta = theta0.copy()
-    for k in range(ng):
-        theta[gmap[k]] = z[k]
-    poses = np.empty((n_views, 6))
-    for v in range(n_views):
-        for a in range(6):
-            poses[v, a] = z[ng + 6 * v + a]
+    theta, poses = _state(theta0, gmap, z, n_views)
     r, J = template_model(P, img, theta, separate_fy, poses, meas, gmap, want_jac)
     _clean(r, J)
     return r, J
