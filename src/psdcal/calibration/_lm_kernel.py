@@ -1,22 +1,22 @@
-"""The image-cost refinement's Levenberg-Marquardt loop in one compiled call.
+"""The refinement's Levenberg-Marquardt loop in one compiled call (image and template costs).
 
 :func:`psdcal.calibration._refine.levenberg_marquardt`, driven by the compiled
-image cost (``Evaluator`` with ``trial_jacobians``), spends a small set's time
-in Python between kernel calls: on 5 views of 14 points an iteration's
-kernels (residuals and Jacobian, block normal equations, Schur step) take
-about 15 us and the Python around them as much again. :func:`lm_image` runs
-the same iterations inside numba: the same kernels
-(:func:`~psdcal.calibration._image_kernel.image_model`,
+costs (``Evaluator``), spends a small set's time in Python between kernel
+calls: on 5 views of 14 points an iteration's kernels (residuals and
+Jacobian, block normal equations, Schur step) take about 15 us and the Python
+around them as much again. :func:`lm_image` runs the same iterations inside
+numba: the same kernels
+(:func:`~psdcal.calibration._image_kernel.image_model` or
+:func:`~psdcal.calibration._image_kernel.template_model`,
 :func:`~psdcal.calibration._image_kernel.block_normal`,
 :func:`~psdcal.calibration._image_kernel.schur_solve`), the same damping and
 stopping rules in the same order, the Newton inverse of each trial point
 warm-started from the last accepted point, as the Python loop does.
 
-The Python loop stays the reference (and the path of every other cost, of
-priors and of the numpy model); the tests compare the two.
+The Python loop stays the reference (and the path of priors and of the numpy
+model); the tests compare the two.
 """
 from __future__ import annotations
-
 
 import numpy as np
 
@@ -125,7 +125,7 @@ def _system_vectors(U, V, gg, gp):
 @njit
 def lm_image(P, img, theta0, separate_fy, gmap, gain_basis, meas, z0, n_views, ftol, xtol, gtol, max_iterations,
              tol_mm, max_newton, template):
-    """Levenberg-Marquardt on the image cost, all iterations in one call.
+    """Levenberg-Marquardt on the image or the template cost, all iterations in one call.
 
     The algorithm of ``levenberg_marquardt`` (Marquardt scaling by the running
     maximum of ``diag(J^T J)``, Nielsen's damping rule, MINPACK's gtol / xtol
@@ -143,8 +143,11 @@ def lm_image(P, img, theta0, separate_fy, gmap, gain_basis, meas, z0, n_views, f
     tol_mm, max_newton : the Newton inverse of the distortion
     template : bool
         The template-plane cost (Eq 29, :func:`~psdcal.calibration._image_kernel.template_model`)
-        instead of the image cost. As the Python loop does for it, trial points get residuals only
-        and an accepted point then its Jacobian; d and y are then empty (0, 2).
+        instead of the image cost; d and y are then empty (0, 2).
+
+    Every trial point's Jacobian comes with its residuals (one pass; most steps are
+    accepted), for both costs. The Python loop evaluates the template cost's trial points
+    without it and the accepted point again with it: the same residuals and Jacobians.
 
     Returns
     -------
@@ -156,8 +159,7 @@ def lm_image(P, img, theta0, separate_fy, gmap, gain_basis, meas, z0, n_views, f
     x = z0.copy()
     no_warm = np.full(meas.shape, np.nan)
     if template:
-        r, _ = _evaluate_template(P, img, theta0, separate_fy, gmap, meas, x, n_views, False)
-        _, J = _evaluate_template(P, img, theta0, separate_fy, gmap, meas, x, n_views, True)
+        r, J = _evaluate_template(P, img, theta0, separate_fy, gmap, meas, x, n_views, True)
         d = np.empty((0, 2))
         y = d
     else:
@@ -213,8 +215,8 @@ def lm_image(P, img, theta0, separate_fy, gmap, gain_basis, meas, z0, n_views, f
             status = 2
             break
         x_new = x + h
-        if template:  # residuals only (the Jacobian once the step is taken)
-            r_new, J_new = _evaluate_template(P, img, theta0, separate_fy, gmap, meas, x_new, n_views, False)
+        if template:
+            r_new, J_new = _evaluate_template(P, img, theta0, separate_fy, gmap, meas, x_new, n_views, True)
             d_new = d
             y_new = y
         else:
@@ -226,11 +228,7 @@ def lm_image(P, img, theta0, separate_fy, gmap, gain_basis, meas, z0, n_views, f
         accept, small, rho = trial_verdict(F, F_new, pred, nu, ftol)
         mu, nu = next_damping(mu, nu, rho, accept)
         if accept:
-            x, r, F, d, y = x_new, r_new, F_new, d_new, y_new
-            if template:
-                _, J = _evaluate_template(P, img, theta0, separate_fy, gmap, meas, x, n_views, True)
-            else:
-                J = J_new
+            x, r, F, J, d, y = x_new, r_new, F_new, J_new, d_new, y_new
             njev += 1
             U, W, V, gg, gp = block_normal(J, r, img, n_views)
             g, diagA = _system_vectors(U, V, gg, gp)

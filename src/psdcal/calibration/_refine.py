@@ -798,14 +798,14 @@ def refine(prob: Problem, intr0: Intrinsics, dist0: Distortion, gains0, rvecs0, 
         return _finish(prob, ev, sol, r, Jc, m, n, options, system=sol.system)
 
 
-#: Run the image cost's LM iterations in one compiled call (:mod:`psdcal.calibration._lm_kernel`) when its
-#: kernels are compiled; False: the Python loop :func:`levenberg_marquardt` (the reference) always.
+#: Run the LM iterations of the image and template costs in one compiled call (:mod:`psdcal.calibration._lm_kernel`)
+#: when their kernels are compiled; False: the Python loop :func:`levenberg_marquardt` (the reference) always.
 COMPILED_LOOP = True
 
 
 def _lm_compiled(ev, z0, options) -> "LMResult":
-    """:func:`levenberg_marquardt` on ``ev``'s compiled image cost in one call; ``ev`` is left caching the
-    solution's residuals, Jacobian and model points (as after the Python loop)."""
+    """:func:`levenberg_marquardt` on ``ev``'s compiled image or template cost in one call; ``ev`` is left
+    caching the solution's residuals, Jacobian and (image cost) model points, as after the Python loop."""
     from psdcal.calibration._lm_kernel import MESSAGES, lm_image
 
     x, F, status, njev, nfev, r, Jc, d, y, cov_ok, Cg, Cp, Cx = lm_image(
