@@ -24,6 +24,12 @@ from psdcal.model.params import Intrinsics
 from psdcal.model.projection import nearest_rotation, nearest_rotation_batch, r_from_R, r_from_R_batch
 
 
+# why the closed form has no camera (the compiled and the numpy paths raise the same)
+_UNDETERMINED = "the views do not determine the intrinsics (too few distinct orientations of the template)"
+_NOT_POSITIVE_DEFINITE = "closed-form intrinsics: B is not positive definite (degenerate or noisy views)"
+_NEGATIVE_FOCAL = "closed-form intrinsics: negative focal length squared (degenerate views)"
+
+
 def _v(Hs, i, j):
     """Zhang's v_ij over the full b = [b11, b12, b22, b13, b23, b33] (Eq 22), per view.
 
@@ -83,13 +89,11 @@ def intrinsics_from_homographies(Hs, *, skew: bool = False, aspect: bool = False
                     return Intrinsics(f_mm=alpha, cx_mm=u0, cy_mm=v0, skew=gamma if skew else 0.0, fy_mm=beta)
                 return Intrinsics(f_mm=math.sqrt(alpha * beta), cx_mm=u0, cy_mm=v0, skew=gamma if skew else 0.0)
             if code == lk.I_UNDETERMINED:
-                raise DegenerateViewsError(
-                    "the views do not determine the intrinsics (too few distinct orientations of the template)"
-                )
+                raise DegenerateViewsError(_UNDETERMINED)
             if code == lk.I_NOT_POSITIVE_DEFINITE:
-                raise DegenerateViewsError("closed-form intrinsics: B is not positive definite (degenerate or noisy views)")
+                raise DegenerateViewsError(_NOT_POSITIVE_DEFINITE)
             if code == lk.I_NEGATIVE_FOCAL:
-                raise DegenerateViewsError("closed-form intrinsics: negative focal length squared (degenerate views)")
+                raise DegenerateViewsError(_NEGATIVE_FOCAL)
             # a non-finite or zero homography, or an SVD that did not converge: the reference below decides
     Hs = [np.asarray(H, dtype=float) / np.linalg.norm(H) for H in Hs]
     if len(Hs) < need:
@@ -112,20 +116,18 @@ def intrinsics_from_homographies(Hs, *, skew: bool = False, aspect: bool = False
     _, s, Vt = np.linalg.svd(Vr / sc, full_matrices=False)  # U of all views is never used: O(views), not O(views^2)
     k = Vr.shape[1]
     if s.size < k - 1 or s[k - 2] <= 1e-12 * s[0]:
-        raise DegenerateViewsError(
-            "the views do not determine the intrinsics (too few distinct orientations of the template)"
-        )
+        raise DegenerateViewsError(_UNDETERMINED)
     b = E @ (Vt[-1] / sc)
     if b[0] < 0:
         b = -b
     b11, b12, b22, b13, b23, b33 = b
     den = b11 * b22 - b12 * b12
     if not (b11 > 0 and den > 0):
-        raise DegenerateViewsError("closed-form intrinsics: B is not positive definite (degenerate or noisy views)")
+        raise DegenerateViewsError(_NOT_POSITIVE_DEFINITE)
     v0 = (b12 * b13 - b11 * b23) / den
     lam = b33 - (b13 * b13 + v0 * (b12 * b13 - b11 * b23)) / b11
     if not lam / b11 > 0:
-        raise DegenerateViewsError("closed-form intrinsics: negative focal length squared (degenerate views)")
+        raise DegenerateViewsError(_NEGATIVE_FOCAL)
     alpha = np.sqrt(lam / b11)
     beta = np.sqrt(lam * b11 / den)
     gamma = -b12 * alpha * alpha * beta / lam

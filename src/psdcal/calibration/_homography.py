@@ -7,22 +7,33 @@ the solution is denormalised as ``H = T_Q^-1 H^o T_P`` (Eq 38).
 """
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 
 from psdcal import _jit
 from psdcal.errors import DegenerateViewsError
 
-_kernels = None  # psdcal.calibration._linear_kernel, imported at the first compiled call (it imports numba)
-
-
+@functools.cache
 def linear_kernels():
-    """The compiled linear-stage module :mod:`psdcal.calibration._linear_kernel` (imported once, on demand)."""
-    global _kernels
-    if _kernels is None:
-        from psdcal.calibration import _linear_kernel
+    """The compiled linear-stage module :mod:`psdcal.calibration._linear_kernel`, imported at the first
+    compiled call (it imports numba)."""
+    from psdcal.calibration import _linear_kernel
 
-        _kernels = _linear_kernel
-    return _kernels
+    return _linear_kernel
+
+
+# the errors of a view without a homography (the compiled and the numpy paths raise the same)
+def _few_points(label, count: int) -> DegenerateViewsError:
+    return DegenerateViewsError(f"{label}: {count} points, a homography needs at least 4")
+
+
+def _collinear(label) -> DegenerateViewsError:
+    return DegenerateViewsError(f"{label}: its points are collinear, a homography needs points spread on the plane")
+
+
+def _rank_deficient(label) -> DegenerateViewsError:
+    return DegenerateViewsError(f"{label}: the points do not determine a homography (rank-deficient DLT)")
 
 
 def collinearity(pts) -> float:
@@ -142,10 +153,10 @@ def homographies(src, dst, *, normalize: bool = True, labels=None) -> np.ndarray
         if code != lk.H_USE_REFERENCE:  # (an SVD that did not converge: the numpy code below decides)
             labels = [f"image {j}" for j in range(n)] if labels is None else list(labels)
             if code == lk.H_FEW_POINTS:
-                raise DegenerateViewsError(f"{labels[i]}: {cnt} points, a homography needs at least 4")
+                raise _few_points(labels[i], cnt)
             if code == lk.H_COLLINEAR:
-                raise DegenerateViewsError(f"{labels[i]}: its points are collinear, a homography needs points spread on the plane")
-            raise DegenerateViewsError(f"{labels[i]}: the points do not determine a homography (rank-deficient DLT)")
+                raise _collinear(labels[i])
+            raise _rank_deficient(labels[i])
     labels = [f"image {i}" for i in range(n)] if labels is None else list(labels)
     ok = np.all(np.isfinite(dst), axis=-1)  # (n, M)
     n_valid = ok.sum(axis=1)
@@ -156,8 +167,8 @@ def homographies(src, dst, *, normalize: bool = True, labels=None) -> np.ndarray
     # the first view that fails either test names the error, as a loop over the views would
     for i in np.flatnonzero((n_valid < 4) | flat)[:1]:
         if n_valid[i] < 4:
-            raise DegenerateViewsError(f"{labels[i]}: {int(n_valid[i])} points, a homography needs at least 4")
-        raise DegenerateViewsError(f"{labels[i]}: its points are collinear, a homography needs points spread on the plane")
+            raise _few_points(labels[i], int(n_valid[i]))
+        raise _collinear(labels[i])
     w = ok.astype(float)
     cnt = w.sum(axis=1)
     dst0 = np.where(ok[..., None], dst, 0.0)  # missing points at 0 (their DLT rows are zero)
@@ -199,7 +210,7 @@ def homographies(src, dst, *, normalize: bool = True, labels=None) -> np.ndarray
     bad = s[:, 7] <= 1e-12 * s[:, 0]
     if np.any(bad):
         i = int(np.flatnonzero(bad)[0])
-        raise DegenerateViewsError(f"{labels[i]}: the points do not determine a homography (rank-deficient DLT)")
+        raise _rank_deficient(labels[i])
     H = Vt[:, -1].reshape(n, 3, 3)
     if normalize:
         H = np.linalg.solve(Tq, H @ Tp)  # Eq 38
