@@ -81,25 +81,24 @@ def njit(fn):
     numba is imported here, when the module defining the kernel is imported:
     keep such modules out of the import path of light commands.
     """
-    if not AVAILABLE:
-        return fn
-    numba = _load_numba()
-    try:
-        return numba.njit(cache=True, nogil=True, error_model="numpy")(fn)
-    except (RuntimeError, OSError):  # numba: "cannot cache function ...: no locator available"
-        return numba.njit(cache=False, nogil=True, error_model="numpy")(fn)
+    return _compile(fn)
 
 
 def njit_inline(fn):
     """As :func:`njit` for a helper that compiled kernels call: inlined into them (numba's
     ``inline="always"``), so no per-call passing of its array arguments."""
+    return _compile(fn, inline="always")
+
+
+def _compile(fn, **options):
+    """``numba.njit`` of ``fn`` with the project's settings (and ``options``); ``fn`` itself without numba."""
     if not AVAILABLE:
         return fn
     numba = _load_numba()
     try:
-        return numba.njit(cache=True, nogil=True, error_model="numpy", inline="always")(fn)
-    except (RuntimeError, OSError):
-        return numba.njit(cache=False, nogil=True, error_model="numpy", inline="always")(fn)
+        return numba.njit(cache=True, nogil=True, error_model="numpy", **options)(fn)
+    except (RuntimeError, OSError):  # numba: "cannot cache function ...: no locator available"
+        return numba.njit(cache=False, nogil=True, error_model="numpy", **options)(fn)
 
 
 class _Lazy:

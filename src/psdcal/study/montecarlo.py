@@ -296,22 +296,18 @@ def _run_chunk(trial_fn: Callable, first: int, seeds: list, kwargs: dict) -> lis
     """
     from psdcal.calibration._refine import _single_threaded_blas
 
-    with _single_threaded_blas():
-        return _run_trials_here(trial_fn, first, seeds, kwargs)
-
-
-def _run_trials_here(trial_fn: Callable, first: int, seeds: list, kwargs: dict) -> list:
     out = []
-    for k, ss in enumerate(seeds):
-        try:
-            res = trial_fn(np.random.default_rng(ss), **kwargs)
-            if not isinstance(res, Mapping):
-                raise TypeError(f"trial function must return a dict of floats, got {type(res).__name__}")
-            row = {str(name): float(val) for name, val in res.items()}
-            out.append((first + k, row, ""))
-        except Exception as exc:  # a failing trial is recorded, not fatal
-            msg = " ".join(f"{type(exc).__name__}: {exc}".split())
-            out.append((first + k, None, msg))
+    with _single_threaded_blas():
+        for k, ss in enumerate(seeds):
+            try:
+                res = trial_fn(np.random.default_rng(ss), **kwargs)
+                if not isinstance(res, Mapping):
+                    raise TypeError(f"trial function must return a dict of floats, got {type(res).__name__}")
+                row = {str(name): float(val) for name, val in res.items()}
+                out.append((first + k, row, ""))
+            except Exception as exc:  # a failing trial is recorded, not fatal
+                msg = " ".join(f"{type(exc).__name__}: {exc}".split())
+                out.append((first + k, None, msg))
     return out
 
 
