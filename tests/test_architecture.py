@@ -26,7 +26,7 @@ import psdcal
 ROOT = Path(__file__).resolve().parents[1]
 SRC = ROOT / "src"
 PKG = SRC / "psdcal"
-BASE = {"psdcal.errors", "psdcal._atomic", "psdcal._jit", "psdcal.schema", "psdcal._stats", "psdcal._limits", "psdcal._cache"}
+BASE = {"psdcal.errors", "psdcal._consistency", "psdcal._atomic", "psdcal._jit", "psdcal.schema", "psdcal._stats", "psdcal._limits", "psdcal._cache"}
 LAYERS = ["model", "io", "calibration", "signal", "measure", "study", "report", "cli"]
 
 
