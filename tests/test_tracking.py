@@ -119,7 +119,7 @@ def test_a_wrong_process_noise_fails_the_bands_and_the_checks(consistent_case, f
 def test_q_factor_estimated(consistent_case, factor):
     """The factor estimated for a filter given q x factor is about 1 / factor: "q looks 4x too small"."""
     d, q, t, em, z, R, truth = consistent_case
-    m = np.isin(em, [f"e{k}" for k in range(6)])  # 1200 rows: the median NIS to ~4 %, the factor to ~20 %
+    m = np.isin(em, [f"e{k}" for k in range(6)])  # 1200 rows
     f = estimate_q_factor(t[m], em[m], z[m], R[m], TrackConfig(q=q * factor, init_sigma_v=500.0), iters=8)
     assert 0.6 / factor < f < 1.6 / factor
 

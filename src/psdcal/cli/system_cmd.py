@@ -505,7 +505,7 @@ def pose_command(source, calib, emitters_csv, rate_hz, carriers, emitter_names, 
 @click.option("--q", "q", type=str, default=None, metavar="Q|auto",
               help="Process noise: spectral density of the white acceleration, mm^2/s^3 (deg^2/s^3 for angles) "
                    "[default: 1e6 mm^2/s^3, 10 deg^2/s^3]; 'auto': the default times the factor that makes the "
-                   "median NIS right.")
+                   "NIS's 99 % point chi2's.")
 @click.option("--gate-p", type=click.FloatRange(0.5, 1.0, max_open=True), default=0.999, show_default=True,
               help="Chi2 gate probability: a measurement whose NIS exceeds this quantile is not used.")
 @click.option("--max-gated", type=click.IntRange(1, 1000), default=5, show_default=True,
