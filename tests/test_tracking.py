@@ -206,6 +206,18 @@ def _moving_with_burst(rng, *, n=120, burst_at=60, burst=8, sigma_mm=2.0):
     return t, z, np.full((n, 3), sigma_mm), truth
 
 
+def test_scattered_clutter_does_not_restart():
+    """8 consecutive measurements at 8 unrelated places (clutter, not one reflection): each gated, no
+    position written for them, no jump; the track goes on through them."""
+    rng = np.random.default_rng(10)
+    t, z, s, truth = _moving_with_burst(rng, burst=0)
+    z[60:68] = truth[60:68] + rng.uniform(300, 2000, (8, 3)) * rng.choice([-1, 1], (8, 3))
+    res = track(t, ["tag"] * len(t), z, s[:, :, None] ** 2 * np.eye(3), TrackConfig(q=1e6))
+    assert list(res.status[60:68]) == ["gated"] * 8 and np.isnan(res.p[60:68]).all()
+    assert not res.restart.any() and res.status[68] == "ok"
+    assert np.linalg.norm(res.p - truth, axis=1)[res.used].max() < 15.0
+
+
 def _write_located(path, t, z, s, emitter="tag", empty=()):
     with open(path, "w") as fh:
         fh.write("t_s,emitter,X_mm,Y_mm,Z_mm,sigma_X_mm,sigma_Y_mm,sigma_Z_mm\n")

@@ -45,12 +45,14 @@ warning.
 
 Checks (``TrackResult.checks``): with the right ``q`` and ``R`` the
 innovations of a Kalman filter are independent and the sum of the NIS of the
-``n`` used measurements is ``chi2(d n)`` (the gate truncates it by less than
-0.02 d n at ``gate_p`` = 0.999); :func:`psdcal._consistency.chi2_check` tests
-it two-sided at the design false-alarm rate (too large: ``q`` or the sigmas
-too small; too small: ``q`` or the sigmas too large), and the number of gated
-measurements is tested against ``1 - gate_p`` (binomial).  A failed check is a
-warning; :func:`estimate_q_factor` gives the factor on ``q`` that makes the
+``n`` used measurements is ``chi2(d n)`` (truncated at the gate: the sum is
+rescaled by ``d / E[NIS | NIS < gate]``, 1.005 for d = 3);
+:func:`psdcal._consistency.chi2_check` tests it two-sided at the design
+false-alarm rate (too large: ``q`` or the sigmas too small; too small: ``q``
+or the sigmas too large), and the number of runs of gated measurements is
+tested against ``1 - gate_p`` per tested row (binomial; runs, because a valid
+measurement gated leaves the track off, and the next ones are likely gated
+too).  A failed check is a warning; :func:`estimate_q_factor` gives the factor on ``q`` that makes the
 NIS's 99 % point right ("q looks 4x too small").
 
 Note: ``locate``'s sigma combines the signal noise with the calibration
@@ -344,7 +346,7 @@ def track(t_s, emitter, z, R, config: TrackConfig = TrackConfig()) -> TrackResul
     gated = (status == "gated") | (status == "invalid")
     restart = (status == "gap") | (status == "jump")
     restarted = restart | (status == "start")
-    checks = nis_checks(nis, status, d, config.gate_p)
+    checks = nis_checks(nis, status, d, config.gate_p, emitter=em)
     warns = _restart_warnings(t, em, status, dist, gaps) + [c.line() for c in checks if c.passed is False]
     return TrackResult(t, em, P_out, V_out, C_out, nis, gated, restarted, status, restart, dist,
                        tuple(checks), tuple(warns), gaps)
@@ -368,7 +370,7 @@ def _restart_warnings(t, em, status, dist, gaps, per_emitter: int = 10) -> list:
     return out
 
 
-def nis_checks(nis, status, d: int, gate_p: float, alpha: float = ALPHA) -> list:
+def nis_checks(nis, status, d: int, gate_p: float, alpha: float = ALPHA, emitter=None) -> list:
     """The NIS check (two-sided chi2 of the used rows) and the gating check (binomial).
 
     Parameters
@@ -383,6 +385,8 @@ def nis_checks(nis, status, d: int, gate_p: float, alpha: float = ALPHA) -> list
         The gate probability used.
     alpha : float
         False-alarm rate of each check (each side of the NIS check: ``alpha / 2``).
+    emitter : (N,) object ndarray, optional
+        Emitter per row (the runs of gated rows are counted per emitter).
 
     Returns
     -------
@@ -416,12 +420,20 @@ def nis_checks(nis, status, d: int, gate_p: float, alpha: float = ALPHA) -> list
     if n_tested:
         from scipy.stats import binom
 
+        # a valid measurement gated leaves the track where it was: the next ones are likely gated too, so
+        # the gated rows come in runs; the runs ("episodes": a gated or jump row after a used one) start
+        # independently, each tested row with probability 1 - gate_p
+        episodes = 0
+        for name in dict.fromkeys(emitter.tolist()) if emitter is not None else [None]:
+            sel = tested if name is None else tested & (emitter == name)
+            g = np.isin(status[sel], ("gated", "jump"))
+            episodes += int(g[0]) + int(np.sum(g[1:] & ~g[:-1])) if g.size else 0
         rate = 1.0 - gate_p
-        p = float(binom.sf(n_gated - 1, n_tested, rate))
+        p = float(binom.sf(episodes - 1, n_tested, rate))
         ok = p >= alpha
-        msg = (f"{n_gated} of {n_tested} tested measurements gated ({100 * n_gated / n_tested:.3g} %, "
-               f"{100 * rate:.3g} % expected, p = {p:.2g})")
-        checks.append(Check("track_gated", float(n_gated), None, p, alpha, ok, msg,
+        msg = (f"{n_gated} of {n_tested} tested measurements gated ({100 * n_gated / n_tested:.3g} %) in "
+               f"{episodes} runs, {n_tested * rate:.3g} runs expected (p = {p:.2g})")
+        checks.append(Check("track_gated", float(episodes), None, p, alpha, ok, msg,
                             advice="" if ok else "outliers (reflections), or q too small for the motion",
                             dof=float(n_tested)))
     else:
