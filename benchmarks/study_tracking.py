@@ -10,7 +10,8 @@ scenes, the mean NIS of the used rows (3 expected), and how often each check
 (``track_nis``, ``track_gated``) fails: the false-alarm rate with the right
 q, the detection rate with the wrong ones.
 
-Part 2 (real data, when ``../shared/data/lighthouse-lh1`` exists): the
+Part 2 (real data, with ``--lighthouse DIR``: the ``lighthouse-lh1`` folder of
+the shared data, which is not redistributed with the project): the
 Crazyflie's own position estimate of the two flights as measurements
 (sigma: its scatter at rest in the five stationary logs), tracked with
 ``--q auto``'s factor; the error against motion capture after a rigid
@@ -19,7 +20,7 @@ tracked, with the statuses and restarts.
 
 Usage::
 
-    .venv/bin/python benchmarks/study_tracking.py [--scenes 200] [--seed0 0]
+    .venv/bin/python benchmarks/study_tracking.py [--scenes 200] [--seed0 0] [--lighthouse DIR]
 """
 from __future__ import annotations
 
@@ -34,7 +35,6 @@ from pathlib import Path  # noqa: E402
 import numpy as np  # noqa: E402
 
 H_S = 2.5e-4
-LH = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "lighthouse-lh1"
 
 
 def scene(rng, *, n_emitters=3, n=200, d=3, q=1e6, sigma_v=500.0):
@@ -90,21 +90,20 @@ def _kabsch(A, B):
     return Rm, cb - Rm @ ca
 
 
-def lighthouse() -> None:
+def lighthouse(folder: Path) -> None:
     from dataclasses import replace
 
     from psdcal.measure.tracking import TrackConfig, estimate_q_factor, track
 
-    if not LH.is_dir():
-        print(f"lighthouse: {LH} absent, skipped")
-        return
+    if not folder.is_dir():
+        raise SystemExit(f"lighthouse: {folder} is not a folder")
 
     def load(f):
         return np.loadtxt(f, delimiter=",", skiprows=1)
 
     rest = []
     for k in range(5):
-        a = load(LH / f"lh1_crossingBeam_jitter_0{k}" / "crazyflie_estimate.csv")
+        a = load(folder / f"lh1_crossingBeam_jitter_0{k}" / "crazyflie_estimate.csv")
         a = a[(a[:, 0] > 0) & (a[:, 0] < 11.9)]
         rest.append(a[:, 1:4].std(0) * 1000.0)
     sigma = float(np.sqrt(np.mean(np.square(rest))))
@@ -113,7 +112,7 @@ def lighthouse() -> None:
           "tracked p95 / median (mm) | max raw / tracked (mm) | scored rows (tracked / all) | restart distances (mm) |")
     print("|---|---|---|---|---|---|---|---|---|---|---|")
     for flight in ("lh1_crossingBeam_flight_00", "lh1_crossingBeam_flight_01"):
-        e, m = load(LH / flight / "crazyflie_estimate.csv"), load(LH / flight / "mocap.csv")
+        e, m = load(folder / flight / "crazyflie_estimate.csv"), load(folder / flight / "mocap.csv")
         t, z = e[:, 0], e[:, 1:4] * 1000.0
         n = len(t)
         R = np.broadcast_to(sigma**2 * np.eye(3), (n, 3, 3)).copy()
@@ -140,10 +139,12 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scenes", type=int, default=200)
     ap.add_argument("--seed0", type=int, default=0)
+    ap.add_argument("--lighthouse", type=Path, default=None, help="the lighthouse-lh1 data folder")
     args = ap.parse_args()
     if args.scenes > 1:
         simulation(args.scenes, args.seed0)
-    lighthouse()
+    if args.lighthouse is not None:
+        lighthouse(args.lighthouse)
 
 
 if __name__ == "__main__":
