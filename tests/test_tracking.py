@@ -109,7 +109,7 @@ def test_a_wrong_process_noise_fails_the_bands_and_the_checks(consistent_case, f
     d = consistent_case[0]
     res, nees, se_nees, nis, se_nis = _nees_nis(consistent_case, factor)
     assert abs(nees - 2 * d) > 3.5 * se_nees and abs(nis - d) > 3.5 * se_nis
-    nis_check = [c for c in res.checks if c.name == "track_nis"][0]
+    nis_check = next(c for c in res.checks if c.name == "track_nis")
     assert nis_check.passed is False
     assert ("smaller than" in nis_check.message) == (factor > 1)
     assert any(w.startswith("track_nis") for w in res.warnings)
@@ -118,7 +118,7 @@ def test_a_wrong_process_noise_fails_the_bands_and_the_checks(consistent_case, f
 @pytest.mark.parametrize("factor", [0.25, 4.0])
 def test_q_factor_estimated(consistent_case, factor):
     """The factor estimated for a filter given q x factor is about 1 / factor: "q looks 4x too small"."""
-    d, q, t, em, z, R, truth = consistent_case
+    _, q, t, em, z, R, _ = consistent_case
     m = np.isin(em, [f"e{k}" for k in range(6)])  # 1200 rows
     f = estimate_q_factor(t[m], em[m], z[m], R[m], TrackConfig(q=q * factor, init_sigma_v=500.0), iters=8)
     assert 0.6 / factor < f < 1.6 / factor
@@ -296,7 +296,8 @@ def test_track_cli_columns_help_and_errors(tmp_path, capsys):
     _write_located(src, t, z, s)
     assert main(["track", str(src), "-o", str(out), "--q", "auto"]) == 0
     stdout = capsys.readouterr().out
-    header = next(csv.reader(open(out)))
+    with open(out) as fh:
+        header = next(csv.reader(fh))
     old = ["t_s", "emitter", "X_mm", "Y_mm", "Z_mm", "vX_mm_s", "vY_mm_s", "vZ_mm_s", "sigma_X_mm", "sigma_Y_mm",
            "sigma_Z_mm", "sigma_vX_mm_s", "sigma_vY_mm_s", "sigma_vZ_mm_s", "nis", "gated"]
     assert header == old + ["restart", "status"]  # the new columns only added at the end

@@ -224,7 +224,7 @@ def _blocks(d: int):
 class _Track:
     """One constant-velocity track: time of its last used measurement, state, covariance."""
 
-    __slots__ = ("t", "x", "P", "n")
+    __slots__ = ("P", "n", "t", "x")
 
     def __init__(self, t, z, R, sigma_v):
         d = len(z)
@@ -533,6 +533,10 @@ def _read_located(path):
     return t, em, z, s, cols, unit
 
 
+#: Rows (the first ones) on which track_csv estimates the q factor.
+_Q_ROWS = 20000
+
+
 def _fmt(v) -> str:
     return f"{v:.10g}" if math.isfinite(v) else ""
 
@@ -556,7 +560,8 @@ def track_csv(in_path, out_path, *, q: float | str | None = None, gate_p: float 
     ----------
     q : float or "auto", optional
         Process noise (default 1e6 mm^2/s^3, or 10 deg^2/s^3 for angles);
-        ``"auto"``: the default times :func:`estimate_q_factor`.
+        ``"auto"``: the default times :func:`estimate_q_factor` (estimated on
+        the first 20000 rows, as the factor given when a check fails).
     gate_p, max_gated, max_gap_s
         See :class:`TrackConfig`.
 
@@ -566,8 +571,8 @@ def track_csv(in_path, out_path, *, q: float | str | None = None, gate_p: float 
         ``n_rows`` (every row), ``n_used``, ``n_gated``, ``n_invalid``,
         ``n_restarts`` (``n_gap`` + ``n_jump``), ``mean_nis`` (over every
         tested row, gated ones included), ``mean_nis_used``, ``n_tested``,
-        ``q``, ``q_factor`` (estimated when a check failed or q is "auto",
-        else None), ``checks`` (list of dicts), ``warnings`` (list of str),
+        ``q`` (used), ``q_factor`` (estimated when a check failed or q is
+        "auto", else None), ``q_auto``, ``checks`` (list of dicts), ``warnings`` (list of str),
         ``columns``, ``dims``.
     """
     from pathlib import Path
@@ -584,14 +589,15 @@ def track_csv(in_path, out_path, *, q: float | str | None = None, gate_p: float 
     cfg = TrackConfig(q=q0 if (q is None or auto) else float(q), gate_p=gate_p, max_gated=max_gated,
                       init_sigma_v=2000.0 if unit == "mm" else 100.0, max_gap_s=max_gap_s)
     q_factor = None
+    k = slice(0, _Q_ROWS)  # the q estimate reruns the filter ~12 times: on the first rows only
     if auto:
-        q_factor = estimate_q_factor(t, em, z, Rm, cfg)
+        q_factor = estimate_q_factor(t[k], em[k], z[k], Rm[k], cfg)
         cfg = replace(cfg, q=cfg.q * q_factor)
     res = track(t, em, z, Rm, cfg)
     warnings = list(res.warnings)
     failed = {c.name: c for c in res.checks if c.passed is False}
     if not auto and failed:
-        q_factor = estimate_q_factor(t, em, z, Rm, cfg)
+        q_factor = estimate_q_factor(t[k], em[k], z[k], Rm[k], cfg)
         warnings.append(_q_advice(q_factor, cfg.q, unit))
     if "track_gated" in failed and "smaller than" in getattr(failed.get("track_nis"), "message", ""):
         warnings.append("the innovations are heavier-tailed than chi2 (mostly smaller than stated, yet more "
@@ -619,7 +625,7 @@ def track_csv(in_path, out_path, *, q: float | str | None = None, gate_p: float 
             "columns": tuple(out_cols), "dims": len(cols),
             "mean_nis": float(np.mean(res.nis[tested])) if tested.any() else math.nan,
             "mean_nis_used": float(np.mean(res.nis[used])) if used.any() else math.nan,
-            "q": cfg.q, "q_factor": q_factor, "max_gap_s": dict(res.max_gap_s),
+            "q": cfg.q, "q_factor": q_factor, "q_auto": auto, "max_gap_s": dict(res.max_gap_s),
             "checks": [c.to_dict() for c in res.checks], "warnings": warnings}
 
 
@@ -635,7 +641,7 @@ def _q_advice(f: float, q: float, unit: str) -> str:
 
 def summary_line(info: dict, output) -> str:
     """The one-line summary of :func:`track_csv`'s result, counting every row."""
-    q = f", q {info['q']:.3g}" + (f" (x{info['q_factor']:.3g} auto)" if info.get("q_factor") else "")
+    q = f", q {info['q']:.3g}" + (f" (auto: x{info['q_factor']:.3g})" if info.get("q_auto") else "")
     return (f"wrote {info['n_rows']} tracked rows to {output} ({info['n_used']} positions, {info['n_gated']} gated, "
             f"{info['n_invalid']} invalid, {info['n_restarts']} restarts: {info['n_gap']} after gaps, "
             f"{info['n_jump']} jumps; mean NIS {info['mean_nis']:.3g} over all {info['n_tested']} tested rows, "
