@@ -257,7 +257,7 @@ class _Track:
         self.t, self.x, self.P, self.n = t, x + K @ y, 0.5 * (P + P.T), self.n + 1
 
 
-def track(t_s, emitter, z, R, config: TrackConfig = TrackConfig()) -> TrackResult:
+def track(t_s, emitter, z, R, config: TrackConfig = TrackConfig(), *, unit: str = "") -> TrackResult:
     """Filter measurements of several emitters (each its own constant-velocity track).
 
     Parameters
@@ -271,6 +271,8 @@ def track(t_s, emitter, z, R, config: TrackConfig = TrackConfig()) -> TrackResul
     R : (N, d, d) array_like
         Their covariances.
     config : TrackConfig
+    unit : str
+        Unit of ``z`` ("mm", "deg"), for the warnings.
 
     Returns
     -------
@@ -347,22 +349,23 @@ def track(t_s, emitter, z, R, config: TrackConfig = TrackConfig()) -> TrackResul
     restart = (status == "gap") | (status == "jump")
     restarted = restart | (status == "start")
     checks = nis_checks(nis, status, d, config.gate_p, emitter=em)
-    warns = _restart_warnings(t, em, status, dist, gaps) + [c.line() for c in checks if c.passed is False]
+    warns = _restart_warnings(t, em, status, dist, gaps, unit) + [c.line() for c in checks if c.passed is False]
     return TrackResult(t, em, P_out, V_out, C_out, nis, gated, restarted, status, restart, dist,
                        tuple(checks), tuple(warns), gaps)
 
 
-def _restart_warnings(t, em, status, dist, gaps, per_emitter: int = 10) -> list:
+def _restart_warnings(t, em, status, dist, gaps, unit: str = "", per_emitter: int = 10) -> list:
     out = []
+    u = f" {unit}" if unit else ""
     for name in dict.fromkeys(em.tolist()):
         idx = np.flatnonzero((em == name) & ((status == "gap") | (status == "jump")))
         for i in idx[:per_emitter]:
             if status[i] == "gap":
                 out.append(f"{name}: track re-acquired at t = {t[i]:.6g} s after a gap longer than "
-                           f"{gaps[name]:.3g} s (restart=1; {dist[i]:.4g} from where the old velocity would "
+                           f"{gaps[name]:.3g} s (restart=1; {dist[i]:.4g}{u} from where the old velocity would "
                            f"have put it)")
             else:
-                out.append(f"{name}: track jumped at t = {t[i]:.6g} s by {dist[i]:.4g} to measurements that "
+                out.append(f"{name}: track jumped at t = {t[i]:.6g} s by {dist[i]:.4g}{u} to measurements that "
                            f"fit each other but not the track (restart=1): a reflection, or motion faster than "
                            f"q allows")
         if len(idx) > per_emitter:
@@ -593,7 +596,7 @@ def track_csv(in_path, out_path, *, q: float | str | None = None, gate_p: float 
     if auto:
         q_factor = estimate_q_factor(t[k], em[k], z[k], Rm[k], cfg)
         cfg = replace(cfg, q=cfg.q * q_factor)
-    res = track(t, em, z, Rm, cfg)
+    res = track(t, em, z, Rm, cfg, unit=unit)
     warnings = list(res.warnings)
     failed = {c.name: c for c in res.checks if c.passed is False}
     if not auto and failed:
@@ -603,6 +606,10 @@ def track_csv(in_path, out_path, *, q: float | str | None = None, gate_p: float 
         warnings.append("the innovations are heavier-tailed than chi2 (mostly smaller than stated, yet more "
                         "gated): the motion is not white-noise acceleration (steady, then sharp turns); no q "
                         "fits both, a larger one gates fewer good measurements")
+    elif auto and failed:
+        warnings.append("with --q auto (the NIS's 99 % point matched) a check still fails: the innovations do not "
+                        "follow chi2 for any q; the motion is not white-noise acceleration (steady, then sharp "
+                        "turns), or the measurement sigmas are off")
     vcols = [f"v{c}_s" for c in cols]
     scols = [f"sigma_{c}" for c in cols]
     svcols = [f"sigma_v{c}_s" for c in cols]
