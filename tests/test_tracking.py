@@ -314,7 +314,7 @@ def test_time_going_back_is_an_error():
         track([0.0, 1.0, 0.5], ["a", "a", "a"], np.zeros((3, 2)), np.broadcast_to(np.eye(2), (3, 2, 2)))
 
 
-def test_locate_track_cli(tmp_path):
+def test_locate_track_cli(tmp_path, capsys):
     """A moving tag seen by two sensors: the tracked positions beat the window-by-window ones."""
     from psdcal.cli import main
 
@@ -325,6 +325,8 @@ def test_locate_track_cli(tmp_path):
     assert main(["locate", "--allow-no-covariance", "--sensors", str(room / "sensors.json"), "--rate-hz", "20000", "--carrier-hz", "1600",
                  "--emitter", "tag", "-o", str(out), "--track", str(trk), "--track-q", "2e5"]) == 0
     rows = _read(trk)
+    said = capsys.readouterr().out
+    assert f"wrote {len(rows)} tracked rows" in said and f"({len(rows)} positions, 0 gated" in said
     assert {"vX_mm_s", "sigma_X_mm", "sigma_vZ_mm_s", "nis", "gated", "restart", "status"} <= set(rows[0])
     assert all(r["status"] in ("start", "ok") for r in rows)
     t = np.array([float(r["t_s"]) for r in rows])
