@@ -395,3 +395,29 @@ def test_tracks_do_not_mix(seed, n_emitters):
         np.testing.assert_array_equal(alone.p, all_.p[m])
         np.testing.assert_array_equal(alone.cov, all_.cov[m])
         np.testing.assert_array_equal(alone.status, all_.status[m])
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 10_000), q_factor=st.sampled_from([0.01, 1.0, 100.0]),
+       max_gated=st.integers(1, 6))
+def test_every_written_position_is_within_the_gate_of_its_own_measurement(seed, q_factor, max_gated):
+    """Whatever the data (pauses, outliers, a burst at a false place) and however wrong q: a row that
+    holds a position holds one within the chi2 gate of that row's own measurement, under its R (a
+    Kalman update lies between prediction and measurement: (p - z)' R^-1 (p - z) <= y' S^-1 y <= gate);
+    rows that hold none are exactly the gated and invalid ones."""
+    from scipy.stats import chi2
+
+    rng = np.random.default_rng(seed)
+    t, em, z, R, _ = _simulate(rng, n_emitters=2, n=60, d=2, q=1e5, outliers=6)
+    t = t + np.where(t > np.median(t), rng.uniform(0, 2.0), 0.0)  # a pause for everyone
+    z[rng.integers(0, len(z))] = np.nan
+    k = rng.integers(0, len(z) - 8)
+    z[k:k + 8][em[k:k + 8] == em[k]] = [5000.0, -3000.0]  # a burst at one false place
+    res = track(t, em, z, R, TrackConfig(q=1e5 * q_factor, init_sigma_v=500.0, max_gated=max_gated))
+    gate = chi2.ppf(0.999, 2)
+    w = res.used
+    dz = res.p[w] - z[w]
+    assert np.all(np.einsum("ni,nij,nj->n", dz, np.linalg.inv(R[w]), dz) <= gate * (1 + 1e-9))
+    assert np.array_equal(~w, np.isin(res.status, ("gated", "invalid")))
+    assert np.array_equal(res.gated, ~w)
+    assert np.all(np.isnan(res.cov[~w])) and np.all(np.isfinite(res.cov[w]))
