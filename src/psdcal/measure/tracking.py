@@ -396,7 +396,6 @@ def nis_checks(nis, status, d: int, gate_p: float, alpha: float = ALPHA, emitter
     list of Check
         ``track_nis`` and ``track_gated`` (``passed`` None when nothing was tested).
     """
-
     used = (status == "ok") & np.isfinite(nis)
     n_used = int(used.sum())
     tested = np.isfinite(nis)
