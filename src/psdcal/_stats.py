@@ -165,7 +165,8 @@ def _isf(sf, logpdf, alpha: float, guess: float) -> float:
             hi = x
         g = math.log(max(s, _TINY)) - target
         # d log sf / dx = -pdf / sf
-        step = g / (math.exp(logpdf(x)) / max(s, _TINY)) if x > 0 else 0.0
+        pdf = math.exp(logpdf(x)) if x > 0 else 0.0
+        step = g / (pdf / max(s, _TINY)) if pdf > 0 else math.inf  # pdf underflows far in a large-dof tail: bisect
         nx = x + step
         if not lo < nx < hi:
             nx = 0.5 * (lo + hi)
