@@ -50,6 +50,8 @@ from psdcal.measure.angles_table import AnglesTable
 from psdcal.measure.tagpose import Tag, determined, fit_steps, single_sensor_starts
 from psdcal.model.projection import r_from_R_batch, skew3
 
+TOL = 1e-10
+
 
 @dataclass(frozen=True)
 class SelfCalResult:
@@ -409,7 +411,7 @@ def self_calibrate(table: AnglesTable, tag: Tag, *, reference: str | None = None
             Rs, cs, Q, p = Rn, cn, Qn, pn
             ev = evaluate(Rs, cs, Q, p)
             lam = max(lam / 10.0, 1e-12)
-            if gain <= 1e-10 * max(ev["chi2"], 1.0):
+            if gain <= TOL * max(ev["chi2"], 1.0):
                 converged = True
                 break
         else:
