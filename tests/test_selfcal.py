@@ -19,7 +19,13 @@ import pytest
 from psdcal.errors import DegenerateViewsError, InputError
 from psdcal.measure.angles_table import align_to_sensor, n_from_angles, read_angles
 from psdcal.measure.selfcal import self_calibrate
-from psdcal.measure.tagpose import KnownSensor, Tag, load_sensor_poses, read_tag, tag_poses
+from psdcal.measure.tagpose import (
+    KnownSensor,
+    Tag,
+    load_sensor_poses,
+    read_tag,
+    tag_poses,
+)
 
 REPO = Path(__file__).resolve().parents[1]
 DATA = REPO.parent / "shared" / "data" / "lighthouse-lh1"
@@ -92,16 +98,14 @@ def write_angles(path, room, *, sensor_names=None):
     ren = sensor_names or {}
     with open(path, "w") as fh:
         fh.write(f"t_s,sensor,emitter,{a}_rad,{b}_rad,sigma_{a}_rad,sigma_{b}_rad\n")
-        for t, s, e, x, y in room["rows"]:
-            fh.write(f"{t:.9f},{ren.get(s, s)},{e},{x:.15g},{y:.15g},{room['sigma']},{room['sigma']}\n")
+        fh.writelines(f"{t:.9f},{ren.get(s, s)},{e},{x:.15g},{y:.15g},{room['sigma']},{room['sigma']}\n" for t, s, e, x, y in room["rows"])
     return path
 
 
 def write_tag(path, B):
     with open(path, "w") as fh:
         fh.write("emitter,X_mm,Y_mm,Z_mm\n")
-        for m, b in enumerate(B):
-            fh.write(f"e{m},{float(b[0])!r},{float(b[1])!r},{float(b[2])!r}\n")
+        fh.writelines(f"e{m},{float(b[0])!r},{float(b[1])!r},{float(b[2])!r}\n" for m, b in enumerate(B))
     return path
 
 
@@ -168,12 +172,12 @@ def test_reader_covariance_and_units(tmp_path):
 BAD = [
     ("t_s,sensor,emitter,alpha_x_deg,alpha_y_deg,sigma_alpha_x_deg,sigma_alpha_y_deg\n0,a,e,nan,1,0.1,0.1\n",
      ":2", "alpha_x_deg", "finite"),
-    ("t_s,sensor,emitter,alpha_x_deg,alpha_y_deg,sigma_alpha_x_deg,sigma_alpha_y_deg\n0,a,e,1,1,0.1,0.1\n"
-     "1,a,e,1,1,0.1,0.1\n0,a,e,2,1,0.1,0.1\n", ":4", "t_s", "first on line 2"),
-    ("# convention: fisheye\nt_s,sensor,emitter,alpha_x_deg,alpha_y_deg,sigma_alpha_x_deg,sigma_alpha_y_deg\n"
-     "0,a,e,1,1,0.1,0.1\n", "", "convention", "unknown angle convention"),
-    ("t_s,sensor,emitter,alpha_x_deg,alpha_y_deg,sigma_alpha_x_deg,sigma_alpha_y_deg\n0,a,e,1,1,0.1,0.1\n"
-     "1,a,e,1,1,0,0.1\n", ":3", "sigma_alpha_x_deg", "> 0"),
+    (("t_s,sensor,emitter,alpha_x_deg,alpha_y_deg,sigma_alpha_x_deg,sigma_alpha_y_deg\n0,a,e,1,1,0.1,0.1\n"
+      "1,a,e,1,1,0.1,0.1\n0,a,e,2,1,0.1,0.1\n"), ":4", "t_s", "first on line 2"),
+    (("# convention: fisheye\nt_s,sensor,emitter,alpha_x_deg,alpha_y_deg,sigma_alpha_x_deg,sigma_alpha_y_deg\n"
+      "0,a,e,1,1,0.1,0.1\n"), "", "convention", "unknown angle convention"),
+    (("t_s,sensor,emitter,alpha_x_deg,alpha_y_deg,sigma_alpha_x_deg,sigma_alpha_y_deg\n0,a,e,1,1,0.1,0.1\n"
+      "1,a,e,1,1,0,0.1\n"), ":3", "sigma_alpha_x_deg", "> 0"),
     ("t_s,sensor,emitter,alpha_x_deg,alpha_y_deg,sigma_alpha_x_deg,sigma_alpha_y_deg\n0,a,e,1,1,0.1,-1\n",
      ":2", "sigma_alpha_y_deg", "> 0"),
     ("t_s,sensor,emitter,alpha_x_deg,alpha_y_deg\n0,a,e,1,1\n", ":1", "sigma_alpha_x_deg", "missing column"),
@@ -390,7 +394,6 @@ def test_cli_writes_calibration_paths_that_locate_reads(tmp_path):
     """With --calib each entry names its calibration, and psdcal's own sensors reader accepts the file."""
     from psdcal.cli import main
     from psdcal.measure.positioning import load_sensors
-
     from psdcal.study.recordings import calib_dict
 
     calib = tmp_path / "calib.json"

@@ -107,7 +107,7 @@ def selfcal_command(angles, tag_path, output, convention, sensor_column, emitter
     from psdcal.io import write_json
     from psdcal.measure.pose import read_emitters
     from psdcal.measure.selfcal import self_calibrate
-    from psdcal.measure.tagpose import read_tag, tag_poses, KnownSensor, write_tag_poses
+    from psdcal.measure.tagpose import KnownSensor, read_tag, tag_poses, write_tag_poses
 
     cal = {}
     for item in calibs:
@@ -175,7 +175,12 @@ def tag_pose_command(angles, tag_path, sensors_path, output, convention, sensor_
 
     Example: psdcal tag-pose angles.csv --tag tag.csv --sensors sensors.json -o tag_poses.csv
     """
-    from psdcal.measure.tagpose import load_sensor_poses, read_tag, tag_poses, write_tag_poses
+    from psdcal.measure.tagpose import (
+        load_sensor_poses,
+        read_tag,
+        tag_poses,
+        write_tag_poses,
+    )
 
     tag = read_tag(tag_path)
     sensors = load_sensor_poses(sensors_path)

@@ -194,7 +194,7 @@ def _weak_perspective(n, B):
     """
     Bc = B - B.mean(0)
     nc = n - n.mean(1, keepdims=True)
-    U, s, Vt = np.linalg.svd(Bc)
+    _, s, Vt = np.linalg.svd(Bc)
     planar = s[2] < 1e-6 * s[0]
     if not planar:
         M = np.einsum("tmi,mj->tij", nc, np.linalg.pinv(Bc).T)  # (T, 2, 3): nc = Bc M^T
@@ -247,39 +247,50 @@ def tag_gauss_newton(Rs, cs, Q, p, B, k, t, e, n_obs, L, T, *, iterations: int =
     """Refine every step's tag pose with the sensors fixed (independent 6x6 Levenberg-Marquardt per step).
 
     A step stops when its Gauss-Newton step would lower its chi2 by less than
-    ``tol (1 + chi2)``. Returns ``Q, p, cost (T,), H (T, 6, 6)`` (``H = J^T J`` at the solution).
+    ``tol (1 + chi2)``; only the steps still moving are evaluated.
+    Returns ``Q, p, cost (T,), H (T, 6, 6)`` (``H = J^T J`` at the solution).
     """
-    def accumulate(Q, p):
+    Q = np.array(Q, dtype=float)
+    p = np.array(p, dtype=float)
+
+    def accumulate(Qs, ps, steps):
+        """cost, H, g of the steps ``steps`` (sorted indices) at poses ``Qs, ps`` (len(steps), ...)."""
+        m = np.isin(t, steps)
+        loc = np.searchsorted(steps, t[m])
+        nS = len(steps)
         with np.errstate(all="ignore"):
-            r, _, Jt, z = residuals_and_jacobians(Rs, cs, Q, p, B, k, t, e, n_obs, L)
-            cost = sum_by(t, (r * r).sum(1), T)
-            cost[(sum_by(t, (z <= 0).astype(float), T) > 0) | ~np.isfinite(cost)] = np.inf
-            H = sum_by(t, gram(Jt), T)
-            g = sum_by(t, _mv(np.swapaxes(Jt, 1, 2), r), T)
+            r, _, Jt, z = residuals_and_jacobians(Rs, cs, Qs, ps, B, k[m], loc, e[m], n_obs[m], L[m])
+            cost = sum_by(loc, (r * r).sum(1), nS)
+            cost[(sum_by(loc, (z <= 0).astype(float), nS) > 0) | ~np.isfinite(cost)] = np.inf
+            H = sum_by(loc, gram(Jt), nS)
+            g = sum_by(loc, _mv(np.swapaxes(Jt, 1, 2), r), nS)
         bad = ~np.isfinite(cost)
         H[bad] = np.eye(6)
         g[bad] = 0.0
         return cost, H, g
 
+    allsteps = np.arange(T)
+    cost, H, g = accumulate(Q, p, allsteps)
     lam = np.full(T, 1e-3)
-    cost, H, g = accumulate(Q, p)
     done = ~np.isfinite(cost)
     for _ in range(iterations):
-        dx = solve_blocks(H, g, lam)
-        pred = -(g * dx).sum(1)  # the decrease the (damped) step expects
-        done |= np.isfinite(cost) & (pred < tol * (1.0 + cost)) & (lam <= 1e-2)
-        if done.all():
+        act = np.flatnonzero(~done)
+        if len(act) == 0:
             break
-        dx[done] = 0.0
-        Qn = exp_so3(dx[:, :3]) @ Q
-        pn = p + dx[:, 3:]
-        cn, Hn, gn = accumulate(Qn, pn)
-        better = (cn < cost) & ~done
-        Q = np.where(better[:, None, None], Qn, Q)
-        p = np.where(better[:, None], pn, p)
-        cost = np.where(better, cn, cost)
-        H = np.where(better[:, None, None], Hn, H)
-        g = np.where(better[:, None], gn, g)
-        lam = np.where(better, np.maximum(lam / 10.0, 1e-9), np.where(done, lam, lam * 10.0))
+        dx = solve_blocks(H[act], g[act], lam[act])
+        pred = -(g[act] * dx).sum(1)  # the decrease the (damped) step expects
+        fin = (pred < tol * (1.0 + cost[act])) & (lam[act] <= 1e-2)
+        done[act[fin]] = True
+        act, dx = act[~fin], dx[~fin]
+        if len(act) == 0:
+            break
+        Qn = exp_so3(dx[:, :3]) @ Q[act]
+        pn = p[act] + dx[:, 3:]
+        cn, Hn, gn = accumulate(Qn, pn, act)
+        better = cn < cost[act]
+        up = act[better]
+        Q[up], p[up], cost[up], H[up], g[up] = Qn[better], pn[better], cn[better], Hn[better], gn[better]
+        lam[up] = np.maximum(lam[up] / 10.0, 1e-9)
+        lam[act[~better]] *= 10.0
         done |= lam > 1e8
     return Q, p, cost, H

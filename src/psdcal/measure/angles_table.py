@@ -91,7 +91,7 @@ class AnglesTable:
         """Emitter names, sorted."""
         return sorted(set(self.emitter.tolist()))
 
-    def subset(self, mask) -> "AnglesTable":
+    def subset(self, mask) -> AnglesTable:
         """The rows where ``mask`` (bool or index array) holds."""
         line = None if self.line is None else self.line[mask]
         return AnglesTable(self.t_s[mask], self.sensor[mask], self.emitter[mask], self.n[mask], self.cov_n[mask],
@@ -377,5 +377,14 @@ def align_to_sensor(table: AnglesTable, reference: str, *, max_gap_s: float, off
                            offsets_s=offsets_s)
 
 
-__all__ = ["ALIASES", "AnglesTable", "CONVENTIONS", "R_CAMERA_FROM_XFWD", "align_to_sensor", "canonical_convention",
-           "n_from_angles", "read_angles", "resample_angles"]
+__all__ = [
+    "ALIASES",
+    "CONVENTIONS",
+    "R_CAMERA_FROM_XFWD",
+    "AnglesTable",
+    "align_to_sensor",
+    "canonical_convention",
+    "n_from_angles",
+    "read_angles",
+    "resample_angles",
+]

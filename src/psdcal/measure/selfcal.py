@@ -44,8 +44,16 @@ import numpy as np
 
 from psdcal._consistency import ALPHA, Check, chi2_check, inflate
 from psdcal.errors import ConvergenceError, DegenerateViewsError, InputError
-from psdcal.measure._rigid import (_mv, exp_so3, fixed_point_residuals, gram, kabsch, residuals_and_jacobians,
-                                   sum_by, whiteners)
+from psdcal.measure._rigid import (
+    _mv,
+    exp_so3,
+    fixed_point_residuals,
+    gram,
+    kabsch,
+    residuals_and_jacobians,
+    sum_by,
+    whiteners,
+)
 from psdcal.measure.angles_table import AnglesTable
 from psdcal.measure.tagpose import Tag, determined, fit_steps, single_sensor_starts
 from psdcal.model.projection import r_from_R_batch, skew3
@@ -167,11 +175,13 @@ def _robust_kabsch(A, B):
 
 
 def _start_sensors(K, ref, k, e, t, n, L, T, B):
-    """Starting poses ``R (K, 3, 3), c (K, 3)`` of every sensor in the reference sensor's camera frame."""
-    pts = []
+    """Starting poses ``R (K, 3, 3), c (K, 3)`` of every sensor in the reference sensor's camera frame
+    (and each sensor's own view of the tag at every step, :func:`single_sensor_starts`)."""
+    pts, starts = [], []
     for j in range(K):
         m = k == j
         Qc, pc, cost, _, ok = single_sensor_starts(n[m], L[m], e[m], t[m], T, B)
+        starts.append((Qc, pc, ok))
         P = np.einsum("tij,mj->tmi", Qc, B) + pc[:, None]  # every emitter in camera j at every step
         pts.append((P, ok & np.isfinite(cost)))
     links = {}
@@ -201,7 +211,7 @@ def _start_sensors(K, ref, k, e, t, n, L, T, B):
         to_ref[j] = (Ri @ R, Ri @ tr + ti)
     Rs = np.stack([to_ref[j][0].T for j in range(K)])  # world (= reference camera) -> camera j
     cs = np.stack([to_ref[j][1] for j in range(K)])
-    return Rs, cs
+    return Rs, cs, starts
 
 
 def _triangulate(Rs, cs, ks, n):
@@ -283,8 +293,8 @@ def self_calibrate(table: AnglesTable, tag: Tag, *, reference: str | None = None
     T = len(times)
     n = table.n[rows]
     L = whiteners(table.cov_n[rows])
-    Rs, cs = _start_sensors(K, ref, k, e, t, n, L, T, B)
-    Q, p, cost, _, H, good, _ = fit_steps(Rs, cs, B, k, e, t, n, L, T)
+    Rs, cs, starts = _start_sensors(K, ref, k, e, t, n, L, T, B)
+    Q, p, cost, _, H, good, _ = fit_steps(Rs, cs, B, k, e, t, n, L, T, starts=starts)
     keep = good & np.isfinite(cost) & determined(H)
     if not keep.all():
         warnings.append(f"{int((~keep).sum())} of {T} steps left out (no sensor sees three of the tag's emitters "

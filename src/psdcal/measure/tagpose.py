@@ -22,7 +22,13 @@ import numpy as np
 
 from psdcal._consistency import ALPHA, Check, chi2_check, inflate
 from psdcal.errors import DegenerateViewsError, InputError
-from psdcal.measure._rigid import exp_so3, sum_by, tag_gauss_newton, weak_perspective, whiteners
+from psdcal.measure._rigid import (
+    exp_so3,
+    sum_by,
+    tag_gauss_newton,
+    weak_perspective,
+    whiteners,
+)
 from psdcal.measure.angles_table import AnglesTable
 from psdcal.model.projection import R_from_r, r_from_R_batch
 
@@ -335,20 +341,22 @@ def determined(H, max_cond: float = 1e14):
     return out
 
 
-def fit_steps(Rs, cs, B, k, e, t, n, L, T):
+def fit_steps(Rs, cs, B, k, e, t, n, L, T, starts=None):
     """Every step's tag pose with the sensors ``Rs, cs`` fixed: starts from the sensor seeing the most emitters,
     both mirror branches refined with all sensors, the better kept.
 
+    ``starts``: each sensor's :func:`single_sensor_starts` ``(Q, p, ok)`` when already known.
     Returns ``Q, p, cost, cost_other (the other branch), H = J^T J (T, 6, 6), good (T,) bool, counts (T, K)``.
     """
     K = len(Rs)
     counts = np.zeros((T, K), int)
     np.add.at(counts, (t, k), 1)
-    starts = []
-    for j in range(K):
-        m = k == j
-        Qc, pc, _, _, ok = single_sensor_starts(n[m], L[m], e[m], t[m], T, B)
-        starts.append((Qc, pc, ok))
+    if starts is None:
+        starts = []
+        for j in range(K):
+            m = k == j
+            Qc, pc, _, _, ok = single_sensor_starts(n[m], L[m], e[m], t[m], T, B)
+            starts.append((Qc, pc, ok))
     oks = np.stack([s[2] for s in starts], 1)
     best = np.argmax(np.where(oks, counts, -1), axis=1)
     good = oks[np.arange(T), best]
