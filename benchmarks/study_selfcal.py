@@ -89,7 +89,7 @@ def lighthouse(folder: str = "lh1_crossingBeam_flight_00") -> dict | None:
     if not (data / "angles.csv").exists():
         return None
     tab, deck = sim._lighthouse(folder)
-    al = align_to_sensor(tab, "1", max_gap_s=0.04)
+    al = align_to_sensor(tab, "1", max_gap_s=0.05)
     t0 = time.perf_counter()
     res = self_calibrate(al, deck)
     dt = time.perf_counter() - t0
@@ -139,8 +139,8 @@ def main(argv=None) -> int:
                 print(f"  {k} sensors: {len(v)} poses, mean NEES {v.mean():.3f} +- {v.std(ddof=1) / np.sqrt(len(v)):.3f}")
         for k in (2, 4):
             print(f"60 s path at 30 Hz, {k} sensors: self-calibration {timing_60s(tmp, k):.2f} s")
-    if not a.no_lighthouse:
-        lh = lighthouse()
+    for folder in () if a.no_lighthouse else ("lh1_crossingBeam_flight_00", "lh1_crossingBeam_flight_01"):
+        lh = lighthouse(folder)
         if lh is None:
             print("lighthouse-lh1 not present: skipped")
         else:

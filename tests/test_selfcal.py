@@ -431,16 +431,29 @@ def _similarity(A, B):
 
 
 @pytest.mark.slow
-def test_lighthouse_stations_from_the_deck_alone():
-    """The stations' poses from the deck's geometry (no mocap, no survey): deck centre within 0.5 x Crazyflie."""
+def test_lighthouse_stations_from_the_deck_alone(tmp_path):
+    """The stations' poses from the deck's geometry (no mocap, no survey): deck centre within 0.5 x Crazyflie.
+
+    The command line (`selfcal --tag-poses`) gives the same deck poses as the Python path.
+    """
+    from psdcal.cli import main
+
     folder = "lh1_crossingBeam_flight_00"
     if not (DATA / folder / "angles.csv").exists():
         pytest.skip("lighthouse-lh1 data not present")
     tab, deck = _lighthouse(folder)
-    al = align_to_sensor(tab, "1", max_gap_s=0.04)
+    al = align_to_sensor(tab, "1", max_gap_s=0.05)
     res = self_calibrate(al, deck)
     assert res.names == ("0", "1") and res.check.inflation >= 1
     tp = tag_poses(al, deck, [KnownSensor(nm, res.R[i], res.c_mm[i], res.cov[i]) for i, nm in enumerate(res.names)])
+    (tmp_path / "deck.csv").write_text("emitter,X_mm,Y_mm,Z_mm\n0,-15,7.5,0\n1,-15,-7.5,0\n2,15,7.5,0\n3,15,-7.5,0\n")
+    assert main(["selfcal", str(DATA / folder / "angles.csv"), "--tag", str(tmp_path / "deck.csv"), "--convention",
+                 "lighthouse", "--sensor-column", "station", "--emitter-column", "sensor", "--sigma-rad", "7e-5",
+                 "--align-to", "1", "-o", str(tmp_path / "stations.json"), "--tag-poses", str(tmp_path / "deck.csv.out"),
+                 "-q"]) == 0
+    cli = _csv(tmp_path / "deck.csv.out")
+    np.testing.assert_allclose(cli["t_s"], tp.t_s)
+    np.testing.assert_allclose(np.c_[cli["X_mm"], cli["Y_mm"], cli["Z_mm"]], tp.p_mm, atol=1e-5)
     mc, cf = _csv(DATA / folder / "mocap.csv"), _csv(DATA / folder / "crazyflie_estimate.csv")
     mt, M = mc["t_s"], np.c_[mc["X_m"], mc["Y_m"], mc["Z_m"]] * 1000
     j = np.clip(np.searchsorted(mt, tp.t_s), 1, len(mt) - 1)
