@@ -220,6 +220,11 @@ def test_resampling_interpolates_in_time():
     np.testing.assert_allclose(a.cov_n[0], (0.75**2 + 0.25**2) * np.eye(2))
     r2 = resample_angles(tab, [0.5], max_gap_s=0.9)  # a's samples are 1 s apart: too far
     assert r2.sensor.tolist() == ["b"]
+    # one offset per angle: the first angle's samples were taken 0.25 s before t_s
+    r3 = resample_angles(tab, [0.25, 0.5], max_gap_s=2.0, offsets_s={"a": (-0.25, 0.0)})
+    a3 = r3.subset(r3.sensor == "a")
+    np.testing.assert_allclose(a3.n, [[0.5, 0.5], [0.75, 1.0]])
+    np.testing.assert_allclose(a3.cov_n[0], np.diag([0.5**2 + 0.5**2, 0.75**2 + 0.25**2]))
     al = align_to_sensor(tab, "b", max_gap_s=2.0)
     assert sorted(set(al.t_s.tolist())) == [0.25, 0.75]
 
@@ -382,12 +387,25 @@ def test_cli_end_to_end(tmp_path):
                  "-o", str(tmp_path / "poses.csv"), "-q"]) == 0
     head = (tmp_path / "poses.csv").read_text().splitlines()
     assert head[0].startswith("t_s,X_mm,Y_mm,Z_mm,rx_rad,ry_rad,rz_rad,sigma_X_mm") and len(head) == 21
+    # another reference and a known distance from the command line
+    d01 = float(np.linalg.norm(room["c"][1] - room["c"][0]))
+    out2 = tmp_path / "s2.json"
+    assert main(["selfcal", str(tmp_path / "a.csv"), "--tag", str(tmp_path / "tag.csv"), "-o", str(out2), "-q",
+                 "--reference", "s1", "--distance", "s0", "s1", f"{d01:.6f}", "--distance-sigma-mm", "0.01"]) == 0
+    d2 = json.loads(out2.read_text())
+    assert d2["selfcal"]["reference"] == "s1" and d2["sensors"][1]["pose"]["fixed"]
+    assert abs(np.linalg.norm(d2["sensors"][0]["pose"]["center_w_mm"]) - d01) < 0.05
     # errors: one line, exit 2, nothing written
     bad = tmp_path / "bad.csv"
     bad.write_text("t_s,sensor,emitter,alpha_x_deg,alpha_y_deg,sigma_alpha_x_deg,sigma_alpha_y_deg\n0,a,e,1,1,0,1\n")
     assert main(["selfcal", str(bad), "--tag", str(tmp_path / "tag.csv"), "-o", str(tmp_path / "x.json")]) == 2
     assert not (tmp_path / "x.json").exists()
     assert main(["selfcal", str(tmp_path / "a.csv"), "--tag", str(tmp_path / "tag.csv"), "-o", str(out)]) == 2
+    for bad_offset in (["--time-offset", "s0=x"], ["--align-to", "s0", "--time-offset", "nope=0.1"],
+                       ["--time-offset", "s0=0.1"]):
+        assert main(["selfcal", str(tmp_path / "a.csv"), "--tag", str(tmp_path / "tag.csv"), "-o",
+                     str(tmp_path / "y.json"), *bad_offset]) == 2
+    assert not (tmp_path / "y.json").exists()
 
 
 def test_cli_writes_calibration_paths_that_locate_reads(tmp_path):

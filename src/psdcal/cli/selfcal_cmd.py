@@ -32,14 +32,35 @@ def _table_options(f):
                           "for sensors that do not sample together (a Lighthouse's two stations alternate)."),
         click.option("--max-gap-s", type=click.FloatRange(min=0.0, min_open=True), default=0.05, show_default=True,
                      help="With --align-to: the longest interval between two samples interpolated across, s."),
+        click.option("--time-offset", "time_offsets", multiple=True, metavar="SENSOR=S[,S]",
+                     help="With --align-to: a sensor's samples were taken at t_s + S (repeatable); two values give "
+                          "each angle its own time (a Lighthouse V1 station's first sweep comes 1/120 s before "
+                          "the second: SENSOR=-0.008333,0)."),
     ]
     for o in reversed(opts):
         f = o(f)
     return f
 
 
+def _parse_offsets(items):
+    from psdcal.errors import InputError
+
+    out = {}
+    for it in items:
+        name, sep, vals = str(it).partition("=")
+        try:
+            v = [float(x) for x in vals.split(",")]
+        except ValueError:
+            v = []
+        if not sep or not name.strip() or len(v) not in (1, 2) or not all(abs(x) < 1e6 for x in v):
+            raise InputError(f"--time-offset {it!r}: expected SENSOR=SECONDS or SENSOR=SECONDS,SECONDS",
+                             field="time-offset")
+        out[name.strip()] = v[0] if len(v) == 1 else tuple(v)
+    return out
+
+
 def _read_table(angles, convention, sensor_column, emitter_column, time_column, sigma_rad, sigma_deg, align_to,
-                max_gap_s):
+                max_gap_s, time_offsets=()):
     import math
 
     from psdcal.errors import InputError
@@ -50,8 +71,14 @@ def _read_table(angles, convention, sensor_column, emitter_column, time_column, 
     sigma = sigma_rad if sigma_deg is None else math.radians(sigma_deg)
     table = read_angles(angles, convention, sigma_rad=sigma,
                         columns={"sensor": sensor_column, "emitter": emitter_column, "t_s": time_column})
+    offsets = _parse_offsets(time_offsets)
+    if offsets and align_to is None:
+        raise InputError("--time-offset needs --align-to (the offsets are applied when resampling)")
+    unknown = sorted(set(offsets) - set(table.sensors))
+    if unknown:
+        raise InputError(f"--time-offset names sensors not in the table: {', '.join(unknown)}", field="time-offset")
     if align_to is not None:
-        table = align_to_sensor(table, align_to, max_gap_s=max_gap_s)
+        table = align_to_sensor(table, align_to, max_gap_s=max_gap_s, offsets_s=offsets)
     return table
 
 
@@ -79,8 +106,8 @@ def _read_table(angles, convention, sensor_column, emitter_column, time_column, 
               help="Also write the tag's fitted pose at every step (CSV, the columns of `tag-pose`).")
 @click.option("--quiet", "-q", is_flag=True, help="Print nothing but errors.")
 def selfcal_command(angles, tag_path, output, convention, sensor_column, emitter_column, time_column, sigma_rad,
-                    sigma_deg, align_to, max_gap_s, reference, survey, distances, distance_sigma_mm, calibs, csv_path,
-                    quiet):
+                    sigma_deg, align_to, max_gap_s, time_offsets, reference, survey, distances, distance_sigma_mm,
+                    calibs, csv_path, quiet):
     """Calibrate the room: every sensor's pose from a tag waved through it.
 
     ANGLES is an angles table (one row per observation: t_s, sensor,
@@ -101,7 +128,8 @@ def selfcal_command(angles, tag_path, output, convention, sensor_column, emitter
       psdcal selfcal angles.csv --tag tag.csv -o sensors.json
       psdcal selfcal angles.csv --tag deck.csv --convention lighthouse \\
         --sensor-column station --emitter-column sensor --sigma-rad 7e-5 \\
-        --align-to 1 -o stations.json --tag-poses deck_poses.csv
+        --align-to 1 --time-offset 0=-0.008333,0 --time-offset 1=-0.008333,0 \\
+        -o stations.json --tag-poses deck_poses.csv
     """
     from psdcal.errors import InputError
     from psdcal.io import write_json
@@ -117,7 +145,7 @@ def selfcal_command(angles, tag_path, output, convention, sensor_column, emitter
         cal[name.strip()] = path.strip()
     tag = read_tag(tag_path)
     table = _read_table(angles, convention, sensor_column, emitter_column, time_column, sigma_rad, sigma_deg,
-                        align_to, max_gap_s)
+                        align_to, max_gap_s, time_offsets)
     sv = None
     if survey is not None:
         names, pts, _ = read_emitters(survey)
@@ -163,7 +191,7 @@ def selfcal_command(angles, tag_path, output, convention, sensor_column, emitter
 @_table_options
 @click.option("--quiet", "-q", is_flag=True, help="Print nothing but errors.")
 def tag_pose_command(angles, tag_path, sensors_path, output, convention, sensor_column, emitter_column, time_column,
-                     sigma_rad, sigma_deg, align_to, max_gap_s, quiet):
+                     sigma_rad, sigma_deg, align_to, max_gap_s, time_offsets, quiet):
     """The rigid tag's six-degree-of-freedom pose at every time step.
 
     From the directions of its emitters (ANGLES, an angles table as for
@@ -185,7 +213,7 @@ def tag_pose_command(angles, tag_path, sensors_path, output, convention, sensor_
     tag = read_tag(tag_path)
     sensors = load_sensor_poses(sensors_path)
     table = _read_table(angles, convention, sensor_column, emitter_column, time_column, sigma_rad, sigma_deg,
-                        align_to, max_gap_s)
+                        align_to, max_gap_s, time_offsets)
     res = tag_poses(table, tag, sensors)
     write_tag_poses(output, res)
     if not quiet:

@@ -311,33 +311,24 @@ def read_angles(path, convention: str | None = None, *, columns: dict | None = N
                        conv, str(path), lines[order])
 
 
-def resample_angles(table: AnglesTable, times_s, *, max_gap_s: float, offsets_s: dict | None = None) -> AnglesTable:
-    """Each (sensor, emitter) series interpolated linearly (in ``n``) at the given times.
+def _offset_pair(v, sensor):
+    """A sensor's clock offset as (angle 1, angle 2), s."""
+    if np.ndim(v) == 0:
+        return float(v), float(v)
+    v = [float(x) for x in v]
+    if len(v) != 2 or not all(math.isfinite(x) for x in v):
+        raise InputError(f"the time offset of sensor {sensor!r} must be one or two finite numbers of seconds",
+                         field="offset")
+    return v[0], v[1]
 
-    Sensors of a room rarely sample at the same instants (a Lighthouse's two
-    stations alternate); a tag's pose at one time step needs every sensor's
-    directions at that time. A time is kept for a series only where the
-    series has samples on both sides at most ``max_gap_s`` apart (exact
-    matches are kept as they are). The covariance of an interpolated value is
-    ``(1 - w)^2 C0 + w^2 C1`` (independent noise of the two samples).
 
-    Parameters
-    ----------
-    times_s : (T,) array_like
-        The common time steps, s.
-    max_gap_s : float
-        Largest interval between two samples interpolated across, s.
-    offsets_s : dict, optional
-        A known clock offset per sensor, s: its samples are taken at
-        ``t_s + offset``.
-    """
-    T = np.unique(np.asarray(times_s, dtype=float))
-    offsets_s = offsets_s or {}
+def _resample(table, T, max_gap_s, offsets):
+    """Interpolated rows ``(t, sensor, emitter, n, cov)`` at the times ``T`` with one offset per sensor."""
     out = {k: [] for k in ("t", "s", "e", "n", "c")}
     keys = sorted(set(zip(table.sensor.tolist(), table.emitter.tolist())))
     for s, e in keys:
         m = np.flatnonzero((table.sensor == s) & (table.emitter == e))
-        ts = table.t_s[m] + float(offsets_s.get(s, 0.0))
+        ts = table.t_s[m] + float(offsets.get(s, 0.0))
         o = np.argsort(ts, kind="stable")
         m, ts = m[o], ts[o]
         j = np.searchsorted(ts, T, side="right")  # ts[j-1] <= T < ts[j]
@@ -358,23 +349,71 @@ def resample_angles(table: AnglesTable, times_s, *, max_gap_s: float, offsets_s:
         out["n"].append((1 - w)[:, None] * table.n[il] + w[:, None] * table.n[ir])
         out["c"].append(((1 - w) ** 2)[:, None, None] * table.cov_n[il] + (w**2)[:, None, None] * table.cov_n[ir])
     if not out["t"]:
+        return None
+    return tuple(np.concatenate(out[k]) for k in ("t", "s", "e", "n", "c"))
+
+
+def resample_angles(table: AnglesTable, times_s, *, max_gap_s: float, offsets_s: dict | None = None) -> AnglesTable:
+    """Each (sensor, emitter) series interpolated linearly (in ``n``) at the given times.
+
+    Sensors of a room rarely sample at the same instants (a Lighthouse's two
+    stations alternate); a tag's pose at one time step needs every sensor's
+    directions at that time. A time is kept for a series only where the
+    series has samples on both sides at most ``max_gap_s`` apart (exact
+    matches are kept as they are). The covariance of an interpolated value is
+    ``(1 - w)^2 C0 + w^2 C1`` (independent noise of the two samples).
+
+    Parameters
+    ----------
+    times_s : (T,) array_like
+        The common time steps, s.
+    max_gap_s : float
+        Largest interval between two samples interpolated across, s.
+    offsets_s : dict, optional
+        A known clock offset per sensor, s: its samples were taken at
+        ``t_s + offset``. A pair ``(offset_1, offset_2)`` gives each angle its
+        own offset (a Lighthouse station's two sweeps, 1/120 s apart): each
+        component of ``n`` is then interpolated at its own time, which is
+        exact for the conventions whose angles each give one component
+        (``psdcal``, ``tangent``); the correlation of the two components is
+        kept.
+    """
+    T = np.unique(np.asarray(times_s, dtype=float))
+    pairs = {s: _offset_pair(v, s) for s, v in (offsets_s or {}).items()}
+    first = _resample(table, T, max_gap_s, {s: v[0] for s, v in pairs.items()})
+    if first is None:
         raise InputError("no observation falls within the time steps (check max_gap_s and the offsets)")
-    t = np.concatenate(out["t"])
-    s = np.concatenate(out["s"])
-    e = np.concatenate(out["e"])
+    t, s, e, n, c = first
+    if any(a != b for a, b in pairs.values()):
+        second = _resample(table, T, max_gap_s, {s_: v[1] for s_, v in pairs.items()})
+        if second is None:
+            raise InputError("no observation falls within the time steps (check max_gap_s and the offsets)")
+        where = {key: i for i, key in enumerate(zip(second[0].tolist(), second[1].tolist(), second[2].tolist()))}
+        i2 = np.array([where.get(key, -1) for key in zip(t.tolist(), s.tolist(), e.tolist())], dtype=int)
+        keep = i2 >= 0
+        t, s, e, n, c, i2 = t[keep], s[keep], e[keep], n[keep].copy(), c[keep].copy(), i2[keep]
+        n[:, 1] = second[3][i2, 1]
+        ratio = np.sqrt(second[4][i2, 1, 1] / np.maximum(c[:, 1, 1], 1e-300))
+        c[:, 0, 1] *= ratio
+        c[:, 1, 0] *= ratio
+        c[:, 1, 1] = second[4][i2, 1, 1]
+        if len(t) == 0:
+            raise InputError("no observation falls within the time steps (check max_gap_s and the offsets)")
     order = np.lexsort((e.astype(str), s.astype(str), t))
-    return AnglesTable(t[order], s[order], e[order], np.concatenate(out["n"])[order],
-                       np.concatenate(out["c"])[order], table.convention, table.path, np.zeros(len(t), dtype=int))
+    return AnglesTable(t[order], s[order], e[order], n[order], c[order], table.convention, table.path,
+                       np.zeros(len(t), dtype=int))
 
 
 def align_to_sensor(table: AnglesTable, reference: str, *, max_gap_s: float, offsets_s: dict | None = None) -> AnglesTable:
-    """:func:`resample_angles` at the times of one sensor's observations (its own rows kept as they are)."""
+    """:func:`resample_angles` at the times of one sensor's observations, shifted by its own offset (the
+    second of a pair: with a Lighthouse's earlier first sweep given a negative offset, the steps are the
+    times of the second sweeps)."""
     m = table.sensor == reference
     if not m.any():
         raise InputError(f"no observations of sensor {reference!r} (sensors: {', '.join(table.sensors)})",
                          field="sensor")
-    return resample_angles(table, table.t_s[m] + float((offsets_s or {}).get(reference, 0.0)), max_gap_s=max_gap_s,
-                           offsets_s=offsets_s)
+    own = _offset_pair((offsets_s or {}).get(reference, 0.0), reference)
+    return resample_angles(table, table.t_s[m] + own[1], max_gap_s=max_gap_s, offsets_s=offsets_s)
 
 
 __all__ = [
