@@ -321,6 +321,14 @@ def test_wrong_sigmas_fail_the_check_and_inflate(tmp_path):
     assert np.mean(nees_in_reference(res, room)) < 20  # inflated covariance covers the error
 
 
+def test_sensors_that_never_see_the_tag_together_are_refused(tmp_path):
+    rng = np.random.default_rng(2)
+    room = simulate_room(rng, 2, 10, 10)
+    room["rows"] = [r for r in room["rows"] if (r[1] == "s0") == (r[0] < 5)]  # s0 first, s1 later
+    with pytest.raises(DegenerateViewsError, match="two sensors"):
+        _solve(tmp_path, room)
+
+
 def test_one_sensor_is_refused(tmp_path):
     rng = np.random.default_rng(2)
     room = simulate_room(rng, 2, 10, 10)
@@ -377,6 +385,7 @@ def test_cli_end_to_end(tmp_path):
     d = json.loads(out.read_text())
     assert [s["name"] for s in d["sensors"]] == ["s0", "s1", "s2"]
     assert d["selfcal"]["gauge"] == "reference" and d["selfcal"]["checks"][0]["name"] == "selfcal_chi2"
+    assert d["selfcal"]["verdict"] in ("good", "suspect")
     poses = load_sensor_poses(out)
     res, _, _ = _solve(tmp_path, room)
     for sp, k in zip(poses, range(3)):

@@ -42,7 +42,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from psdcal._consistency import ALPHA, Check, chi2_check, inflate
+from psdcal._consistency import ALPHA, Check, chi2_check, inflate, verdict_of
 from psdcal.errors import ConvergenceError, DegenerateViewsError, InputError
 from psdcal.measure._rigid import (
     _mv,
@@ -151,7 +151,8 @@ class SelfCalResult:
 
     def summary(self) -> dict:
         """The run's summary for the sensors file's ``selfcal`` key."""
-        return {"gauge": self.gauge, "reference": self.reference, "n_steps": self.n_steps, "n_obs": self.n_obs,
+        return {"gauge": self.gauge, "reference": self.reference, "verdict": verdict_of([self.check]),
+                "n_steps": self.n_steps, "n_obs": self.n_obs,
                 "chi2": self.chi2, "dof": self.dof, "iterations": self.iterations,
                 "checks": [self.check.to_dict()], "warnings": list(self.warnings),
                 "frame": ("the reference sensor's camera frame (x right, y down, z forward), mm"
