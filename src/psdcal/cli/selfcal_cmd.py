@@ -159,7 +159,7 @@ def selfcal_command(angles, tag_path, output, convention, sensor_column, emitter
                                                            "tag": str(tag_path), "convention": table.convention}}
     if csv_path is not None:
         sens = [KnownSensor(nm, res.R[i], res.c_mm[i], res.cov[i]) for i, nm in enumerate(res.names)]
-        write_tag_poses(csv_path, tag_poses(table, tag, sens))
+        write_tag_poses(csv_path, tag_poses(table, tag, sens, cov_joint=res.cov_full))
     write_json(output, obj)
     if not quiet:
         frame = f"the camera frame of sensor {res.reference!r}" if res.gauge == "reference" else "the survey's frame"
@@ -198,12 +198,14 @@ def tag_pose_command(angles, tag_path, sensors_path, output, convention, sensor_
     `selfcal`) seen by one sensor or several with known poses (--sensors).
     The pose maps the tag's body frame into the world: Pw = R(r) B + (X, Y, Z),
     with r = (rx, ry, rz) a rotation vector, rad; its sigmas come from the
-    angle noise and the sensors' pose covariances. A planar tag seen by one
+    angle noise and the sensors' pose covariances (with their correlations
+    when the sensors file comes from `selfcal`). A planar tag seen by one
     sensor has a mirror pose that may fit as well: such rows have ambiguous = 1.
 
     Example: psdcal tag-pose angles.csv --tag tag.csv --sensors sensors.json -o tag_poses.csv
     """
     from psdcal.measure.tagpose import (
+        load_joint_covariance,
         load_sensor_poses,
         read_tag,
         tag_poses,
@@ -212,9 +214,10 @@ def tag_pose_command(angles, tag_path, sensors_path, output, convention, sensor_
 
     tag = read_tag(tag_path)
     sensors = load_sensor_poses(sensors_path)
+    joint = load_joint_covariance(sensors_path, sensors)
     table = _read_table(angles, convention, sensor_column, emitter_column, time_column, sigma_rad, sigma_deg,
                         align_to, max_gap_s, time_offsets)
-    res = tag_poses(table, tag, sensors)
+    res = tag_poses(table, tag, sensors, cov_joint=joint)
     write_tag_poses(output, res)
     if not quiet:
         click.echo(f"{len(res.t_s)} tag poses from {int(res.n_obs.sum())} directions; median sigma of the position "

@@ -124,6 +124,16 @@ class SelfCalResult:
         T[3:, 3:] = -self.R[k]
         return T @ self.cov[k] @ T.T
 
+    def joint_cov_omega_t(self) -> np.ndarray:
+        """The joint covariance (6K, 6K) over every sensor's ``(omega_rad, t_mm)``, in the order of ``names``."""
+        K = len(self.names)
+        T = np.zeros((6 * K, 6 * K))
+        for k in range(K):
+            T[6 * k:6 * k + 3, 6 * k:6 * k + 3] = np.eye(3)
+            T[6 * k + 3:6 * k + 6, 6 * k:6 * k + 3] = skew3(self.R[k] @ self.c_mm[k])
+            T[6 * k + 3:6 * k + 6, 6 * k + 3:6 * k + 6] = -self.R[k]
+        return T @ self.cov_full @ T.T
+
     def nees(self, k, R_true, c_true_mm) -> float:
         """Normalised estimation error squared (6 dof) of sensor ``k`` against a true pose in this result's frame."""
         omega = r_from_R_batch((np.asarray(R_true) @ self.R[k].T)[None])[0]
@@ -155,6 +165,9 @@ class SelfCalResult:
                 "n_steps": self.n_steps, "n_obs": self.n_obs,
                 "chi2": self.chi2, "dof": self.dof, "iterations": self.iterations,
                 "checks": [self.check.to_dict()], "warnings": list(self.warnings),
+                "joint_pose_covariance": {"sensors": list(self.names), "matrix": self.joint_cov_omega_t().tolist(),
+                                          "names": "omega_x_rad, omega_y_rad, omega_z_rad, tx_mm, ty_mm, tz_mm "
+                                                   "of each sensor in turn"},
                 "frame": ("the reference sensor's camera frame (x right, y down, z forward), mm"
                           if self.gauge == "reference" else "the surveyed points' frame, mm")}
 

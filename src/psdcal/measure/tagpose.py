@@ -165,6 +165,39 @@ def load_sensor_poses(path) -> list[KnownSensor]:
     return out
 
 
+def load_joint_covariance(path, sensors: list[KnownSensor]):
+    """The sensors file's ``selfcal.joint_pose_covariance`` over ``(omega, c)`` of ``sensors`` (6K, 6K), or None.
+
+    None when the file has none or it names other sensors; the sensors'
+    correlations through the shared tag are then left out.
+    """
+    from psdcal.io import read_json
+
+    data = read_json(path, "sensors file")
+    jc = data.get("selfcal", {}).get("joint_pose_covariance") if isinstance(data, dict) else None
+    if not isinstance(jc, dict):
+        return None
+    names = list(jc.get("sensors") or [])
+    if sorted(names) != sorted(s.name for s in sensors) or len(names) != len(sensors):
+        return None
+    try:
+        M = np.asarray(jc.get("matrix"), dtype=float)
+    except (TypeError, ValueError):
+        M = np.zeros(0)
+    K = len(names)
+    if M.shape != (6 * K, 6 * K) or not np.all(np.isfinite(M)):
+        raise InputError(f"'selfcal.joint_pose_covariance.matrix' must be {6 * K} x {6 * K} finite numbers",
+                         path=path, field="selfcal.joint_pose_covariance")
+    by = {s.name: s for s in sensors}
+    order = [names.index(s.name) for s in sensors]
+    idx = np.concatenate([np.arange(6 * i, 6 * i + 6) for i in order])
+    M = M[np.ix_(idx, idx)]
+    T = np.zeros((6 * K, 6 * K))
+    for j, s in enumerate(sensors):
+        T[6 * j:6 * j + 6, 6 * j:6 * j + 6] = omega_t_to_omega_c(by[s.name].R, by[s.name].c_mm)
+    return T @ (0.5 * (M + M.T)) @ T.T
+
+
 @dataclass(frozen=True)
 class TagPoses:
     """The tag's pose at each time step.
@@ -268,8 +301,16 @@ def single_sensor_starts(n, L, e, t, T, B):
     return Q, p, cost, alt, ok
 
 
-def tag_poses(table: AnglesTable, tag: Tag, sensors: list[KnownSensor], *, alpha: float = ALPHA) -> TagPoses:
+def tag_poses(table: AnglesTable, tag: Tag, sensors: list[KnownSensor], *, alpha: float = ALPHA,
+              cov_joint=None) -> TagPoses:
     """The tag's pose at every time step from the directions of its emitters (one or several known sensors).
+
+    The covariance is the angle noise's (inflated when the check fails) plus
+    the sensors' pose uncertainty carried through the fit: each sensor's own
+    ``cov``, or ``cov_joint`` (6K, 6K) over every sensor's ``(omega, c)`` in
+    the order of ``sensors``, with the correlations between sensors (the
+    self-calibration's ``cov_full``: its sensors are correlated through the
+    shared tag).
 
     Rows of other emitters or unknown sensors are left out (a warning counts
     them). A step needs one sensor that sees at least three of the tag's
@@ -312,19 +353,31 @@ def tag_poses(table: AnglesTable, tag: Tag, sensors: list[KnownSensor], *, alpha
     ambiguous = (~same) & (p_other >= alpha)
     cov = np.full((T, 6, 6), np.nan)
     cov[solvable] = np.linalg.inv(H[solvable])
-    sens_cov = [s.cov for s in sensors]
-    if any(c is not None for c in sens_cov):
-        _, Js, Jt, _ = _jacobians(Rs, cs, Q, p, B, k, t, e, n, L)
-        G = sum_by(t * len(sensors) + k, np.swapaxes(Jt, 1, 2) @ Js, T * len(sensors)).reshape(T, len(sensors), 6, 6)
-        M = np.zeros((T, 6, 6))
-        for j, C in enumerate(sens_cov):
-            if C is not None:
-                M += G[:, j] @ C @ np.swapaxes(G[:, j], 1, 2)
-        cov[solvable] = cov[solvable] + cov[solvable] @ M[solvable] @ cov[solvable]
     chk = chi2_check(float(cost[solvable].sum()), float(dof[solvable].sum()), name="tag_pose_chi2",
                      what=f"the directions of the tag's emitters at {int(solvable.sum())} steps", alpha=alpha,
                      advice="the angle sigmas are too small, the tag file is wrong, or an emitter is reflected")
     cov = inflate(cov, chk)
+    K = len(sensors)
+    if cov_joint is not None:
+        CJ = np.asarray(cov_joint, dtype=float)
+        if CJ.shape != (6 * K, 6 * K):
+            raise InputError(f"cov_joint must be {6 * K} x {6 * K} (6 per sensor), got {CJ.shape}",
+                             field="cov_joint")
+    elif any(s.cov is not None for s in sensors):
+        CJ = np.zeros((6 * K, 6 * K))
+        for j, s_ in enumerate(sensors):
+            if s_.cov is not None:
+                CJ[6 * j:6 * j + 6, 6 * j:6 * j + 6] = s_.cov
+    else:
+        CJ = None
+    if CJ is not None:  # d(tag) = -H^-1 G d(sensors): the sensors' part, not inflated again
+        _, Js, Jt, _ = _jacobians(Rs, cs, Q, p, B, k, t, e, n, L)
+        G = sum_by(t * K + k, np.swapaxes(Jt, 1, 2) @ Js, T * K).reshape(T, K, 6, 6)
+        G = np.swapaxes(G, 1, 2).reshape(T, 6, 6 * K)
+        Hi = np.zeros((T, 6, 6))
+        Hi[solvable] = np.linalg.inv(H[solvable])
+        A = Hi @ G
+        cov[solvable] = cov[solvable] + (A @ CJ @ np.swapaxes(A, 1, 2))[solvable]
     if chk.passed is False:
         warnings.append(chk.line())
     s = solvable
