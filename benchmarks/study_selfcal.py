@@ -7,8 +7,8 @@ moving along a smooth path of 10-60 s while turning, angles in the three
 conventions with 1e-4 rad noise. Reported: the mean NEES of the sensor poses
 (6 dof each, in the reference sensor's frame) with its Monte Carlo standard
 error, by number of sensors; the chi2 check's false-alarm rate (design 0.1 %);
-the time of one self-calibration of a 60 s path at 30 Hz; and, when
-``../shared/data/lighthouse-lh1`` is present, the deck centre's error with
+the time of one self-calibration of a 60 s path at 30 Hz; and, when the
+Lighthouse data the tests read (``lighthouse-lh1``) is present, the deck centre's error with
 self-calibrated stations against the Crazyflie's own estimate.
 
 Usage::
@@ -89,7 +89,7 @@ def lighthouse(folder: str = "lh1_crossingBeam_flight_00", offsets: dict | None 
     from psdcal.measure.tagpose import KnownSensor, tag_poses
 
     sim = _sim()
-    data = REPO.parent / "shared" / "data" / "lighthouse-lh1" / folder
+    data = sim.DATA / folder  # where tests/test_selfcal.py finds the Lighthouse data
     if not (data / "angles.csv").exists():
         return None
     tab, deck = sim._lighthouse(folder)
