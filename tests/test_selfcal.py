@@ -297,6 +297,25 @@ def test_survey_fixes_the_frame(tmp_path):
         self_calibrate(*_solve(tmp_path, room)[1:], survey=(["f0", "f1"], room["fixed"][:2]))
 
 
+def test_cli_survey(tmp_path):
+    from psdcal.cli import main
+
+    rng = np.random.default_rng(3)
+    room = simulate_room(rng, 3, 40, 25, survey=5)
+    write_angles(tmp_path / "a.csv", room)
+    write_tag(tmp_path / "tag.csv", room["B"])
+    (tmp_path / "survey.csv").write_text("emitter,X_m,Y_m,Z_m\n" + "".join(
+        f"f{m},{x / 1000!r},{y / 1000!r},{z / 1000!r}\n" for m, (x, y, z) in enumerate(room["fixed"].tolist())))
+    out = tmp_path / "s.json"
+    assert main(["selfcal", str(tmp_path / "a.csv"), "--tag", str(tmp_path / "tag.csv"), "--survey",
+                 str(tmp_path / "survey.csv"), "-o", str(out), "-q"]) == 0
+    d = json.loads(out.read_text())
+    assert d["selfcal"]["gauge"] == "survey"
+    for k, e in enumerate(d["sensors"]):
+        err = np.array(e["pose"]["center_w_mm"]) - room["c"][k]
+        assert np.all(np.abs(err) < 4 * np.array(e["pose"]["sigma_center_mm"]) + 1e-9)
+
+
 def test_known_distance_is_used(tmp_path):
     rng = np.random.default_rng(5)
     room = simulate_room(rng, 3, 20, 15, planar=True, sigma_rad=3e-4)
