@@ -399,6 +399,27 @@ def test_tag_position_covers_its_error_with_self_calibrated_sensors(tmp_path):
     assert len(nees) > 300 and 2.0 < np.mean(nees) < 4.6
 
 
+@pytest.mark.parametrize("planar", [True, False])
+def test_single_view_start_finds_the_pose(planar):
+    """The start of one camera's view of the tag (no guess): one of its branches is the true pose."""
+    from psdcal.measure._rigid import weak_perspective
+
+    rng = np.random.default_rng(8)
+    B = DECK_MM * 4 if planar else rng.normal(0, 60, (5, 3))
+    T = 50
+    Q = np.stack([_turn(rng.normal(size=3), rng.uniform(0, 1.2)) for _ in range(T)])
+    p = np.c_[rng.uniform(-800, 800, (T, 2)), rng.uniform(1500, 4000, T)]
+    X = np.einsum("tij,mj->tmi", Q, B) + p[:, None]
+    starts = weak_perspective(X[..., :2] / X[..., 2:], B)
+    assert len(starts) == (2 if planar else 1)
+    rot = np.min([[np.degrees(np.linalg.norm(rotvec(Qs[i] @ Q[i].T))) for i in range(T)] for Qs, _ in starts], 0)
+    pos = np.min([np.linalg.norm(ps - p, axis=1) / p[:, 2] for _, ps in starts], 0)
+    # scaled orthography in a camera turned to the tag: exact for a planar tag without noise (measured 0.03 deg),
+    # within a few degrees for a 3D one of 120 mm at 1.5-4 m (measured 2.5 deg, 1.4 %)
+    assert np.median(rot) < 2.0 and np.max(rot) < 5.0
+    assert np.max(pos) < 0.03
+
+
 def test_planar_tag_seen_by_one_far_sensor_is_flagged_ambiguous(tmp_path):
     rng = np.random.default_rng(4)
     room = simulate_room(rng, 2, 10, 10, planar=True, sigma_rad=2e-3)
