@@ -169,6 +169,7 @@ _COMMANDS = (
     "gains_cmd",
     "export_cmd",
     "capture_cmd",
+    "selfcal_cmd",
 )
 
 
