@@ -165,8 +165,8 @@ def _isf(sf, logpdf, alpha: float, guess: float) -> float:
             hi = x
         g = math.log(max(s, _TINY)) - target
         # d log sf / dx = -pdf / sf
-        pdf = math.exp(logpdf(x)) if x > 0 else 0.0
-        step = g / (pdf / max(s, _TINY)) if pdf > 0 else math.inf  # pdf underflows far in a large-dof tail: bisect
+        pdf = math.exp(logpdf(x)) if x > 0 else 0.0  # underflows far in the tail of a large dof
+        step = g / (pdf / max(s, _TINY)) if pdf > 0.0 else math.inf  # inf: a bisection step
         nx = x + step
         if not lo < nx < hi:
             nx = 0.5 * (lo + hi)
