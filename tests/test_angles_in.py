@@ -138,6 +138,7 @@ def test_locate_from_each_convention_matches_the_truth(tmp_path, capsys):
     # diagonal NEES: mean exactly 3 whatever the correlation; sd of one term <= sqrt(2*3*... ) ~ 2.45 * 1.7
     se = nees.std(ddof=1) / math.sqrt(len(nees))
     assert len(nees) > 250
+    print(f"locate --angles: {len(nees)} points, mean diagonal NEES {nees.mean():.3f} +- {se:.3f} (ideal 3)")
     assert abs(nees.mean() - 3.0) < 4 * se, (nees.mean(), se)
     out = capsys.readouterr().out
     assert "convention tangent" in out and "convention azel" in out
@@ -263,6 +264,7 @@ def test_pose_from_each_convention_without_calibration(tmp_path):
         assert main(["locate", "--angles", str(tmp_path / f"{conv}.csv"), "--sensors",
                      str(tmp_path / f"{conv}.json"), "-o", str(tri)]) == 0
     # 9 poses of 6 dof each: every one below chi2_6's 99.99 % point, the mean within a wide band
+    print(f"pose from angle tables: NEES of 9 poses {np.round(nees, 2).tolist()} (ideal mean 6)")
     assert max(nees) < chi2_dist.ppf(0.9999, 6), nees
     assert 6 * 0.35 < np.mean(nees) < 6 * 2.0, nees
 
@@ -472,3 +474,22 @@ def test_lighthouse_triangulation_from_the_command_line(tmp_path, capsys, folder
         assert n > 250
         assert 0.8 < med / cf_med < 1.25  # the same geometry and rays: the same accuracy
         assert med < 30.0
+
+
+def test_pose_of_psdcal_single_sensor_angles_needs_no_calibration(tmp_path):
+    """The older angles input of `pose` (alpha_x_deg... without a sensor column) works without --calib too."""
+    rng = np.random.default_rng(8)
+    (nm, R, c), = make_room(rng, 1)
+    known = _known_emitters(rng, 6)
+    _write_emitters(tmp_path / "known.csv", known)
+    lines = ["t_s,emitter,alpha_x_deg,alpha_y_deg,sigma_alpha_x_deg,sigma_alpha_y_deg"]
+    for e, p in known.items():
+        a = angles_of((p - c) @ R.T, "psdcal") + rng.normal(0, 2e-4, 2)
+        lines.append(f"0,{e},{math.degrees(a[0]):.12g},{math.degrees(a[1]):.12g},{math.degrees(2e-4):.6g},"
+                     f"{math.degrees(2e-4):.6g}")
+    (tmp_path / "alpha.csv").write_text("\n".join(lines) + "\n")
+    out = tmp_path / "e.json"
+    assert main(["pose", str(tmp_path / "alpha.csv"), "--emitters", str(tmp_path / "known.csv"), "-o", str(out)]) == 0
+    entry = json.loads(out.read_text())
+    assert "calib" not in entry
+    assert _pose_nees(entry, R, c) < chi2_dist.ppf(0.9999, 6)

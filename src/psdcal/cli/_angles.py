@@ -58,6 +58,9 @@ def locate_angles(angles, sensors, output, *, recordings=(), calib=None, carrier
     if output_format != "csv":
         raise InputError("--format npy is not available with --angles: write CSV", field="format")
     table = read_table(angles, table_kw or {})
+    if len(table.sensors) < 2:
+        raise InputError(f"the angles table has one sensor ({', '.join(table.sensors)}): triangulation needs two or "
+                         "more", path=angles, field="sensor")
     poses = load_angle_sensors(sensors)
     res = triangulate_table(table, poses, sensors_path=sensors)
     if len(res) == 0:
