@@ -210,6 +210,13 @@ def test_locate_aligns_sensors_that_do_not_sample_together_and_tracks(tmp_path, 
     assert np.median(np.array(err) / np.array(sig)) < 2.0
     track = read_csv(tmp_path / "track.csv")
     assert len(track) == T - 1 and "vX_mm_s" in track[0]
+    # `track` of the angles directly: the same rows as through locate
+    assert main(["track", str(tmp_path / "a.csv"), "--sensors", str(tmp_path / "s.json"), "--align-to", "cam0",
+                 "-o", str(tmp_path / "track2.csv")]) == 0
+    assert (tmp_path / "track2.csv").read_text() == (tmp_path / "track.csv").read_text()
+    assert main(["track", str(tmp_path / "a.csv"), "--sensors", str(tmp_path / "s.json"), "-o",
+                 str(tmp_path / "track3.csv")]) == 2
+    assert not (tmp_path / "track3.csv").exists()
 
 
 # --------------------------------------------------------------------------- pose

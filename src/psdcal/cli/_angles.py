@@ -24,6 +24,24 @@ def angles_option(f):
              "calibration needed (docs/guide/positioning.md#angles-in).")(f)
 
 
+def table_options_except(*names):
+    """A decorator adding the angles-table options but those named (a command's own option of that name wins)."""
+    from psdcal.cli.selfcal_cmd import _table_options
+
+    def dummy():  # pragma: no cover - never called
+        pass
+
+    params = [p for p in _table_options(dummy).__click_params__ if p.name not in names]
+
+    def deco(f):
+        if not hasattr(f, "__click_params__"):
+            f.__click_params__ = []
+        f.__click_params__.extend(params)
+        return f
+
+    return deco
+
+
 def read_table(angles, table_kw: dict):
     """The angles table, resampled when ``--align-to`` is given (:func:`psdcal.cli.selfcal_cmd._read_table`)."""
     from psdcal.cli.selfcal_cmd import _read_table
@@ -80,6 +98,32 @@ def locate_angles(angles, sensors, output, *, recordings=(), calib=None, carrier
         click.echo(summary_line(info, track_path))
         for w in info["warnings"]:
             click.echo(f"psdcal: warning: {w}", err=True)
+
+
+def track_angles(angles, sensors, output, table_kw, **kw) -> None:
+    """``psdcal track ANGLES.csv --sensors SENSORS.json -o track.csv``: triangulated, then tracked (``kw``: the
+    options of :func:`psdcal.measure.tracking.track_csv`)."""
+    import tempfile
+
+    from psdcal._atomic import immediate
+    from psdcal.errors import InputError
+    from psdcal.measure.angles_locate import load_angle_sensors, triangulate_table, write_positions_csv
+    from psdcal.measure.tracking import summary_line, track_csv
+
+    table = read_table(angles, table_kw or {})
+    res = triangulate_table(table, load_angle_sensors(sensors), sensors_path=sensors)
+    if len(res) == 0:
+        raise InputError("no emitter is seen by two sensors at the same time step (sensors that do not sample "
+                         "together: --align-to SENSOR)", path=angles, field="t_s")
+    _warn(res.check)
+    with tempfile.TemporaryDirectory() as tmp:
+        xyz = Path(tmp) / "xyz.csv"
+        with immediate():  # a scratch file read back at once; the track joins the command's outputs
+            write_positions_csv(xyz, res)
+        info = track_csv(xyz, output, **kw)
+    click.echo(summary_line(info, output))
+    for w in info["warnings"]:
+        click.echo(f"psdcal: warning: {w}", err=True)
 
 
 # --------------------------------------------------------------------------- pose

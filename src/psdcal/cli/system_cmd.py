@@ -531,6 +531,12 @@ def pose_command(source, calib, emitters_csv, rate_hz, carriers, emitter_names, 
 
 
 # --------------------------------------------------------------------------- track
+def _angle_table_options_track(f):
+    from psdcal.cli._angles import table_options_except
+
+    return table_options_except("max_gap_s")(f)  # --max-gap-s stays the track's gap
+
+
 @cli.command("track")
 @click.argument("located", type=click.Path(dir_okay=False, path_type=Path))
 @click.option("--q", "q", type=str, default=None, metavar="Q|auto",
@@ -546,7 +552,11 @@ def pose_command(source, calib, emitters_csv, rate_hz, carriers, emitter_names, 
               help="A longer time without a used measurement is a gap: the track is re-acquired from the next "
                    "measurement (restart=1) [default: 10 x the emitter's median interval].")
 @click.option("-o", "--output", required=True, type=click.Path(dir_okay=False, path_type=Path), help="Output CSV.")
-def track_command(located, q, gate_p, max_gated, max_gap_s, output):
+@click.option("--sensors", "angle_sensors", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="LOCATED is an angles table of any front-end: triangulate it with these sensors' poses first "
+                   "(as `locate --angles`; docs/guide/positioning.md#angles-in).")
+@_angle_table_options_track
+def track_command(located, q, gate_p, max_gated, max_gap_s, output, angle_sensors=None, **table_kw):
     """Filter a `locate` output (LOCATED.csv) per emitter with a constant-velocity Kalman filter.
 
     \b
@@ -565,6 +575,8 @@ def track_command(located, q, gate_p, max_gated, max_gap_s, output):
     and a two-sided chi2 test of the NIS (and of the number gated) warns with the factor
     q looks off by ('q looks 4x too small').
     Example: psdcal track xyz.csv -o track.csv     (same as: psdcal locate ... --track track.csv)
+    Angles of any front-end: psdcal track angles.csv --sensors sensors.json -o track.csv
+    (triangulated first, as `locate --angles`; the table options as there).
     """
     from psdcal.errors import InputError
     from psdcal.measure.tracking import summary_line, track_csv
@@ -576,6 +588,11 @@ def track_command(located, q, gate_p, max_gated, max_gap_s, output):
             raise InputError(f"--q must be a number or 'auto', got {q!r}", field="q") from None
     if max_gap_s is not None and not max_gap_s > 0:
         raise InputError(f"--max-gap-s must be positive, got {max_gap_s}", field="max_gap_s")
+    if angle_sensors is not None:  # angles in: triangulated first (psdcal.cli._angles)
+        from psdcal.cli._angles import track_angles
+
+        return track_angles(located, angle_sensors, output, table_kw, q=q, gate_p=gate_p, max_gated=max_gated,
+                            max_gap_s=max_gap_s)
     info = track_csv(located, output, q=q, gate_p=gate_p, max_gated=max_gated, max_gap_s=max_gap_s)
     click.echo(summary_line(info, output))
     for w in info["warnings"]:
