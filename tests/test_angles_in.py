@@ -270,6 +270,17 @@ def test_pose_from_each_convention_without_calibration(tmp_path):
         tri = tmp_path / f"xyz_{conv}.csv"
         assert main(["locate", "--angles", str(tmp_path / f"{conv}.csv"), "--sensors",
                      str(tmp_path / f"{conv}.json"), "-o", str(tri)]) == 0
+        # ... with their pose covariances: the same poses without them give smaller sigmas
+        d = json.loads((tmp_path / f"{conv}.json").read_text())
+        for e in d["sensors"]:
+            e.pop("pose_covariance")
+        (tmp_path / "exact.json").write_text(json.dumps(d))
+        assert main(["locate", "--angles", str(tmp_path / f"{conv}.csv"), "--sensors", str(tmp_path / "exact.json"),
+                     "-o", str(tmp_path / "exact.csv"), "--force"]) == 0
+        a, b = read_csv(tri), read_csv(tmp_path / "exact.csv")
+        assert any(r["X_mm"] != s["X_mm"] for r, s in zip(a, b))  # the weights change with the pose covariance
+        ratio = [float(r[k]) / float(s[k]) for r, s in zip(a, b) for k in ("sigma_X_mm", "sigma_Y_mm", "sigma_Z_mm")]
+        assert min(ratio) > 1.0 and np.mean(ratio) > 1.01, (min(ratio), np.mean(ratio))  # ignored: exactly 1
     # 9 poses of 6 dof each: every one below chi2_6's 99.99 % point, the mean within a wide band
     print(f"pose from angle tables: NEES of 9 poses {np.round(nees, 2).tolist()} (ideal mean 6)")
     assert max(nees) < chi2_dist.ppf(0.9999, 6), nees
