@@ -511,3 +511,19 @@ def test_pose_of_psdcal_single_sensor_angles_needs_no_calibration(tmp_path):
     entry = json.loads(out.read_text())
     assert "calib" not in entry
     assert _pose_nees(entry, R, c) < chi2_dist.ppf(0.9999, 6)
+
+
+def test_pose_warns_of_an_emitter_that_moved(tmp_path, capsys):
+    rng = np.random.default_rng(9)
+    sensors = make_room(rng, 1)
+    known = _known_emitters(rng, 6)
+    _write_emitters(tmp_path / "known.csv", known)
+    P = np.repeat(np.array([list(known.values())]), 6, 0)
+    P[:, 2] += np.arange(6)[:, None] * np.array([30.0, 0, 0])  # k2 slides 30 mm per step
+    rows = observe(rng, sensors, P, np.arange(6) * 0.1, list(known), "azel", 1e-4)
+    write_table(tmp_path / "a.csv", rows, "azel", 1e-4)
+    assert main(["pose", str(tmp_path / "a.csv"), "--emitters", str(tmp_path / "known.csv"), "-o",
+                 str(tmp_path / "e.json")]) == 0
+    warn = json.loads((tmp_path / "e.json").read_text())["pose"]["warnings"]
+    assert any("'k2'" in w and "scatter" in w for w in warn) and not any("'k1'" in w for w in warn)
+    assert "'k2'" in capsys.readouterr().err

@@ -169,12 +169,13 @@ def is_front_end_table(source, table_kw: dict) -> bool:
 
 
 def pose_angles(source, names_w, points_w_mm, *, sensor, name, table_kw, **kw):
-    """The PoseResult of ``pose`` from an angles table (``kw``: known_rvec, known_height_mm)."""
-    from psdcal.measure.angles_locate import pose_from_table, table_sensor
+    """``(PoseResult, moving emitters)`` of ``pose`` from an angles table (``kw``: known_rvec, known_height_mm)."""
+    from psdcal.measure.angles_locate import moving_emitters, pose_from_table, table_sensor
 
     table = read_table(source, table_kw)
     s = table_sensor(table, sensor, fallback=name)
-    return pose_from_table(table, s, names_w, points_w_mm, **kw)
+    res = pose_from_table(table, s, names_w, points_w_mm, **kw)
+    return res, [e for e in moving_emitters(table, s) if e in set(names_w)]
 
 
 # --------------------------------------------------------------------------- bundle

@@ -496,8 +496,7 @@ def pose_command(source, calib, emitters_csv, rate_hz, carriers, emitter_names, 
     if angles == "front-end":
         from psdcal.cli._angles import pose_angles
 
-        moved = []
-        res = pose_angles(source, names_w, P, sensor=table_sensor, name=name, table_kw=table_kw, **kw)
+        res, moved = pose_angles(source, names_w, P, sensor=table_sensor, name=name, table_kw=table_kw, **kw)
     elif angles is not None:
         from psdcal.measure.pose import pose_from_angles
 

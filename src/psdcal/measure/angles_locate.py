@@ -224,6 +224,31 @@ def mean_directions(table: AnglesTable, mask=None):
     return names, np.array(n_out).reshape(-1, 2), np.array(c_out).reshape(-1, 2, 2)
 
 
+def moving_emitters(table: AnglesTable, sensor: str, alpha: float = 1e-3) -> list:
+    """Emitters whose directions, seen by ``sensor``, scatter about their mean more than their covariance allows.
+
+    Per emitter ``sum_i (n_i - mean)^T C_i^-1 (n_i - mean)`` against chi2 with
+    ``2 (m - 1)`` degrees of freedom; named when its p-value is below ``alpha``
+    (the emitter moved, or the sigmas are too small): averaging them for a pose
+    is then wrong.
+    """
+    from scipy.stats import chi2 as chi2_dist
+
+    sub = table.subset(table.sensor == sensor)
+    names, n, _ = mean_directions(sub)
+    W = np.linalg.inv(sub.cov_n)
+    out = []
+    for nm, mu in zip(names, n):
+        m = sub.emitter == nm
+        if m.sum() < 2:
+            continue
+        r = sub.n[m] - mu
+        q = float(np.einsum("ni,nij,nj->", r, W[m], r))
+        if chi2_dist.sf(q, 2 * (int(m.sum()) - 1)) < alpha:
+            out.append(nm)
+    return out
+
+
 def table_sensor(table: AnglesTable, sensor: str | None, fallback: str | None = None) -> str:
     """The sensor whose rows to use: ``sensor``, else ``fallback`` when in the table, else the only one."""
     names = table.sensors
@@ -360,6 +385,7 @@ __all__ = [
     "check_sensors_known",
     "load_angle_sensors",
     "mean_directions",
+    "moving_emitters",
     "pose_from_table",
     "sensors_entry_xfwd",
     "table_sensor",
