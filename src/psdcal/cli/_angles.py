@@ -42,6 +42,13 @@ def table_options_except(*names):
     return deco
 
 
+def table_options(f):
+    """All the angles-table options (:func:`psdcal.cli.selfcal_cmd._table_options`)."""
+    from psdcal.cli.selfcal_cmd import _table_options
+
+    return _table_options(f)
+
+
 def read_table(angles, table_kw: dict):
     """The angles table, resampled when ``--align-to`` is given (:func:`psdcal.cli.selfcal_cmd._read_table`)."""
     from psdcal.cli.selfcal_cmd import _read_table

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import click
 
-from psdcal.cli import cli
+from psdcal.cli import _angles, cli
 
 _PROGRESS_MIN_SAMPLES = 2_000_000
 
@@ -88,12 +88,6 @@ def _demod_options(f):
     return f
 
 
-def _angles_option(f):
-    from psdcal.cli._angles import angles_option
-
-    return angles_option(f)
-
-
 @cli.command("locate")
 @click.argument("recordings", nargs=-1, type=click.Path(dir_okay=False))
 @click.option("--calib", type=click.Path(dir_okay=False), help="Calibration JSON of the sensor (one sensor).")
@@ -120,7 +114,7 @@ def _angles_option(f):
               help="Accept a calibration without covariance or standard errors (its uncertainty is then left out "
                    "of every sigma); refused otherwise.")
 @_demod_options
-@_angles_option
+@_angles.angles_option
 def locate_command(recordings, calib, sensors, gains_file, rate_hz, carriers, emitters, distance_mm, window_s, tdm,
                    schedule, n_emitters, check_carriers, min_snr, channels, dataset, group, chunk_samples, progress,
                    output, track_path=None, track_q=None, raw_dtype="float64", raw_scale=1.0, output_format="csv",

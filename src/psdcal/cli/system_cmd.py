@@ -9,7 +9,7 @@ from pathlib import Path
 
 import click
 
-from psdcal.cli import cli
+from psdcal.cli import _angles, cli
 
 _FORMATS = ("npy", "csv", "hdf5", "tdms")
 
@@ -359,12 +359,6 @@ def _table_angles(path, header, rows):
     return names, vals[:, :2], vals[:, 2:]
 
 
-def _angle_table_options(f):
-    from psdcal.cli.selfcal_cmd import _table_options
-
-    return _table_options(f)
-
-
 @cli.command("pose")
 @click.argument("source", type=click.Path(dir_okay=False, path_type=Path))
 @click.option("--calib", required=False, type=click.Path(dir_okay=False, path_type=Path),
@@ -395,7 +389,7 @@ def _angle_table_options(f):
 @click.option("--sensor", "table_sensor", default=None, metavar="SENSOR",
               help="An angles table of several sensors: the sensor whose rows to use (default: --name when the "
                    "table has it, else the table's only sensor).")
-@_angle_table_options
+@_angles.table_options
 def pose_command(source, calib, emitters_csv, rate_hz, carriers, emitter_names, also, window_s, schedule, tdm, min_snr,
                  known_rvec, known_height_m, name, rec_key, into, output, table_sensor=None, **table_kw):
     """Estimate a calibrated sensor's rotation and position in the room (PnP + maximum likelihood).
@@ -530,12 +524,6 @@ def pose_command(source, calib, emitters_csv, rate_hz, carriers, emitter_names, 
 
 
 # --------------------------------------------------------------------------- track
-def _angle_table_options_track(f):
-    from psdcal.cli._angles import table_options_except
-
-    return table_options_except("max_gap_s")(f)  # --max-gap-s stays the track's gap
-
-
 @cli.command("track")
 @click.argument("located", type=click.Path(dir_okay=False, path_type=Path))
 @click.option("--q", "q", type=str, default=None, metavar="Q|auto",
@@ -554,7 +542,7 @@ def _angle_table_options_track(f):
 @click.option("--sensors", "angle_sensors", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="LOCATED is an angles table of any front-end: triangulate it with these sensors' poses first "
                    "(as `locate --angles`; docs/guide/positioning.md#angles-in).")
-@_angle_table_options_track
+@_angles.table_options_except("max_gap_s")  # --max-gap-s stays the track's gap
 def track_command(located, q, gate_p, max_gated, max_gap_s, output, angle_sensors=None, **table_kw):
     """Filter a `locate` output (LOCATED.csv) per emitter with a constant-velocity Kalman filter.
 
@@ -631,12 +619,6 @@ def _calib_blocks(dns, cal_covs, keep):
     return D[keep], Sc
 
 
-def _angles_in(f):
-    from psdcal.cli._angles import angles_option
-
-    return angles_option(f)
-
-
 @cli.command("bundle")
 @click.argument("located", nargs=-1, required=False)
 @click.option("--calib", "calibs", multiple=True, required=False,
@@ -650,7 +632,7 @@ def _angles_in(f):
               help="Also write the estimated emitter positions: emitter,X_m,Y_m,Z_m,sigma_X_mm,sigma_Y_mm,sigma_Z_mm.")
 @click.option("-o", "--output", required=True, type=click.Path(dir_okay=False, path_type=Path),
               help="Sensors file (JSON) with every pose and its pose_covariance.")
-@_angles_in
+@_angles.angles_option
 def bundle_command(located, calibs, known_csv, wands, points_out, output, angles=None, **table_kw):
     """Calibrate several sensors together: all poses and emitter positions in one bundle adjustment.
 
