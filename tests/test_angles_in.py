@@ -128,7 +128,7 @@ def test_locate_from_each_convention_matches_the_truth(tmp_path, capsys):
         expect = sum(1 for v in seen.values() if len(v) >= 2)
         assert len(got) == expect  # every (step, emitter) seen by two sensors or more, and only those
         for r in got:
-            i = int(round(float(r["t_s"]) / 0.05))
+            i = round(float(r["t_s"]) / 0.05)
             j = emitters.index(r["emitter"])
             assert int(r["n_sensors"]) == len(seen[(round(float(r["t_s"]), 6), r["emitter"])])
             d = np.array([float(r[k]) for k in ("X_mm", "Y_mm", "Z_mm")]) - P[i, j]
@@ -340,7 +340,7 @@ def test_bundle_from_angles_with_a_wand(tmp_path, capsys):
     assert len(wand) >= 25
     z = []
     for p in wand:
-        i = int(round((float(p["emitter"].split("@")[1]) - 10.0) / 0.05))
+        i = round((float(p["emitter"].split("@")[1]) - 10.0) / 0.05)
         d_mm = np.array([float(p[c]) * 1000 for c in ("X_m", "Y_m", "Z_m")]) - W[i, 0]
         z += list(d_mm / np.array([float(p[c]) for c in ("sigma_X_mm", "sigma_Y_mm", "sigma_Z_mm")]))
     assert np.max(np.abs(z)) < 5.0
@@ -450,7 +450,11 @@ def score_against_mocap(folder, xyz_rows):
 def test_lighthouse_triangulation_from_the_command_line(tmp_path, capsys, folder):
     if not (DATA / folder / "angles.csv").exists():
         pytest.skip("lighthouse-lh1 data not present")
-    from psdcal.measure.angles_locate import load_angle_sensors, sensors_entry_xfwd, triangulate_table
+    from psdcal.measure.angles_locate import (
+        load_angle_sensors,
+        sensors_entry_xfwd,
+        triangulate_table,
+    )
     from psdcal.measure.angles_table import AnglesTable, align_to_sensor, read_angles
 
     g = stations_file(tmp_path / "stations.json")
@@ -521,7 +525,7 @@ def test_lighthouse_triangulation_from_the_command_line(tmp_path, capsys, folder
 def test_pose_of_psdcal_single_sensor_angles_needs_no_calibration(tmp_path):
     """The older angles input of `pose` (alpha_x_deg... without a sensor column) works without --calib too."""
     rng = np.random.default_rng(8)
-    (nm, R, c), = make_room(rng, 1)
+    (_, R, c), = make_room(rng, 1)
     known = _known_emitters(rng, 6)
     _write_emitters(tmp_path / "known.csv", known)
     lines = ["t_s,emitter,alpha_x_deg,alpha_y_deg,sigma_alpha_x_deg,sigma_alpha_y_deg"]

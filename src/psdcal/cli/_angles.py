@@ -72,7 +72,11 @@ def locate_angles(angles, sensors, output, *, recordings=(), calib=None, carrier
                   track_path=None, track_q=None, table_kw=None) -> None:
     """``psdcal locate --angles ANGLES.csv --sensors SENSORS.json -o xyz.csv``."""
     from psdcal.errors import InputError
-    from psdcal.measure.angles_locate import load_angle_sensors, triangulate_table, write_positions_csv
+    from psdcal.measure.angles_locate import (
+        load_angle_sensors,
+        triangulate_table,
+        write_positions_csv,
+    )
 
     if sensors is None:
         raise InputError("--angles needs --sensors SENSORS.json (the sensors' poses)", field="sensors")
@@ -114,7 +118,11 @@ def track_angles(angles, sensors, output, table_kw, **kw) -> None:
 
     from psdcal._atomic import immediate
     from psdcal.errors import InputError
-    from psdcal.measure.angles_locate import load_angle_sensors, triangulate_table, write_positions_csv
+    from psdcal.measure.angles_locate import (
+        load_angle_sensors,
+        triangulate_table,
+        write_positions_csv,
+    )
     from psdcal.measure.tracking import summary_line, track_csv
 
     table = read_table(angles, table_kw or {})
@@ -177,7 +185,11 @@ def is_front_end_table(source, table_kw: dict) -> bool:
 
 def pose_angles(source, names_w, points_w_mm, *, sensor, name, table_kw, **kw):
     """``(PoseResult, moving emitters)`` of ``pose`` from an angles table (``kw``: known_rvec, known_height_mm)."""
-    from psdcal.measure.angles_locate import moving_emitters, pose_from_table, table_sensor
+    from psdcal.measure.angles_locate import (
+        moving_emitters,
+        pose_from_table,
+        table_sensor,
+    )
 
     table = read_table(source, table_kw)
     s = table_sensor(table, sensor, fallback=name)

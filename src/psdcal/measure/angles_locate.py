@@ -196,10 +196,9 @@ def write_positions_csv(path, res: AnglePositions) -> int:
     from psdcal._atomic import atomic_path
     from psdcal.measure.locate import _write_rows
 
-    with atomic_path(path, suffix=".csv") as tmp:
-        with open(tmp, "w", encoding="utf-8", newline="") as fh:
-            fh.write(",".join(ANGLES_LOCATE_COLUMNS) + "\n")
-            n = _write_rows(fh, res.columns(), ANGLES_LOCATE_COLUMNS) if len(res) else 0
+    with atomic_path(path, suffix=".csv") as tmp, open(tmp, "w", encoding="utf-8", newline="") as fh:
+        fh.write(",".join(ANGLES_LOCATE_COLUMNS) + "\n")
+        n = _write_rows(fh, res.columns(), ANGLES_LOCATE_COLUMNS) if len(res) else 0
     return n
 
 
