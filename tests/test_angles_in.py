@@ -306,7 +306,8 @@ def test_pose_of_a_multi_sensor_table_needs_the_sensor(tmp_path, capsys):
 
 
 # --------------------------------------------------------------------------- bundle
-def test_bundle_from_angles_with_a_wand(tmp_path, capsys):
+@pytest.mark.parametrize("convention", CONVENTIONS)
+def test_bundle_from_angles_with_a_wand(tmp_path, capsys, convention):
     from psdcal.measure.angles_locate import bundle_from_table
     from psdcal.measure.angles_table import read_angles
 
@@ -316,11 +317,11 @@ def test_bundle_from_angles_with_a_wand(tmp_path, capsys):
     _write_emitters(tmp_path / "known.csv", known)
     t_s, W = moving_points(rng, 30, 1)
     rows = []
-    for conv in ("azel",):
+    for conv in (convention,):
         rows += observe(rng, sensors, np.repeat(np.array([list(known.values())]), 3, 0), np.arange(3) * 0.05,
                         list(known), conv, 2e-4)
         rows += observe(rng, sensors, W, t_s + 10.0, ["wand"], conv, 2e-4, p_drop=0.1)
-    write_table(tmp_path / "a.csv", rows, "azel", 2e-4)
+    write_table(tmp_path / "a.csv", rows, convention, 2e-4)
     out = tmp_path / "sensors.json"
     assert main(["bundle", "--angles", str(tmp_path / "a.csv"), "--known", str(tmp_path / "known.csv"),
                  "--wand", "wand", "-o", str(out), "--points-out", str(tmp_path / "pts.csv")]) == 0
