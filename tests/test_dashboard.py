@@ -179,7 +179,7 @@ def test_dashboard_imports_stay_out_of_the_other_commands():
 def test_events_log_records_warning_lines(tmp_path, capsys):
     import click
 
-    from psdcal._events import logging_warnings
+    from psdcal.cli._events import logging_warnings
 
     log = tmp_path / "ev.jsonl"
     with logging_warnings(log, "locate"):
@@ -337,7 +337,7 @@ def test_dashboard_in_a_browser(tmp_path):
             text = b.evaluate("document.getElementById('warnings').textContent")
             assert "a1: chi2" in text and f"t = {BAD_T[-1] + 0.005:.3f} s" in text
             # a warning a command prints (the --events log) appears too
-            from psdcal._events import append_event, event
+            from psdcal.cli._events import append_event, event
 
             append_event(events, event("the stream ended inside a frame (12 bytes dropped)", command="locate"))
             wait_for(b, "document.getElementById('warnings').textContent.indexOf('12 bytes dropped') >= 0", 10)

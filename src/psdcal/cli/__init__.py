@@ -157,7 +157,7 @@ def cli(ctx, events):
     calibration is a JSON file.  Run `psdcal COMMAND --help` for details.
     """
     if events:
-        from psdcal._events import logging_warnings
+        from psdcal.cli._events import logging_warnings
 
         ctx.with_resource(logging_warnings(events, ctx.invoked_subcommand or ""))
 

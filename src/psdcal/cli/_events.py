@@ -12,7 +12,7 @@ that contains ``warning:`` is also appended to the log as one JSON object::
 
 The lines printed are unchanged. Each object is one ``write`` to a file opened
 in append mode, so several commands may share one log (``psdcal dashboard
---events FILE`` follows it). Standard library only: every layer may import it.
+--events FILE`` follows it). Standard library only; the dashboard reads the format, it does not import this module.
 """
 from __future__ import annotations
 
