@@ -53,8 +53,17 @@ def tag_position(t):
     return 3000.0 + 800.0 * math.cos(w * t), 2000.0 + 800.0 * math.sin(w * t), 1000.0
 
 
-def write_room(d, *, duration_s: float = 30.0, rate_hz: float = 100.0, seed: int = 1) -> dict:
-    """Write calib.json, sensors.json, emitters.csv and rows.csv into ``d``; returns their paths."""
+REFLECTION = ("s2", "a1", 2.0, 2.1)  # sensor, emitter, from, to (s): its angles 1 deg off
+
+
+def write_room(d, *, duration_s: float = 30.0, rate_hz: float = 100.0, seed: int = 1, sensor_rows: bool = False) -> dict:
+    """Write calib.json, sensors.json, emitters.csv and rows.csv into ``d``; returns their paths.
+
+    With ``sensor_rows`` also each sensor's angles (``<s>_angles.csv``, the
+    columns of a single-sensor `locate`, angle noise 0.05 deg stated as 0.1 deg;
+    :data:`REFLECTION` puts one sensor's angles of one emitter 1 deg off for
+    0.1 s) and amplitudes (``<s>_amp.csv``, SNR about 200, 120 and 40).
+    """
     d = Path(d)
     rng = np.random.default_rng(seed)
     (d / "calib.json").write_text(json.dumps({
@@ -81,8 +90,30 @@ def write_room(d, *, duration_s: float = 30.0, rate_hz: float = 100.0, seed: int
                 chi2 = 500.0
             lines.append(f"{t:.6f},{em},{p[0]:.4f},{p[1]:.4f},{p[2]:.4f},{sig[0]:.3f},{sig[1]:.3f},{sig[2]:.3f},3,{chi2:.5g}")
     (d / "rows.csv").write_text("\n".join(lines) + "\n")
-    return {k: d / f for k, f in (("calib", "calib.json"), ("sensors", "sensors.json"), ("emitters", "emitters.csv"),
-                                  ("rows", "rows.csv"))}
+    out = {k: d / f for k, f in (("calib", "calib.json"), ("sensors", "sensors.json"), ("emitters", "emitters.csv"),
+                                 ("rows", "rows.csv"))}
+    if sensor_rows:
+        for k, (name, c) in enumerate(SENSORS.items()):
+            R = look_at(c, AIM)
+            ang = ["t_s,emitter,x_mm,y_mm,alpha_x_deg,alpha_y_deg,sigma_x_mm,sigma_y_mm,sigma_alpha_x_deg,sigma_alpha_y_deg"]
+            amp = ["t_s,emitter,vx1,vx2,vy1,vy2,sigma_vx1,sigma_vx2,sigma_vy1,sigma_vy2"]
+            noise = (0.005, 0.008, 0.025)[k]
+            for i in range(n):
+                t = 0.005 + i / rate_hz
+                for em in ("a1", "tag"):
+                    truth = SURVEYED["a1"] if em == "a1" else tag_position(t)
+                    pc = R @ (np.asarray(truth) - np.asarray(c))
+                    a = np.degrees(np.arctan(pc[:2] / pc[2])) + 0.05 * rng.standard_normal(2)
+                    if (name, em) == REFLECTION[:2] and REFLECTION[2] <= t < REFLECTION[3]:
+                        a = a + 1.0
+                    ang.append(f"{t:.6f},{em},0,0,{a[0]:.6f},{a[1]:.6f},0.001,0.001,0.1,0.1")
+                    v = 1.0 + noise * rng.standard_normal(4)
+                    amp.append(f"{t:.6f},{em}," + ",".join(f"{x:.5f}" for x in v) + "," + ",".join([f"{noise:g}"] * 4))
+            (d / f"{name}_angles.csv").write_text("\n".join(ang) + "\n")
+            (d / f"{name}_amp.csv").write_text("\n".join(amp) + "\n")
+            out[f"{name}_angles"] = d / f"{name}_angles.csv"
+            out[f"{name}_amp"] = d / f"{name}_amp.csv"
+    return out
 
 
 def read_rows(path) -> list:

@@ -7,8 +7,10 @@ Rows (one CSV line each) become compact lists, the form the page receives:
 ``tracks``     (``psdcal track`` / ``locate --track`` rows)
     ``[t_s, emitter, X_mm, Y_mm, Z_mm, sigma_X_mm, sigma_Y_mm, sigma_Z_mm, gated]``
 ``sensor``     (one sensor's ``locate`` angles or ``amplitudes`` rows, ``--sensor-rows NAME=FILE``)
-    ``[t_s, sensor, emitter, snr, chi2]`` (``snr`` from amplitude rows, ``chi2``
-    of the sensor's angles against the located position, 2 dof; None when unknown)
+    ``[t_s, sensor, emitter, snr, chi2, angles]`` (``snr`` from amplitude rows, ``chi2``
+    of the sensor's angles against the located position, 2 dof; ``angles`` =
+    ``[alpha_x_deg, alpha_y_deg, sigma_alpha_x_deg, sigma_alpha_y_deg]`` from
+    angle rows, the page draws the ray; None when unknown)
 
 ``flag`` is 1 when the row's chi2 exceeds the 99.9 % quantile of chi2 with
 ``2 n_sensors - 3`` degrees of freedom (:data:`psdcal._consistency.ALPHA`).

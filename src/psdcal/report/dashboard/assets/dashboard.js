@@ -2,7 +2,7 @@
  * Records (see psdcal.report.dashboard.data):
  *   positions [t, emitter, X, Y, Z, sX, sY, sZ, n_sensors, chi2, flag]
  *   tracks    [t, emitter, X, Y, Z, sX, sY, sZ, gated]
- *   sensor    [t, sensor, emitter, snr, chi2]
+ *   sensor    [t, sensor, emitter, snr, chi2, angles or null]
  *   warnings  [t_s or null, t_unix, source, level, text]
  * Read-only: the page sends nothing to the server but its WebSocket handshake. */
 (function () {
@@ -32,6 +32,7 @@
   }
   function ingest(msg) {
     if (msg.type === 'snapshot') {
+      warnKey = null;
       S.pos = []; S.trk = []; S.sen = []; S.warn = []; S.tmin = Infinity; S.tmax = -Infinity;
     }
     if (msg.room) { S.room = msg.room; S.bounds = null; showFiles(); }
@@ -202,6 +203,27 @@
       top.push({type: 'scatter', mode: 'lines', x: xs, y: ys, name: em + ' track', line: {color: color(em), width: 1.5}, hoverinfo: 'skip', showlegend: false, uid: 'trail-' + em});
       d3.push({type: 'scatter3d', mode: 'lines', x: xs, y: ys, z: zs, name: em + ' track', line: {color: color(em), width: 3}, hoverinfo: 'skip', showlegend: false});
     });
+    // each sensor's measured rays (from its angle rows): sensor -> a little past the located emitter, or to the floor
+    var rx = [], ry = [], rx3 = [], ry3 = [], rz3 = [], sens = {}, seenRay = {};
+    (room.sensors || []).forEach(function (s) { sens[s.name] = s; });
+    for (var i = lastIndex(S.sen, T); i >= 0 && S.sen[i][0] > T - 0.5; i--) {
+      var q = S.sen[i], key = q[1] + '|' + q[2];
+      if (!q[5] || key in seenRay || !sens[q[1]]) continue;
+      seenRay[key] = 1;
+      var sp = sens[q[1]], Rm = sp.R, c = sp.center_mm;
+      var dc = [Math.tan(q[5][0] * Math.PI / 180), Math.tan(q[5][1] * Math.PI / 180), 1], dw = [0, 0, 0];
+      for (var j = 0; j < 3; j++) dw[j] = Rm[0][j] * dc[0] + Rm[1][j] * dc[1] + Rm[2][j] * dc[2];
+      var nrm = Math.hypot(dw[0], dw[1], dw[2]);
+      dw = dw.map(function (v) { return v / nrm; });
+      var L = now[q[2]] ? 1.1 * Math.hypot(now[q[2]][2] - c[0], now[q[2]][3] - c[1], now[q[2]][4] - c[2])
+                        : (dw[2] < -1e-9 && c[2] > 0 ? -c[2] / dw[2] : 3000);
+      rx.push(c[0], c[0] + L * dw[0], null); ry.push(c[1], c[1] + L * dw[1], null);
+      rx3.push(c[0], c[0] + L * dw[0], null); ry3.push(c[1], c[1] + L * dw[1], null); rz3.push(c[2], c[2] + L * dw[2], null);
+    }
+    if (rx.length) {
+      top.push({type: 'scatter', mode: 'lines', x: rx, y: ry, name: 'sensor rays', line: {color: 'rgba(31,59,87,0.35)', width: 1}, hoverinfo: 'skip', uid: 'rays'});
+      d3.push({type: 'scatter3d', mode: 'lines', x: rx3, y: ry3, z: rz3, name: 'sensor rays', line: {color: 'rgba(31,59,87,0.5)', width: 2}, hoverinfo: 'skip'});
+    }
     // 3-sigma ellipses / ellipsoids (the rows carry per-axis sigmas: axes along the room's)
     var elx = [], ely = [], mesh = {x: [], y: [], z: [], i: [], j: [], k: []};
     names.forEach(function (n) {
@@ -298,8 +320,13 @@
     el('sensors').tBodies[0].innerHTML = html.join('');
   }
   function esc(s) { return String(s).replace(/[&<>"']/g, function (c) { return '&#' + c.charCodeAt(0) + ';'; }); }
+  var warnKey = null;
   function warnings(T) {
-    var shown = S.warn.filter(function (w) { return w[0] === null || w[0] <= T; }).slice(-300).reverse();
+    var shown = S.warn.filter(function (w) { return w[0] === null || w[0] <= T; });
+    var key = S.warn.length + '/' + shown.length;
+    if (key === warnKey) return;  // unchanged: the list is not rebuilt on every frame
+    warnKey = key;
+    shown = shown.slice(-300).reverse();
     el('warnings').innerHTML = shown.map(function (w) {
       var when = w[0] !== null ? 't = ' + w[0].toFixed(3) + ' s' : (w[1] ? new Date(w[1] * 1000).toLocaleTimeString() : '');
       return '<li class="' + esc(w[3]) + '"><span class="when">' + esc(when) + '</span><span class="src">' + esc(w[2]) + ':</span> ' + esc(w[4]) + '</li>';
