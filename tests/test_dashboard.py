@@ -111,6 +111,25 @@ def test_sensor_chi2_against_the_located_position():
     assert bad[4] == pytest.approx(9.0, rel=1e-6)
 
 
+def test_sensor_warning_per_emitter_run(tmp_path):
+    """A reflection into one sensor for one emitter warns once, although the sensor's other emitter is fine between."""
+    from psdcal.report.dashboard.hub import Hub, Options
+
+    from _dashboard_room import REFLECTION
+
+    room = write_room(tmp_path, duration_s=3.0, sensor_rows=True)
+    hub = Hub(Options(rows=(room["rows"],), sensors=room["sensors"],
+                      sensor_rows=tuple((s, room[f"{s}_angles"]) for s in ("s1", "s2", "s3"))))
+    snap = hub.drain()
+    texts = [w[4] for w in snap["warnings"] if w[4].startswith("sensor ")]
+    assert len(texts) == 1 and texts[0].startswith(f"sensor {REFLECTION[0]}:") and REFLECTION[1] in texts[0]
+    chi2 = [r[4] for r in snap["sensor"] if r[4] is not None]
+    assert len(chi2) > 0.9 * 3 * 2 * 300  # nearly every (window, emitter, sensor) matched its position
+    import numpy as np
+
+    assert 0.2 < np.median(chi2) / 2 < 1.0  # angle noise 0.05 deg stated as 0.1 deg, plus the position's own noise
+
+
 # ---- safety --------------------------------------------------------------------------------------------------------
 def test_bind_rules():
     from psdcal.report.dashboard.server import check_bind

@@ -245,7 +245,7 @@ class SensorChi2:
         out = []
         lim = _chi2_limit(2)
         for s in recs:
-            if s[4] is not None and self.warner.see(s[1], s[4] > lim):
+            if s[4] is not None and self.warner.see((s[1], s[2]), s[4] > lim):
                 out.append(_warn(s[0], source, f"sensor {s[1]}: its angles disagree with the other sensors' position of "
                                                f"{s[2]} (chi2 {s[4]:.3g} for 2 dof, {RUN} windows in a row): a "
                                                "reflection into this sensor, or it moved"))

@@ -121,14 +121,14 @@
   function roomBounds(extra) {
     var pts = [];
     var room = S.room || {};
-    (room.sensors || []).forEach(function (s) { pts.push(s.center_mm); s.fov_mm.forEach(function (p) { pts.push(p); }); });
+    (room.sensors || []).forEach(function (s) { pts.push(s.center_mm); });  // not the fields of view: they reach far
     (room.emitters || []).forEach(function (e) { pts.push(e.pos_mm); });
     if (room.plan) { pts.push([room.plan.x_mm[0], room.plan.y_mm[0], 0]); pts.push([room.plan.x_mm[room.plan.x_mm.length - 1], room.plan.y_mm[room.plan.y_mm.length - 1], 0]); }
     extra.forEach(function (p) { pts.push(p); });
     if (!pts.length) return null;
     var lo = [Infinity, Infinity, Infinity], hi = [-Infinity, -Infinity, -Infinity];
     pts.forEach(function (p) { for (var d = 0; d < 3; d++) { lo[d] = Math.min(lo[d], p[d]); hi[d] = Math.max(hi[d], p[d]); } });
-    var pad = 0.08 * Math.max(hi[0] - lo[0], hi[1] - lo[1], 500);
+    var pad = 0.12 * Math.max(hi[0] - lo[0], hi[1] - lo[1], 500);
     return [[lo[0] - pad, hi[0] + pad], [lo[1] - pad, hi[1] + pad]];
   }
   function grow(b, pts) {
