@@ -225,6 +225,17 @@ def test_events_option_logs_a_command_warning(tmp_path, capsys):
     assert len(ev) == 1 and ev[0]["command"] == "dashboard" and "not a psdcal rows CSV" in ev[0]["text"]
 
 
+def test_events_from_the_environment(tmp_path, monkeypatch, capsys):
+    bad = tmp_path / "empty.csv"
+    bad.write_text("")
+    log = tmp_path / "env.jsonl"
+    monkeypatch.setenv("PSDCAL_EVENTS", str(log))
+    assert main(["dashboard", str(bad), "--export", str(tmp_path / "o.html")]) == 0
+    capsys.readouterr()
+    ev = [json.loads(line) for line in log.read_text().splitlines()]
+    assert [e["text"] for e in ev] == [f"{bad}: empty"]
+
+
 def test_hub_replays_by_time(tmp_path):
     from psdcal.report.dashboard.hub import Hub, Options
 
@@ -240,6 +251,47 @@ def test_hub_replays_by_time(tmp_path):
     now[0] = 10.0
     hub.poll()
     assert hub.replay_done() and len(hub.snapshot()["positions"]) == 400
+
+
+def test_follows_a_running_live_locate(tmp_path):
+    """`psdcal locate -` flushes each window's row: the dashboard has rows before the stream ends."""
+    import numpy as np
+
+    from psdcal.measure.sensor_model import SensorModel
+    from psdcal.report.dashboard.hub import Hub, Options
+    from psdcal.study.recordings import amplitudes, calib_dict, signals, spot_for_angles
+
+    calib = calib_dict()
+    (tmp_path / "c.json").write_text(json.dumps(calib))
+    m = SensorModel.from_dict(calib)
+    rate = 20000.0
+    x = signals(rate, int(rate * 1.0), [(amplitudes(m, spot_for_angles(m, np.radians([3.0, -2.0]))), 1000.0, 0.3)],
+                noise=1e-3, rng=np.random.default_rng(0))
+    payload = np.ascontiguousarray(x.T).astype("<f4").tobytes()
+    out = tmp_path / "live.csv"
+    proc = subprocess.Popen([sys.executable, "-m", "psdcal.cli", "locate", "-", "--calib", str(tmp_path / "c.json"),
+                             "--allow-no-covariance", "--rate-hz", str(rate), "--carrier-hz", "1000", "--emitter", "led",
+                             "--raw-dtype", "float32", "-o", str(out)],
+                            stdin=subprocess.PIPE, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=_env())
+    hub = Hub(Options(sensor_rows=(("s1", out),)))
+    half = len(payload) // 2 // 16 * 16
+    proc.stdin.write(payload[:half])
+    proc.stdin.flush()
+    got = []
+    deadline = time.monotonic() + 60
+    while not got and time.monotonic() < deadline:  # the stream is still open: rows of the first half only
+        upd = hub.poll()
+        got += upd["sensor"] if upd else []
+        time.sleep(0.05)
+    assert got and proc.poll() is None
+    assert all(r[2] == "led" and r[5] is not None for r in got)
+    assert abs(np.median([r[5][0] for r in got]) - 3.0) < 0.1 and abs(np.median([r[5][1] for r in got]) + 2.0) < 0.1
+    proc.stdin.write(payload[half:])
+    proc.stdin.close()
+    assert proc.wait(timeout=60) == 0, proc.stderr.read()
+    while hub.poll():
+        pass
+    assert len(hub.snapshot()["sensor"]) == 100  # 1 s of 10 ms windows
 
 
 # ---- the page in a real browser --------------------------------------------------------------------------------------

@@ -158,7 +158,8 @@ def make_app(hub, *, host: str = "127.0.0.1", token: str | None = None, poll_s: 
                             q.put_nowait(text)
                         except asyncio.QueueFull:  # too slow: drop it (its page reconnects, gets a snapshot)
                             clients.discard(q)
-                            q._queue.clear()  # noqa: SLF001 - make room for the close marker
+                            while not q.empty():  # make room for the close marker
+                                q.get_nowait()
                             q.put_nowait(None)
                 await asyncio.sleep(poll_s)
 
