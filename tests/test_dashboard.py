@@ -387,12 +387,14 @@ def test_dashboard_in_a_browser(tmp_path):
     warning appear, pause holds the view while rows arrive, resume follows again; the static export opens from disk."""
     from browser import Chromium
 
-    room = write_room(tmp_path, duration_s=60.0)
+    room = write_room(tmp_path, duration_s=60.0, sensor_rows=True)
     rows = read_rows(room["rows"])
     events = tmp_path / "events.jsonl"
     events.write_text("")
+    per_sensor = [a for s in ("s1", "s2", "s3") for a in ("--sensor-rows", f"{s}={room[s + '_angles']}",
+                                                         "--sensor-rows", f"{s}={room[s + '_amp']}")]
     proc, url = start_server([room["rows"], "--sensors", room["sensors"], "--emitters", room["emitters"],
-                              "--events", events, "--replay", "--speed", "1"])
+                              "--events", events, "--replay", "--speed", "1", *per_sensor])
     try:
         # WebGL off here: the software-rendered 3-D view would share two CPU cores with the replay (the static
         # export below checks it); the view from above is SVG and is what is measured to the pixel
@@ -407,6 +409,17 @@ def test_dashboard_in_a_browser(tmp_path):
             wait_for(b, "parseFloat(document.body.dataset.viewT) > 1.2")
             text = b.evaluate("document.getElementById('warnings').textContent")
             assert "a1: chi2" in text and f"t = {BAD_T[-1] + 0.005:.3f} s" in text
+            # each sensor's health: its calibration's verdict, the emitters it sees, its SNR, its chi2 against the others
+            health = json.loads(b.evaluate(
+                "JSON.stringify(Array.from(document.querySelectorAll('#sensors tbody tr')).map(function (r) {"
+                " return Array.from(r.cells).map(function (c) { return c.textContent; }); }))"))
+            assert [h[0] for h in health] == ["s1", "s2", "s3"] and all(h[1] == "good" for h in health)
+            assert all(h[2] == "a1 tag" for h in health)
+            snr = [float(h[3]) for h in health]  # written as 4 / (2 * noise): 400, 250, 80
+            assert 360 < snr[0] < 440 and 225 < snr[1] < 275 and 70 < snr[2] < 90
+            assert all(0.1 < float(h[4]) < 1.5 for h in health)
+            wait_for(b, "parseFloat(document.body.dataset.viewT) > 2.2")
+            assert "sensor s2: its angles disagree" in b.evaluate("document.getElementById('warnings').textContent")
             # a warning a command prints (the --events log) appears too
             from psdcal.cli._events import append_event, event
 
@@ -459,4 +472,8 @@ def test_dashboard_in_a_browser(tmp_path):
         got = {(round(x, 3), round(y, 3)) for x, y in zip(pts3d[0], pts3d[1])}
         assert got == {(round(x, 3), round(y, 3)) for _, x, y in exp.values()}
         assert b.evaluate("document.querySelectorAll('#room3d canvas').length") > 0
+        # Play replays the recording from its start
+        b.evaluate("document.getElementById('play').click()")
+        t_play = float(wait_for(b, "parseFloat(document.body.dataset.viewT) < 0.5 && document.body.dataset.viewT", 10))
+        wait_for(b, f"parseFloat(document.body.dataset.viewT) > {t_play + 0.2}", 10)
         assert b.errors() == []
