@@ -111,6 +111,23 @@ def test_sensor_chi2_against_the_located_position():
     assert bad[4] == pytest.approx(9.0, rel=1e-6)
 
 
+def test_one_sensor_room(tmp_path):
+    """Live input is one sensor: a sensors file of one sensor is drawn (its rays come from its angle rows)."""
+    from psdcal.report.dashboard.data import read_sensors
+
+    room = write_room(tmp_path, duration_s=0.1)
+    data = json.loads(room["sensors"].read_text())
+    one = tmp_path / "one.json"
+    one.write_text(json.dumps({"sensors": data["sensors"][:1]}))
+    (s,) = read_sensors(one)
+    assert s["name"] == "s1" and s["verdict"] == "good"
+    assert s["center_mm"] == pytest.approx([5800.0, 3800.0, 2800.0], abs=1e-6)  # the test's own pose
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps([{"calib": "calib.json", "rvec": [0, 0], "tvec_mm": [0, 0, 1]}]))
+    with pytest.raises(InputError, match="rvec"):
+        read_sensors(bad)
+
+
 def test_sensor_warning_per_emitter_run(tmp_path):
     """A reflection into one sensor for one emitter warns once, although the sensor's other emitter is fine between."""
     from psdcal.report.dashboard.hub import Hub, Options
