@@ -467,11 +467,11 @@ def test_dashboard_in_a_browser(tmp_path):
     # the static export: one file, no server, no network
     out = tmp_path / "room.html"
     short = tmp_path / "short.csv"
-    short.write_text("".join(open(room["rows"]).readlines()[:401]))  # 2 s
+    short.write_text("".join(room["rows"].read_text().splitlines(keepends=True)[:401]))  # 2 s
     assert main(["dashboard", str(short), "--sensors", str(room["sensors"]), "--emitters", str(room["emitters"]),
                  "--export", str(out)]) == 0
     html_text = out.read_text(encoding="utf-8")
-    outside = re.sub(r"<script>.*?</script>", "", html_text, flags=re.S)  # the markup, not the inlined code
+    outside = re.sub(r"<script>.*?</script>", "", html_text, flags=re.DOTALL)  # the markup, not the inlined code
     assert "<script src" not in outside and not re.search(r"""(src|href)\s*=\s*["']?(https?:|//)""", outside)
     assert html_text.count("<script>") == 2 and "plotly.js v" in html_text  # plotly.js and the page's script
     with Chromium(timeout_s=60, extra_flags=WEBGL) as b:
