@@ -489,6 +489,9 @@ def test_dashboard_in_a_browser(tmp_path):
         got = {(round(x, 3), round(y, 3)) for x, y in zip(pts3d[0], pts3d[1])}
         assert got == {(round(x, 3), round(y, 3)) for _, x, y in exp.values()}
         assert b.evaluate("document.querySelectorAll('#room3d canvas').length") > 0
+        # PNG export: the image the PNG button saves (plotly's own rendering of the view from above)
+        png = b.evaluate("Plotly.toImage('top', {format: 'png'}).then(function (u) { return u; })")
+        assert png.startswith("data:image/png;base64,") and len(png) > 5000
         # Play replays the recording from its start
         b.evaluate("document.getElementById('play').click()")
         t_play = float(wait_for(b, "parseFloat(document.body.dataset.viewT) < 0.5 && document.body.dataset.viewT", 10))
