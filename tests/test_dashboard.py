@@ -398,6 +398,7 @@ def drawn_positions(b, rows, zoom=True):
     return T, exp, worst
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(_chromium() is None, reason="no chromium on this machine (apt-get install chromium); CI installs it")
 def test_dashboard_in_a_browser(tmp_path):
     """Replay a recording: emitters appear where the rows put them (to a pixel), the chi2 warning and an event-log
@@ -489,6 +490,11 @@ def test_dashboard_in_a_browser(tmp_path):
         got = {(round(x, 3), round(y, 3)) for x, y in zip(pts3d[0], pts3d[1])}
         assert got == {(round(x, 3), round(y, 3)) for _, x, y in exp.values()}
         assert b.evaluate("document.querySelectorAll('#room3d canvas').length") > 0
+        # scrub back: the slider's middle shows the rows of the middle of the recording
+        b.evaluate("var s = document.getElementById('scrub'); s.value = '0.5'; s.dispatchEvent(new Event('input')); 1")
+        wait_for(b, "Math.abs(parseFloat(document.body.dataset.viewT) - 1.0) < 0.01", 10)
+        T2, _, worst2 = drawn_positions(b, read_rows(short), zoom=False)
+        assert T2 == pytest.approx(0.005 + 0.5 * (1.995 - 0.005)) and worst2 < 1.0
         # PNG export: the image the PNG button saves (plotly's own rendering of the view from above)
         png = b.evaluate("Plotly.toImage('top', {format: 'png'}).then(function (u) { return u; })")
         assert png.startswith("data:image/png;base64,") and len(png) > 5000
