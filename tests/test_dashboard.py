@@ -253,6 +253,23 @@ def test_events_from_the_environment(tmp_path, monkeypatch, capsys):
     assert [e["text"] for e in ev] == [f"{bad}: empty"]
 
 
+def test_a_new_run_starts_the_rows_over(tmp_path):
+    """A rows file replaced by a new run (t_s from 0 again): the pages get a snapshot of the new rows only."""
+    from psdcal.report.dashboard.hub import Hub, Options
+
+    room = write_room(tmp_path, duration_s=1.0)
+    hub = Hub(Options(rows=(room["rows"],)))
+    first = hub.poll()
+    assert first["type"] == "update" and len(first["positions"]) == 200
+    head, *lines = room["rows"].read_text().splitlines()
+    new = tmp_path / "new.csv"
+    new.write_text("\n".join([head, *lines[:10]]) + "\n")
+    os.replace(new, room["rows"])
+    msg = hub.poll()
+    assert msg["type"] == "snapshot" and len(msg["positions"]) == 10 and hub.poll() is None
+    assert len(hub.snapshot()["positions"]) == 10
+
+
 def test_hub_replays_by_time(tmp_path):
     from psdcal.report.dashboard.hub import Hub, Options
 

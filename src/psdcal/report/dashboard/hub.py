@@ -86,6 +86,7 @@ class Hub:
         self.history = {k: [] for k in KINDS}
         self.tmax = -math.inf
         self.chi2 = SensorChi2()
+        self._restarted = False
         self.room = {"title": opts.title, "sensors": [], "emitters": [], "plan": None,
                      "mode": "replay" if opts.replay else "live", "speed": opts.speed,
                      "history_s": opts.history_s if math.isfinite(opts.history_s) else None,
@@ -130,10 +131,13 @@ class Hub:
             self.room[key] = val
             changed = True
             if key == "sensors":
-                import numpy as np
-
-                self.chi2.poses = {s["name"]: (np.array(s["R"]), np.array(s["t"])) for s in val}
+                self._load_room_poses()
         return changed
+
+    def _load_room_poses(self) -> None:
+        import numpy as np
+
+        self.chi2.poses = {s["name"]: (np.array(s["R"]), np.array(s["t"])) for s in self.room["sensors"]}
 
     # -- rows ---------------------------------------------------------------------------------------------------------
     def _read_sources(self) -> dict:
@@ -142,6 +146,7 @@ class Hub:
             chunk = src.follower.poll()
             if chunk.reset and src.parser is not None:
                 src.parser.reset()
+                self._restarted = True  # a new run writes this file: its t_s start again
             if not chunk.lines:
                 continue
             if src.parser is None:
@@ -199,7 +204,16 @@ class Hub:
                 ev["warnings"] += [w for w in (event_record(line, src.name) for line in chunk.lines) if w]
             new["warnings"] += ev["warnings"]
         else:
+            self._restarted = False
             new = self._read_sources()
+            if self._restarted:  # start the rows over (the warnings stay); the pages get a fresh snapshot
+                for k in ("positions", "tracks", "sensor"):
+                    self.history[k] = []
+                self.tmax = -math.inf
+                self.chi2 = SensorChi2()
+                self._load_room_poses()
+                self._append(new)
+                return self.snapshot()
         if not room_changed and not any(new[k] for k in KINDS):
             return None
         now_unix = time.time()
