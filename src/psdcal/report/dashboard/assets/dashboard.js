@@ -247,12 +247,17 @@
     d3.push({type: 'scatter3d', mode: 'markers+text', x: lx, y: ly, z: lz, text: names, hovertext: hover, hoverinfo: 'text',
              name: 'located', marker: {size: 5, color: lc}});
     var b = S.bounds || [[0, 1], [0, 1]];
+    // the 3-D box: the room's floor plan and from the floor (or the lowest point) to above the highest sensor
+    var zs = (room.sensors || []).map(function (s) { return s.center_mm[2]; }).concat((room.emitters || []).map(function (e) { return e.pos_mm[2]; }), lz);
+    var zr = [Math.min(0, Math.min.apply(null, zs.concat([0]))), 1.1 * Math.max.apply(null, zs.concat([1000]))];
     var layoutTop = {margin: {l: 60, r: 20, t: 10, b: 50}, showlegend: true, legend: {orientation: 'h', y: -0.12},
                      xaxis: {title: {text: 'X mm'}, range: b[0], zeroline: false},
                      yaxis: {title: {text: 'Y mm'}, range: b[1], zeroline: false, scaleanchor: 'x', scaleratio: 1},
                      uirevision: 'top', plot_bgcolor: '#fff'};
     var layout3d = {margin: {l: 0, r: 0, t: 0, b: 0}, showlegend: false, uirevision: 'room3d',
-                    scene: {aspectmode: 'data', xaxis: {title: {text: 'X mm'}}, yaxis: {title: {text: 'Y mm'}}, zaxis: {title: {text: 'Z mm'}}}};
+                    scene: {aspectmode: 'manual', aspectratio: aspect3d(b, zr),
+                            xaxis: {title: {text: 'X mm'}, range: b[0]}, yaxis: {title: {text: 'Y mm'}, range: b[1]},
+                            zaxis: {title: {text: 'Z mm'}, range: zr}}};
     var cfg = {displaylogo: false, responsive: true};
     var done = Plotly.react(el('top'), top, layoutTop, cfg);
     if (has3d) draw3d(d3, layout3d, cfg);
@@ -281,6 +286,10 @@
       d3state.busy = false; d3state.last = performance.now();
       if (d3state.next) draw3d.apply(null, d3state.next);
     }, function (err) { d3state.busy = false; console.error('psdcal dashboard (3-D): ' + err); });
+  }
+  function aspect3d(b, zr) {  // equal scales on the three axes
+    var dx = b[0][1] - b[0][0], dy = b[1][1] - b[1][0], dz = zr[1] - zr[0], m = Math.max(dx, dy, dz);
+    return {x: dx / m, y: dy / m, z: dz / m};
   }
   function fmt(x, d) { return x === null || x === undefined ? '' : Number(x).toFixed(d); }
   function tables(T, now, names) {
