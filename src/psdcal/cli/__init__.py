@@ -170,6 +170,7 @@ _COMMANDS = (
     "signal_cmd",
     "locate_cmd",
     "report_cmd",
+    "dashboard_cmd",
     "reproduce_cmd",
     "directions_cmd",
     "inspect_cmd",
@@ -177,7 +178,6 @@ _COMMANDS = (
     "gains_cmd",
     "export_cmd",
     "capture_cmd",
-    "dashboard_cmd",
 )
 
 
