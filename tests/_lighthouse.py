@@ -161,3 +161,20 @@ def scored_errors(t_s, p_lh_mm, truth_mm, fit_mask, score_mask):
     s = np.flatnonzero(ok & score_mask)
     e = np.linalg.norm(p_lh_mm[s] @ R.T + t - truth_mm[s], axis=1)
     return e, R, t, s
+
+
+def station_directions(n_bs, sigma_rad: float = SIGMA_ANGLE_RAD):
+    """psdcal rays and covariances from one station's ``(tan h, tan v)`` (..., 2).
+
+    The angle noise ``sigma_rad`` (independent between h and v) becomes
+    ``cov(n) = diag(sigma^2 (1 + n^2)^2)`` (``dn/dangle = 1 + tan^2``)."""
+    n_bs = np.asarray(n_bs, dtype=float)
+    cov = np.zeros(n_bs.shape + (2,))
+    cov[..., 0, 0] = sigma_rad**2 * (1 + n_bs[..., 0] ** 2) ** 2
+    cov[..., 1, 1] = sigma_rad**2 * (1 + n_bs[..., 1] ** 2) ** 2
+    return cov
+
+
+def nees(err, cov):
+    """``e^T C^-1 e`` per row."""
+    return np.einsum("ni,nij,nj->n", err, np.linalg.inv(cov), err)
