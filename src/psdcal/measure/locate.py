@@ -658,7 +658,7 @@ def locate_multi_to_csv(recordings, sensors, out_path, config: LocateConfig,
         if s2 > 0:
             check = extra_noise_check(check, s2, tr0, tr1)
         if check.passed is False:
-            warnings.append(f"{out_path}: {check.message} ({n_flagged} of {n_rows} rows flagged individually)")
+            warnings.append(f"{out_path}: {check.line()} ({n_flagged} of {n_rows} rows flagged individually)")
     return LocateSummary(n_samples, n_windows, n_rows, n_skipped, n_samples / rate, MULTI_COLUMNS,
                          warnings=tuple(warnings), window_s=window_s, n_flagged=n_flagged, checks=(check,),
                          extra_var_n=s2)
