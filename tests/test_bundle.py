@@ -251,3 +251,24 @@ def test_calibration_nees_band_rejects_a_covariance_2_5x_too_large():
     prop, _ = _calibrated_runs(np.random.default_rng(3), scale=2.5)
     ok, mean, se = _band(prop, 6.0)
     assert not ok, (mean, se)
+
+
+def test_noise_larger_than_stated_is_detected_and_covered():
+    """Rays 3x noisier than stated: the chi2 check fails in every room, the covariance grows by chi2/dof
+    (~9) and the pose NEES of 180 poses (60 rooms) is back within 3 Monte Carlo standard errors of 6."""
+    rng = np.random.default_rng(7)
+    sigma_n = 1e-4
+    means, stated = [], []
+    for trial in range(60):
+        Rs, names, P, js, ii, n_true = _independent_scene(rng)
+        n = n_true + 3 * sigma_n * rng.standard_normal(n_true.shape)
+        cov = np.broadcast_to(sigma_n**2 * np.eye(2), (len(n), 2, 2)).copy()
+        rv0, c0 = _starts(rng, Rs)
+        known = {names[i]: P[i] for i in range(4)}
+        res = bundle_adjust(["a", "b", "c"], names, js, ii, n, cov, known, init_rvecs=rv0, init_centers_mm=c0)
+        assert res.check.passed is False and 6 < res.check.inflation < 12
+        assert "covariance inflated" in res.check.message
+        np.testing.assert_allclose(res.cov_poses, res.check.inflation * res.cov_poses_stated)
+        means.append(np.mean(_pose_nees(res, Rs)))
+    ok, mean, se = _band(means, 6.0)
+    assert ok, (mean, se)
