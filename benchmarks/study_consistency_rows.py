@@ -6,7 +6,7 @@ tests/test_consistency_rows.py, independent of psdcal's simulator).  ``--files``
 ``--points`` points each: the fraction of points flagged and the fraction of files whose pooled
 test fails (and so get the extra ray noise), with their binomial standard errors; then the
 Lighthouse numbers of docs/guide/positioning.md#sigmas-that-cover-the-error when
-``../shared/data/lighthouse-lh1`` is there.
+``lighthouse-lh1`` of the shared data folder beside the repository is there.
 
 Usage::
 
@@ -72,9 +72,8 @@ def lighthouse():
         e_psd, R, tt, rows = lh.scored_errors(t, centre, truth, fit & same, score & same)
         e_cf, *_ = lh.scored_errors(t, est * 1000, truth, fit & same, score & same)
         err = centre[rows] @ R.T + tt - truth[rows]
-        rot = lambda C: np.einsum("ij,njk,lk->nil", R, C.reshape(E, 4, 3, 3).mean(1)[rows], R)  # noqa: E731
-        before = lh.nees(err, rot(tri.cov_p_stated_mm2))
-        after = lh.nees(err, rot(tri.cov_p_mm2))
+        before, after = (lh.nees(err, np.einsum("ij,njk,lk->nil", R, C.reshape(E, 4, 3, 3).mean(1)[rows], R))
+                         for C in (tri.cov_p_stated_mm2, tri.cov_p_mm2))
         c = tri.chi2[np.isfinite(tri.chi2)]
         cov = tri.cov_p_mm2.reshape(E, 4, 3, 3).mean(1)
         ok = same & np.all(np.isfinite(cov), (1, 2))

@@ -1,4 +1,4 @@
-"""Loader of the real Lighthouse V1 data set (``../shared/data/lighthouse-lh1``, see its README).
+"""Loader of the real Lighthouse V1 data set (``lighthouse-lh1`` of the shared data folder beside the repository, see its README).
 
 Two Lighthouse V1 base stations are angle-of-arrival sensors with known poses
 (``geometry.json``); the four photodiodes of the Crazyflie's deck are the

@@ -258,7 +258,7 @@ def test_noise_larger_than_stated_is_detected_and_covered():
     (~9) and the pose NEES of 180 poses (60 rooms) is back within 3 Monte Carlo standard errors of 6."""
     rng = np.random.default_rng(7)
     sigma_n = 1e-4
-    means, stated = [], []
+    means = []
     for trial in range(60):
         Rs, names, P, js, ii, n_true = _independent_scene(rng)
         n = n_true + 3 * sigma_n * rng.standard_normal(n_true.shape)

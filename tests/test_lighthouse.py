@@ -1,4 +1,4 @@
-"""Real Lighthouse V1 angles with motion capture (``../shared/data/lighthouse-lh1``, see its README).
+"""Real Lighthouse V1 angles with motion capture (``lighthouse-lh1`` of the shared data folder beside the repository, see its README).
 
 Two base stations are AoA sensors with known poses, the deck's four
 photodiodes are the emitters.  psdcal triangulates each photodiode from the
@@ -33,12 +33,11 @@ from __future__ import annotations
 
 import math
 
+import _lighthouse as lh
 import numpy as np
 import pytest
 
-import _lighthouse as lh
-
-pytestmark = pytest.mark.skipif(not lh.available(), reason="../shared/data/lighthouse-lh1 is not here")
+pytestmark = pytest.mark.skipif(not lh.available(), reason="the shared data folder lighthouse-lh1 is not beside the repository")
 
 
 @pytest.fixture(scope="module", params=lh.FLIGHTS)
@@ -62,8 +61,9 @@ def flight(request):
     same = all4 & np.all(np.isfinite(est_m), 1) & np.all(np.isfinite(truth), 1)
     e_psd, R, tt, rows = lh.scored_errors(t, centre, truth, fit & same, score & same)
     e_cf, *_ = lh.scored_errors(t, est_m * 1000.0, truth, fit & same, score & same)
-    return dict(name=request.param, log=log, t=t, tri=tri, centre=centre, cov=cov_c, cov_stated=cov_c_stated,
-                truth=truth, fit=fit, score=score, same=same, e_psd=e_psd, e_cf=e_cf, R=R, tt=tt, rows=rows)
+    return {"name": request.param, "log": log, "t": t, "tri": tri, "centre": centre, "cov": cov_c,
+            "cov_stated": cov_c_stated, "truth": truth, "fit": fit, "score": score, "same": same, "e_psd": e_psd,
+            "e_cf": e_cf, "R": R, "tt": tt, "rows": rows}
 
 
 def test_triangulation_as_good_as_the_crazyflie(flight):
@@ -94,7 +94,7 @@ def test_rays_disagree_with_the_stated_noise_and_it_is_said(flight):
 def test_nees_of_the_reported_covariance_against_motion_capture(flight):
     rows, R = flight["rows"], flight["R"]
     err = flight["centre"][rows] @ R.T + flight["tt"] - flight["truth"][rows]
-    rot = lambda C: np.einsum("ij,njk,lk->nil", R, C[rows], R)  # noqa: E731
+    rot = lambda C: np.einsum("ij,njk,lk->nil", R, C[rows], R)
     after = lh.nees(err, rot(flight["cov"]))
     before = lh.nees(err, rot(flight["cov_stated"]))
     assert before.mean() > 300, before.mean()  # the stated 70 urad alone: NEES in the thousands
