@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import tempfile
 from collections.abc import Callable
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -15,7 +16,6 @@ from psdcal._atomic import atomic_path
 from psdcal._consistency import extra_variance_on_grid
 from psdcal.errors import InputError, ZeroSignalError
 from psdcal.measure.aoa import angles_from_amplitudes
-from psdcal.measure.locate import LocateConfig, LocateSummary, _write_rows, prescan
 from psdcal.measure.positioning import (
     extra_noise_check,
     extra_ray_sums,
@@ -24,6 +24,9 @@ from psdcal.measure.positioning import (
     triangulate,
 )
 from psdcal.signal.stream import MultiCarrierLockin
+
+if TYPE_CHECKING:
+    from psdcal.measure.locate import LocateConfig, LocateSummary
 
 MULTI_COLUMNS = ("t_s", "emitter", "X_mm", "Y_mm", "Z_mm", "sigma_X_mm", "sigma_Y_mm", "sigma_Z_mm", "n_sensors", "chi2",
                  "dof", "flagged")
@@ -67,6 +70,8 @@ def locate_multi_to_csv(recordings, sensors, out_path, config: LocateConfig,
     -------
     LocateSummary
     """
+    from psdcal.measure.locate import LocateConfig, LocateSummary, prescan  # (locate re-exports this module)
+
     if config.output_format != "csv":
         raise InputError("--format npy is not available with --sensors (several sensors): write CSV", field="format")
     if len(recordings) != len(sensors) or len(sensors) < 2:
@@ -177,6 +182,7 @@ def _write_multi_rows(path, rec_fh, n_rows: int, names_arr, s2: float, chunk_row
 
     Returns ``(flagged rows, trace of each row's covariance before, after)``."""
     from psdcal._stats import chi2_isf
+    from psdcal.measure.locate import _write_rows
 
     thr = {}
     n_flagged = 0
