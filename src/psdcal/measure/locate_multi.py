@@ -32,7 +32,7 @@ MULTI_COLUMNS = ("t_s", "emitter", "X_mm", "Y_mm", "Z_mm", "sigma_X_mm", "sigma_
                  "dof", "flagged")
 #: Grid of extra ray variances (normalised coordinates^2) on which the file's residual sums are pooled.
 EXTRA_GRID = np.logspace(-20.0, 2.0, 441)
-#: Per-row record of the first pass: t, emitter index, X, Y, Z, cov (6), d cov / d s2 (6), n_sensors, chi2, dof, flag.
+#: Per-row record of the first pass (float64): t, emitter index, X, Y, Z, cov (6), d cov / d s2 (6), n_sensors, chi2, dof.
 _REC = 20
 _TRIU = (np.array([0, 1, 2, 0, 0, 1]), np.array([0, 1, 2, 1, 2, 2]))
 
