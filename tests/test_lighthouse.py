@@ -26,16 +26,24 @@ What the tests show (flights 00 and 01, 703 and 321 scored steps):
   is then at most 3 x its 3 degrees of freedom (it is thousands before);
 - tracking the deck centre (``psdcal.measure.tracking.track``) has a p95
   error at most 1.5 x the triangulation's;
-- a station's pose from the mocap positions as surveyed emitters must cover
-  its distance from the site survey with its (inflated) sigma.
+- a station's pose from the mocap positions as surveyed emitters (xfail until
+  measure/pose.py inflates its covariance): its sigma must cover its scatter
+  between independent 10 s blocks (3-12 mm; the ratio rule would give a mean
+  NEES of 0.9-6.8 for 3 dof) and its distance from the site survey (70-120 mm
+  in the same direction in both flights: a difference between the survey's
+  frame and the mocap's that no pose rule built on the pose's own residuals
+  can cover; the survey states no uncertainty).
 """
 from __future__ import annotations
 
+import itertools
 import math
 
 import _lighthouse as lh
 import numpy as np
 import pytest
+
+from psdcal.errors import DegenerateViewsError
 
 pytestmark = pytest.mark.skipif(not lh.available(), reason="the shared data folder lighthouse-lh1 is not beside the repository")
 
@@ -117,8 +125,9 @@ def test_tracking_p95_within_1_5_times_the_triangulation(flight):
     assert p95_track <= 1.5 * np.percentile(flight["e_psd"], 95), (p95_track, np.percentile(flight["e_psd"], 95))
 
 
-def _station_pose(flight, b, every_s=1.0):
-    """Station ``b``'s pose from the deck centre's mocap positions (surveyed emitters) on the fit blocks."""
+def _station_pose(flight, b, every_s=1.0, block=None):
+    """Station ``b``'s pose from the deck centre's mocap positions (surveyed emitters) on the fit blocks
+    (or on the 10 s block number ``block`` alone)."""
     from psdcal.measure.pose import estimate_pose
 
     log = flight["log"]
@@ -126,6 +135,8 @@ def _station_pose(flight, b, every_s=1.0):
     n_bs = np.stack([np.tan(h), np.tan(v)], -1)  # (F, 4, 2)
     P = lh.mocap_at(log, times)
     fit, _ = lh.halves(times)
+    if block is not None:
+        fit = np.floor(times / 10.0).astype(int) == block
     ok = np.all(np.isfinite(n_bs), (1, 2)) & np.all(np.isfinite(P), 1) & fit
     # one frame per `every_s` (the errors are correlated over time; denser frames add little)
     pick = ok & (np.diff(np.floor(times / every_s), prepend=-1) > 0)
@@ -134,8 +145,10 @@ def _station_pose(flight, b, every_s=1.0):
     return estimate_pose(nc, cov, P[pick])
 
 
-@pytest.mark.xfail(strict=False, reason="needs the pose covariance inflated for errors correlated between "
-                   "emitters (issue 19, part 2, measure/pose.py): today sigma 0.2-0.5 mm, distance 70-120 mm")
+@pytest.mark.xfail(strict=False, reason="the pose from mocap is reproducible to 3-12 mm between 10 s blocks but "
+                   "sits 70-120 mm from the site survey in the same direction in both flights; its sigma (0.2-0.5 mm "
+                   "today, 3-18 mm with the ratio rule) cannot cover that: it needs the survey's own uncertainty or "
+                   "a pose rule for errors common to all emitters (issue 19, part 2, measure/pose.py)")
 @pytest.mark.parametrize("b", [0, 1])
 def test_station_pose_sigma_covers_the_site_survey(flight, b):
     res = _station_pose(flight, b)
@@ -145,3 +158,28 @@ def test_station_pose_sigma_covers_the_site_survey(flight, b):
     maha = float(d @ np.linalg.solve(C, d))
     # within the 1e-3 quantile of chi2(3): the stated sigma covers the distance to the survey
     assert maha < 16.27, (np.linalg.norm(d), res.sigma_center_mm, res.chi2 / max(res.dof, 1))
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(strict=False, reason="needs the pose covariance inflated when the angles disagree with their "
+                   "noise (issue 19, part 2, measure/pose.py): today 0.2-0.5 mm against 3-12 mm between blocks")
+@pytest.mark.parametrize("b", [0, 1])
+def test_station_pose_sigma_covers_its_scatter_between_blocks(flight, b):
+    """The same station's pose from consecutive 10 s blocks (independent data, 0.5 s between frames): the
+    difference of two blocks' centres against the sum of their (inflated) covariances has a mean NEES at
+    most 3 x its 3 degrees of freedom (with the ratio rule chi2/dof applied by hand: 6.8, 5.0 on flight 00
+    and 1.0, 0.9 on flight 01)."""
+    poses = []
+    for k in range(int(flight["t"].max() // 10) + 1):
+        try:
+            res = _station_pose(flight, b, every_s=0.5, block=k)
+        except DegenerateViewsError:  # a block with too few frames
+            continue
+        if res.n_emitters >= 8:
+            poses.append(res)
+    assert len(poses) >= 3
+    nees = []
+    for a, c in itertools.pairwise(poses):
+        d = a.center_w_mm - c.center_w_mm
+        nees.append(float(d @ np.linalg.solve(a.cov[3:, 3:] + c.cov[3:, 3:], d)))
+    assert np.mean(nees) <= 9.0, (np.mean(nees), [p.sigma_center_mm for p in poses])
