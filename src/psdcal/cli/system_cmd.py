@@ -758,7 +758,8 @@ def bundle_command(located, calibs, known_csv, wands, points_out, output, angles
             "pose_covariance": {"names": ["omega_x_rad", "omega_y_rad", "omega_z_rad", "tx_mm", "ty_mm", "tz_mm"],
                                 "matrix": br.cov_omega_t(j).tolist()},
             "pose": {"center_w_mm": c.tolist(), "sigma_center_mm": sig_c.tolist(),
-                     "sigma_rotation_deg": sig_r.tolist(), "method": "bundle", "chi2": br.chi2, "dof": br.dof},
+                     "sigma_rotation_deg": sig_r.tolist(), "method": "bundle", "chi2": br.chi2, "dof": br.dof,
+                     "checks": [br.check.to_dict()] if br.check is not None else []},
         })
     write_json(output, {"sensors": entries})
     if points_out is not None:
@@ -776,12 +777,8 @@ def bundle_command(located, calibs, known_csv, wands, points_out, output, angles
         p = e["pose"]
         click.echo(f"  {e['name']}: centre +- {max(p['sigma_center_mm']):.3g} mm, rotation +- "
                    f"{max(p['sigma_rotation_deg']):.3g} deg")
-    from scipy.stats import chi2 as chi2_dist
-
-    if br.dof > 0 and chi2_dist.sf(br.chi2, br.dof) < 1e-3:
-        click.echo(f"warning: the observations do not fit (chi2 {br.chi2:.4g} for {br.dof} dof): a wrong known "
-                   "position, a wand window seen differently by the sensors, or a wrong start (3 known emitters "
-                   "can give a mirrored pose: use 4 or more)", err=True)
+    if br.check is not None and br.check.passed is False:
+        click.echo(f"warning: the observations do not fit: {br.check.line()} ({br.check.advice})", err=True)
 
 
 # --------------------------------------------------------------------------- plan
