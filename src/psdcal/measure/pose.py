@@ -278,6 +278,8 @@ def _linear_starts(n, P):
     m = P.mean(0)
     _, sv, Vt = np.linalg.svd(P - m)
     E = Vt.T  # columns: the layout's principal axes; the third is the plane's normal
+    if np.linalg.det(E) < 0:  # a right-handed basis, so that R = Rp E^T is a rotation, not a reflection
+        E[:, 2] = -E[:, 2]
     if k >= 4:
         uv = (P - m) @ E[:, :2]
         A = []
