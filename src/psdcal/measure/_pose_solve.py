@@ -17,7 +17,6 @@ import math
 
 import numpy as np
 
-from psdcal.model.projection import R_from_r
 
 
 def skew_batch(v):
@@ -27,6 +26,16 @@ def skew_batch(v):
     S[..., 1, 0], S[..., 1, 2] = v[..., 2], -v[..., 0]
     S[..., 2, 0], S[..., 2, 1] = -v[..., 1], v[..., 0]
     return S
+
+
+def exp_rotation(w):
+    """``exp([w]_x)`` (3, 3) of a rotation vector ``w`` (3,) (Rodrigues' formula, a proper rotation)."""
+    th2 = float(w @ w)
+    K = np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
+    if th2 < 1e-24:
+        return np.eye(3) + K
+    th = math.sqrt(th2)
+    return np.eye(3) + (math.sin(th) / th) * K + ((1.0 - math.cos(th)) / th2) * (K @ K)
 
 
 def predict(R, c, P):
@@ -221,8 +230,12 @@ def candidate_starts(n, P, *, triplets: int = 6, fallback: bool = True, seed: in
             if np.isfinite(cost[q]):
                 yield cands[q]
     if fallback:
-        rng = np.random.default_rng(seed)
-        yield from _ray_distance_starts(u, P, np.arange(len(P)), 4, rng)
+        yield from fallback_starts(n, P, seed=seed)
+
+
+def fallback_starts(n, P, *, seed: int = 0):
+    """The distances along the rays fitted to every pair of emitters' distance (one common start, 3 random)."""
+    yield from _ray_distance_starts(rays(n), P, np.arange(len(P)), 4, np.random.default_rng(seed))
 
 
 def refine(R, c, n, P, W, free, iterations):
@@ -252,7 +265,7 @@ def refine(R, c, n, P, W, free, iterations):
         lam = 1.0
         improved = False
         for _ in range(20):
-            R2 = R_from_r(lam * full[:3]) @ R
+            R2 = exp_rotation(lam * full[:3]) @ R
             c2 = c + lam * full[3:]
             f2, r2, J2 = evaluate(R2, c2)
             if f2 <= f:
@@ -279,8 +292,9 @@ def search(starts, n, P, W, free, iterations, accept, *, known_height_mm=None, m
     """Refine the candidate starts in turn; stop at the first minimum with ``chi2 <= accept``.
 
     Starts with an emitter behind the sensor, in the basin of a minimum
-    already found, or (``skip_above``) whose chi2 exceeds ``skip_above``
-    before refinement, are skipped; at most ``max_refine`` are refined.
+    already found, or whose chi2 before refinement exceeds ``skip_above`` or
+    1000 times the best minimum's (plus 1000 ``accept``), are skipped; at most
+    ``max_refine`` are refined.
 
     Returns
     -------
@@ -297,9 +311,11 @@ def search(starts, n, P, W, free, iterations, accept, *, known_height_mm=None, m
         dist = float(np.mean(np.linalg.norm(P - c, axis=1)))
         if any(_same_pose((R, c), f, dist) for f in found):
             continue
-        if skip_above < math.inf:
+        limit = min(skip_above, math.inf if best is None else 1e3 * best[2] + 1e3 * accept)
+        if limit < math.inf:
+            # a start far worse than the best minimum found (or than skip_above) is in another, worse basin
             r = (n - (P - c) @ R[:2].T / ((P - c) @ R[2])[:, None]).ravel()
-            if float(r @ W @ r) > skip_above:
+            if float(r @ W @ r) > limit:
                 continue
         R, c, chi2 = refine(R, c, n, P, W, free, iterations)
         tried += 1

@@ -44,7 +44,7 @@ import numpy as np
 from psdcal._consistency import Check, chi2_check
 from psdcal._stats import chi2_isf
 from psdcal.errors import DegenerateViewsError, InputError
-from psdcal.measure._pose_solve import candidate_starts, predict, refine, search
+from psdcal.measure._pose_solve import candidate_starts, fallback_starts, predict, refine, search
 from psdcal.model.projection import R_from_r, r_from_R, skew3
 
 #: Names of the pose covariance in the sensors file, over ``(omega, t)``: ``R = exp([omega]) R_hat``, ``Pc = R Pw + t``.
@@ -325,8 +325,11 @@ def estimate_pose(n, cov_n_noise, points_w_mm, *, dn_dp=None, cov_params=None, k
         R0 = R_from_r(np.asarray(known_rvec, dtype=float))
         R, c, chi2 = refine(R0, _start_known_rotation(n, P, R0, known_height_mm), n, P, W, free, iterations)
     else:
-        R, c, chi2 = search(candidate_starts(n, P), n, P, W, free, iterations, accept,
+        R, c, chi2 = search(candidate_starts(n, P, fallback=False), n, P, W, free, iterations, accept,
                             known_height_mm=known_height_mm)
+        if R is None:  # no closed-form start led anywhere: the distances along the rays, fitted
+            R, c, chi2 = search(fallback_starts(n, P), n, P, W, free, iterations, accept,
+                                known_height_mm=known_height_mm)
     if R is None or not np.isfinite(chi2):
         raise DegenerateViewsError("no pose puts every emitter in front of the sensor")
     if abs(np.linalg.det(R) - 1.0) > 1e-6:  # pragma: no cover - the solver builds proper rotations only
@@ -518,8 +521,14 @@ def _units_check(P, max_extent_mm):
 
 
 # --------------------------------------------------------------------------- helpers for files
-def read_emitters(path) -> tuple[list[str], np.ndarray, np.ndarray | None]:
+def read_emitters(path, *, max_extent_m: float | None = MAX_EXTENT_MM / 1000.0
+                  ) -> tuple[list[str], np.ndarray, np.ndarray | None]:
     """Read an emitters CSV ``emitter,X_m,Y_m,Z_m[,carrier_hz]``.
+
+    ``max_extent_m``: emitters spread over more than this (the diagonal of
+    their bounding box, m) raise an :class:`InputError` naming the file and
+    ``X_m``: centimetres or millimetres under the metre columns (a room of
+    5 m in centimetres spans 500 "m"). None: no check.
 
     Returns
     -------
@@ -567,6 +576,11 @@ def read_emitters(path) -> tuple[list[str], np.ndarray, np.ndarray | None]:
     if not names:
         raise InputError("no emitters after the header", path=path)
     a = np.array(vals)
+    ext = float(np.linalg.norm(a[:, :3].max(0) - a[:, :3].min(0)))
+    if max_extent_m is not None and ext > max_extent_m:
+        raise InputError(f"the emitters span {ext:.4g} m (more than {max_extent_m:g} m): X_m,Y_m,Z_m are metres, "
+                         "not centimetres or millimetres (for a larger site, raise the limit: --max-extent-m)",
+                         path=path, field="X_m")
     return names, a[:, :3] * 1000.0, (a[:, 3] if a.shape[1] == 4 else None)
 
 
