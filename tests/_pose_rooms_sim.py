@@ -122,6 +122,13 @@ def corrupt(P, how, box):
     raise ValueError(how)
 
 
+def chi2_of(n, cov, P, R, c):
+    """The weighted squared residual of the angles ``n`` (k, 2) for the pose ``(R, c)`` (the likelihood's exponent)."""
+    pc = (P - c) @ R.T
+    r = n - pc[:, :2] / pc[:, 2:]
+    return float(np.einsum("ki,kij,kj->", r, np.linalg.inv(cov), r))
+
+
 def pose_nees(R_hat, c_hat, cov, R, c):
     """NEES of a pose ``(R_hat, c_hat)`` with covariance ``cov`` over ``(omega, c)``, ``R = exp([omega]) R_hat``."""
     e = np.concatenate([log_rotation(R @ R_hat.T), c - c_hat])
@@ -138,8 +145,8 @@ def run_study(estimate, *, n_right: int, n_wrong: int, seed: int, kinds=KINDS, s
 
     Returns
     -------
-    list of dict: kind, survey, k, outcome ('refused', 'unusable', 'warned', 'clean'), nees (right
-    surveys), sqpnp_nees and sqpnp_same (the independent solver's pose against the result's: its NEES
+    list of dict: kind, survey, k, outcome ('refused', 'unusable', 'warned', 'clean'), nees and
+    dchi2_truth (right surveys: the chi2 at the true pose minus the result's, the likelihood ratio), sqpnp_nees and sqpnp_same (the independent solver's pose against the result's: its NEES
     under the result's covariance, and whether it lies in the same basin: 2 deg, 2 % of the distance).
     """
     rng = np.random.default_rng(seed)
@@ -151,7 +158,7 @@ def run_study(estimate, *, n_right: int, n_wrong: int, seed: int, kinds=KINDS, s
                 n, cov = observe(rng, P, R, c)
                 Ps = corrupt(P, how, box)
                 rec = {"kind": kind, "survey": how, "k": len(P), "nees": None, "sqpnp_nees": None,
-                       "sqpnp_same": None}
+                       "sqpnp_same": None, "truth": (n, cov, Ps, R, c)}
                 try:
                     r = estimate(n, cov, Ps)
                 except Exception as exc:  # a refusal: one of psdcal's errors
@@ -167,6 +174,7 @@ def run_study(estimate, *, n_right: int, n_wrong: int, seed: int, kinds=KINDS, s
                     rec["outcome"] = "clean"
                 if how == "right":
                     rec["nees"] = pose_nees(r.R, r.center_w_mm, r.cov, R, c)
+                    rec["dchi2_truth"] = chi2_of(n, cov, P, R, c) - chi2_of(n, cov, P, r.R, r.center_w_mm)
                     if solve_pnp is not None:
                         Rq, cq = solve_pnp(n, Ps)
                         rec["sqpnp_nees"] = pose_nees(r.R, r.center_w_mm, r.cov, Rq, cq)

@@ -288,13 +288,17 @@ def _same_pose(a, b, dist_mm):
 
 
 def search(starts, n, P, W, free, iterations, accept, *, known_height_mm=None, max_refine: int = 60,
-           skip_above: float = math.inf):
+           skip_above: float = math.inf, after_accept: int = 0, minima: list | None = None):
     """Refine the candidate starts in turn; stop at the first minimum with ``chi2 <= accept``.
 
     Starts with an emitter behind the sensor, in the basin of a minimum
     already found, or whose chi2 before refinement exceeds ``skip_above`` or
     1000 times the best minimum's (plus 1000 ``accept``), are skipped; at most
-    ``max_refine`` are refined.
+    ``max_refine`` are refined. With ``after_accept``, up to that many more
+    starts are refined after the first fitting minimum (those whose chi2
+    before refinement is below ``100 accept``), to find a second minimum
+    that fits too (the two-fold ambiguity of a plane seen from afar).
+    ``minima`` (a list) receives every distinct minimum ``(R, c, chi2)``.
 
     Returns
     -------
@@ -303,6 +307,7 @@ def search(starts, n, P, W, free, iterations, accept, *, known_height_mm=None, m
     best = None
     found: list = []
     tried = 0
+    extra = None
     for R, c in starts:
         if known_height_mm is not None:
             c = np.array([c[0], c[1], known_height_mm])
@@ -312,6 +317,8 @@ def search(starts, n, P, W, free, iterations, accept, *, known_height_mm=None, m
         if any(_same_pose((R, c), f, dist) for f in found):
             continue
         limit = min(skip_above, math.inf if best is None else 1e3 * best[2] + 1e3 * accept)
+        if extra is not None:
+            limit = min(limit, 100.0 * accept)
         if limit < math.inf:
             # a start far worse than the best minimum found (or than skip_above) is in another, worse basin
             r = (n - (P - c) @ R[:2].T / ((P - c) @ R[2])[:, None]).ravel()
@@ -323,9 +330,21 @@ def search(starts, n, P, W, free, iterations, accept, *, known_height_mm=None, m
             continue
         if np.linalg.det(R) < 0.5:  # pragma: no cover - a reflection is a bug, never a result
             raise AssertionError(f"pose solver produced a rotation of determinant {np.linalg.det(R):.3g}")
-        found.append((R, c))
+        dist = float(np.mean(np.linalg.norm(P - c, axis=1)))
+        if not any(_same_pose((R, c), f, dist) for f in found):
+            found.append((R, c))
+            if minima is not None:
+                minima.append((R, c, chi2))
         if best is None or chi2 < best[2] - 1e-9:
             best = (R, c, chi2)
-        if chi2 <= accept or tried >= max_refine:
+        if extra is not None:
+            extra -= 1
+            if extra <= 0:
+                break
+        elif chi2 <= accept:
+            if after_accept <= 0:
+                break
+            extra = after_accept
+        if tried >= max_refine:
             break
     return best if best is not None else (None, None, math.inf)

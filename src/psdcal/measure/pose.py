@@ -325,8 +325,9 @@ def estimate_pose(n, cov_n_noise, points_w_mm, *, dn_dp=None, cov_params=None, k
         R0 = R_from_r(np.asarray(known_rvec, dtype=float))
         R, c, chi2 = refine(R0, _start_known_rotation(n, P, R0, known_height_mm), n, P, W, free, iterations)
     else:
+        minima: list = []
         R, c, chi2 = search(candidate_starts(n, P, fallback=False), n, P, W, free, iterations, accept,
-                            known_height_mm=known_height_mm)
+                            known_height_mm=known_height_mm, after_accept=6, minima=minima)
         if R is None:  # no closed-form start led anywhere: the distances along the rays, fitted
             R, c, chi2 = search(fallback_starts(n, P), n, P, W, free, iterations, accept,
                                 known_height_mm=known_height_mm)
@@ -347,10 +348,13 @@ def estimate_pose(n, cov_n_noise, points_w_mm, *, dn_dp=None, cov_params=None, k
     Jf = J.reshape(2 * k, 6)[:, free]
     H = Jf.T @ W @ Jf
     try:
-        if np.linalg.cond(H) > 1e14:
+        # the condition of the information scaled to unit diagonal (radians and millimetres mixed otherwise)
+        dsc = 1.0 / np.sqrt(np.diag(H))
+        Hs = H * dsc[:, None] * dsc[None, :]
+        if not np.all(np.isfinite(Hs)) or np.linalg.cond(Hs) > 1e12:
             raise np.linalg.LinAlgError
-        Hinv = np.linalg.inv(H)
-    except np.linalg.LinAlgError:
+        Hinv = np.linalg.inv(Hs) * dsc[:, None] * dsc[None, :]
+    except (np.linalg.LinAlgError, FloatingPointError):
         raise DegenerateViewsError("the emitters' layout leaves the pose undetermined (singular information)") from None
     G = Hinv @ Jf.T @ W  # d pose / d n
     cov = np.zeros((6, 6))
@@ -378,6 +382,8 @@ def estimate_pose(n, cov_n_noise, points_w_mm, *, dn_dp=None, cov_params=None, k
     else:
         warnings.append(f"{k} emitters fix the pose exactly (no redundancy): the fit cannot be checked"
                         + ("; 3 emitters can also fit up to 4 poses" if k == 3 and known_rvec is None else ""))
+    if known_rvec is None:
+        checks.insert(1, _uniqueness_check(R, c, chi2, cov, free, minima, accept, dof))
     for chk in checks[1:]:
         if chk.passed is False:
             warnings.append(chk.message)
@@ -506,6 +512,46 @@ def _handedness_check(R, c, chi2, n, P, W, free, iterations, accept, dof, known_
                  f"(side_point_mm, --side-point) if it really is there",
                  advice="a coplanar layout cannot tell a survey from its mirror image: add an emitter off the plane, "
                         "or state the sensor's side", severe=True, dof=dof), chi2_m
+
+
+#: Two minima whose chi2 differ by less than this are both taken as possible (a likelihood ratio of e^4.5 = 90).
+AMBIGUOUS_DCHI2 = 9.0
+
+
+def _uniqueness_check(R, c, chi2, cov, free, minima, accept, dof):
+    """Whether another pose (a second minimum, outside the covariance) fits the angles nearly as well.
+
+    A rival minimum that fits (``chi2 <= accept``, the noise scaled as the fit shows) and lies beyond the
+    covariance's 99.9 % region, with a chi2 less than :data:`AMBIGUOUS_DCHI2` above the best, makes the pose
+    ambiguous (a severe failure); a rival inside the region is covered by the stated sigmas.
+    """
+    scale = max(1.0, chi2 / dof) if dof > 0 else 1.0
+    idx = np.flatnonzero(free)
+    Cinv = np.linalg.inv(cov[np.ix_(idx, idx)])
+    m2_limit = chi2_isf(CHI2_ALARM, len(idx))
+
+    def mahalanobis(m):
+        e = np.concatenate([r_from_R(m[0] @ R.T), m[1] - c])[idx]
+        return float(e @ Cinv @ e)
+
+    rivals = [m for m in minima if m[2] <= accept * scale and mahalanobis(m) > m2_limit]
+    if not rivals:
+        return Check("unique", None, AMBIGUOUS_DCHI2, None, 0.0, True,
+                     "no other pose found that fits the angles outside the stated uncertainty")
+    R2, c2, chi2_2 = min(rivals, key=lambda m: m[2])
+    ang = math.degrees(math.acos(np.clip((np.trace(R2 @ R.T) - 1.0) / 2.0, -1.0, 1.0)))
+    d = float(np.linalg.norm(c2 - c))
+    dchi2 = (chi2_2 - chi2) / scale
+    words = (f"another pose fits the angles too (chi2 {chi2_2:.4g} against {chi2:.4g}): the centre "
+             f"{d / 1000:.3g} m and the rotation {ang:.3g} deg away")
+    if dchi2 >= AMBIGUOUS_DCHI2:
+        return Check("unique", dchi2, AMBIGUOUS_DCHI2, None, 0.0, True,
+                     words + f"; the data prefer this one by {dchi2:.3g} in chi2")
+    return Check("unique", dchi2, AMBIGUOUS_DCHI2, None, 0.0, False,
+                 words + f"; the data cannot tell them apart (chi2 difference {dchi2:.3g} < {AMBIGUOUS_DCHI2:g}): "
+                         "the pose is ambiguous",
+                 advice="a plane of emitters seen from afar: add emitters, spread them wider or in depth, or give a "
+                        "known orientation or height", severe=True)
 
 
 def _units_check(P, max_extent_mm):
