@@ -24,6 +24,13 @@ from psdcal.model.projection import R_from_r
 NEES_WRONG = 37.95
 
 
+def _silently_wrong(r):
+    """An unflagged right-survey pose in another basin than the truth's: the data exclude the truth (its chi2 above
+    the result's by more than chi2(6) at 1e-6), or the truth fits better than the result (a minimum missed) while
+    lying beyond the result's sigmas."""
+    return r["dchi2_truth"] > NEES_WRONG or (r["dchi2_truth"] < -1e-3 and r["nees"] > NEES_WRONG)
+
+
 def _pose(n, cov, P):
     return estimate_pose(n, cov, P)
 
@@ -36,8 +43,8 @@ def test_rooms_never_silently_wrong_and_nees_six():
     Asserts: no mistaken survey gives a clean result; no right survey gives an unflagged pose that the data
     exclude (the truth's chi2 above the result's by more than chi2(6) at 1e-6: another basin); at most 3 right
     surveys marked not usable (two poses fit: measured 1) and 3 with a NEES beyond chi2(6) at 1e-6; the
-    mean NEES is 6 +- 0.3 (the Monte Carlo standard error of the mean of chi2(6) over 1250 rooms is
-    sqrt(12 / 1250) = 0.098, so the band is 3 standard errors); OpenCV's SQPnP lands in the same basin in
+    mean NEES over the usable ones is 6 +- 0.3 (the Monte Carlo standard error of the mean of chi2(6) over
+    1250 rooms is sqrt(12 / 1250) = 0.098, so the band is 3 standard errors); OpenCV's SQPnP lands in the same basin in
     >= 99 % of the right rooms.
     """
     recs = sim.run_study(_pose, n_right=250, n_wrong=12, seed=20260, solve_pnp=sim.sqpnp)
@@ -46,9 +53,8 @@ def test_rooms_never_silently_wrong_and_nees_six():
     assert len(right) == 1250 and len(wrong) == 180
     silent_wrong = [r for r in wrong if r["outcome"] == "clean"]
     assert not silent_wrong, silent_wrong[:3]
-    # a right survey's unflagged pose is in the truth's basin: the data do not exclude the truth (its chi2 above
-    # the result's, a likelihood ratio, below chi2(6) at 1e-6)
-    silent_right = [r for r in right if r["outcome"] == "clean" and r["dchi2_truth"] > NEES_WRONG]
+    # a right survey's unflagged pose is in the truth's basin
+    silent_right = [r for r in right if r["outcome"] == "clean" and _silently_wrong(r)]
     assert not silent_right, silent_right[:3]
     # the Gaussian sigmas of weak layouts (4-5 emitters in a plane) have heavier tails than chi2(6): measured 2 of
     # 1250 beyond its 1e-6 quantile (NEES 59 and 36, the truth's likelihood ratio 20 and 12)
@@ -57,12 +63,13 @@ def test_rooms_never_silently_wrong_and_nees_six():
     out_right = Counter(r["outcome"] for r in right)
     assert out_right["refused"] == 0 and out_right["unusable"] <= 3, out_right  # measured 1: a real ambiguity
     assert out_right["warned"] <= 6  # the chi2 check's design false-alarm rate is 0.1 % (1.25 expected)
-    nees = np.array([r["nees"] for r in right])
+    usable = [r for r in right if r["outcome"] in ("clean", "warned")]
+    nees = np.array([r["nees"] for r in usable])
     se = np.sqrt(12.0 / len(nees))
     assert abs(nees.mean() - 6.0) < 0.3, (nees.mean(), se)
     # each layout on its own (250 rooms, standard error 0.22): within 4 standard errors
     for kind in sim.KINDS:
-        v = np.array([r["nees"] for r in right if r["kind"] == kind])
+        v = np.array([r["nees"] for r in usable if r["kind"] == kind])
         assert abs(v.mean() - 6.0) < 4 * np.sqrt(12.0 / len(v)), (kind, v.mean())
     same = np.mean([r["sqpnp_same"] for r in right])
     assert same >= 0.99, same
