@@ -7,7 +7,8 @@ per-emitter noise): floor, bumpy floor, wall, ceiling and general layouts of
 swapped, x from the far wall, z from the ceiling).
 
 Prints
-* the timing of one pose (median of timed calls after a warm-up, one core):
+* the timing of one pose (median of timed calls after a warm-up, one core; wall clock and process CPU
+  time, the latter steadier on a shared machine):
   a general layout of 6 emitters and a floor layout of 6, this source and,
   with ``--before SRC`` (another checkout's ``src``), that one in a
   subprocess on the same rooms;
@@ -59,6 +60,13 @@ for kind in ("general", "floor"):
             rooms.append(sim.observe(rng, P, R, c) + (P,))
     it = iter(range(10**9))
     out[kind] = median_seconds(lambda: estimate_pose(*rooms[next(it) % len(rooms)]), {repeats})
+    import time
+    ts = []
+    for j in range({repeats}):
+        t0 = time.process_time()
+        estimate_pose(*rooms[j % len(rooms)])
+        ts.append(time.process_time() - t0)
+    out[kind + "_cpu"] = float(np.median(ts))
 print(json.dumps(out))
 """
 
@@ -77,16 +85,21 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=200, help="timed calls per timing")
     ap.add_argument("--before", help="another checkout's src directory, timed on the same rooms")
     ap.add_argument("--seed", type=int, default=7)
+    ap.add_argument("--timing-only", action="store_true", help="only the timing")
     a = ap.parse_args()
 
     src = str(HERE.parent / "src")
     t = timing(src, a.repeats)
-    print(f"one pose, 6 emitters (median of {a.repeats}): general {t['general'] * 1e3:.2f} ms, "
-          f"floor {t['floor'] * 1e3:.2f} ms")
-    if a.before:
-        b = timing(a.before, a.repeats)
-        print(f"  before ({a.before}): general {b['general'] * 1e3:.2f} ms, floor {b['floor'] * 1e3:.2f} ms")
+    def show(what, t):
+        print(f"{what}: general {t['general'] * 1e3:.2f} ms (CPU {t['general_cpu'] * 1e3:.2f} ms), "
+              f"floor {t['floor'] * 1e3:.2f} ms (CPU {t['floor_cpu'] * 1e3:.2f} ms)")
 
+    show(f"one pose, 6 emitters (median of {a.repeats}, wall clock and process CPU)", t)
+    if a.before:
+        show(f"  before ({a.before})", timing(a.before, a.repeats))
+
+    if a.timing_only:
+        return
     sys.path.insert(0, src)
     from psdcal.measure.pose import estimate_pose
 

@@ -476,7 +476,10 @@ def _handedness_check(R, c, chi2, n, P, W, free, iterations, accept, dof, known_
     scale = max(1.0, chi2 / dof) if dof > 0 else 1.0
     # a quick search (the mirror of a fitting survey is found from its first, exact starts in a few steps),
     # then a full refinement when the best of it comes near fitting
-    Rm, cm, chi2_m = search(itertools.chain(first, candidate_starts(n, P2, fallback=False)), n, P2, W, free,
+    # emitters spread in depth (6 or more): the DLT of the mirror image is its exact start when it fits
+    sv = np.linalg.svd(P - m, compute_uv=False)
+    tri = 0 if len(P) >= 6 and sv[2] > 0.1 * sv[0] else 4
+    Rm, cm, chi2_m = search(itertools.chain(first, candidate_starts(n, P2, fallback=False, triplets=tri)), n, P2, W, free,
                             min(iterations, 8), accept * scale, known_height_mm=known_height_mm, max_refine=6,
                             skip_above=1e4 * accept * scale)
     if Rm is not None and accept * scale < chi2_m < 100.0 * accept * scale:
