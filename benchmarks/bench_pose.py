@@ -123,6 +123,9 @@ def main() -> None:
         print(f"  {kind:8s} {v.mean():.3f} +- {np.sqrt(12.0 / len(v)):.3f} (N = {len(v)})")
     same = [r["sqpnp_same"] for r in right if r["sqpnp_same"] is not None]
     close = [r["sqpnp_nees"] < 22.46 for r in right if r["sqpnp_nees"] is not None]
+    differ = [r for r in right if r["sqpnp_same"] is False]
+    print(f"SQPnP: differs in {len(differ)}, fitting the angles worse than psdcal in "
+          f"{sum(r['sqpnp_dchi2'] > 0 for r in differ)} of them")
     print(f"SQPnP: same basin in {sum(same)} of {len(same)}, within the result's 99.9 % region in "
           f"{sum(close)} of {len(close)} (its cost is unweighted: with per-emitter noise it is not the ML pose)")
 

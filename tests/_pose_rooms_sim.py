@@ -178,6 +178,7 @@ def run_study(estimate, *, n_right: int, n_wrong: int, seed: int, kinds=KINDS, s
                     if solve_pnp is not None:
                         Rq, cq = solve_pnp(n, Ps)
                         rec["sqpnp_nees"] = pose_nees(r.R, r.center_w_mm, r.cov, Rq, cq)
+                        rec["sqpnp_dchi2"] = chi2_of(n, cov, Ps, Rq, cq) - chi2_of(n, cov, Ps, r.R, r.center_w_mm)
                         dist = float(np.mean(np.linalg.norm(Ps - c, axis=1)))
                         ang = np.degrees(np.linalg.norm(log_rotation(Rq @ r.R.T)))
                         rec["sqpnp_same"] = bool(ang < 2.0 and np.linalg.norm(cq - r.center_w_mm) < 0.02 * dist)

@@ -45,7 +45,7 @@ def test_rooms_never_silently_wrong_and_nees_six():
     surveys marked not usable (two poses fit: measured 1) and 3 with a NEES beyond chi2(6) at 1e-6; the
     mean NEES over the usable ones is 6 +- 0.3 (the Monte Carlo standard error of the mean of chi2(6) over
     1250 rooms is sqrt(12 / 1250) = 0.098, so the band is 3 standard errors); OpenCV's SQPnP lands in the same basin in
-    >= 99 % of the right rooms.
+    >= 98 % of the right rooms (measured 99.4 %), and where it does not, its pose fits the angles worse.
     """
     recs = sim.run_study(_pose, n_right=250, n_wrong=12, seed=20260, solve_pnp=sim.sqpnp)
     right = [r for r in recs if r["survey"] == "right"]
@@ -56,12 +56,12 @@ def test_rooms_never_silently_wrong_and_nees_six():
     # a right survey's unflagged pose is in the truth's basin
     silent_right = [r for r in right if r["outcome"] == "clean" and _silently_wrong(r)]
     assert not silent_right, silent_right[:3]
-    # the Gaussian sigmas of weak layouts (4-5 emitters in a plane) have heavier tails than chi2(6): measured 2 of
-    # 1250 beyond its 1e-6 quantile (NEES 59 and 36, the truth's likelihood ratio 20 and 12)
+    # the Gaussian sigmas of weak layouts (4-5 emitters in a plane) have heavier tails than chi2(6): at most 3 of
+    # 1250 beyond its 1e-6 quantile (measured 0 here; 2 with an earlier solver, the truth's likelihood ratio 20, 12)
     tail = [r for r in right if r["outcome"] == "clean" and r["nees"] > NEES_WRONG]
     assert len(tail) <= 3, tail
     out_right = Counter(r["outcome"] for r in right)
-    assert out_right["refused"] == 0 and out_right["unusable"] <= 3, out_right  # measured 1: a real ambiguity
+    assert out_right["refused"] == 0 and out_right["unusable"] <= 4, out_right  # measured 2: real ambiguities
     assert out_right["warned"] <= 6  # the chi2 check's design false-alarm rate is 0.1 % (1.25 expected)
     usable = [r for r in right if r["outcome"] in ("clean", "warned")]
     nees = np.array([r["nees"] for r in usable])
@@ -72,7 +72,9 @@ def test_rooms_never_silently_wrong_and_nees_six():
         v = np.array([r["nees"] for r in usable if r["kind"] == kind])
         assert abs(v.mean() - 6.0) < 4 * np.sqrt(12.0 / len(v)), (kind, v.mean())
     same = np.mean([r["sqpnp_same"] for r in right])
-    assert same >= 0.99, same
+    assert same >= 0.98, same  # measured 1243 of 1250
+    # where they differ, SQPnP is the one that missed (4 emitters: metres off, its angles' chi2 above 1e5)
+    assert all(r["sqpnp_dchi2"] > 0 for r in right if not r["sqpnp_same"])
     # the mistaken surveys: mostly named (not usable) rather than only warned
     out = Counter(r["outcome"] for r in wrong)
     assert out["unusable"] >= 0.9 * len(wrong), out
