@@ -62,7 +62,7 @@ class Chromium:
             page = b.load("file:///tmp/report.html")
     """
 
-    def __init__(self, binary: str | None = None, *, timeout_s: float = 60.0):
+    def __init__(self, binary: str | None = None, *, timeout_s: float = 60.0, extra_flags: tuple = ()):
         self.binary = binary or find_chromium()
         if self.binary is None:
             raise BrowserError("no chromium binary found")
@@ -76,7 +76,7 @@ class Chromium:
         r_theirs, w_ours = os.pipe()  # we write -> chromium reads fd 3
         # the child's ends move to descriptors >= 10 so that redirecting them onto 3 and 4 cannot collide
         r_theirs, w_theirs = (self._high(fd) for fd in (r_theirs, w_theirs))
-        args = [*FLAGS, f"--user-data-dir={self._tmp.name}/profile", "--remote-debugging-pipe", "about:blank"]
+        args = [*FLAGS, *extra_flags, f"--user-data-dir={self._tmp.name}/profile", "--remote-debugging-pipe", "about:blank"]
         self._log = open(Path(self._tmp.name) / "stderr.txt", "wb")
         self.proc = subprocess.Popen(
             # bash, not sh: dash's redirections take single-digit descriptors only

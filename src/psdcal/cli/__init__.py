@@ -146,12 +146,20 @@ PolicyGroup.group_class = PolicyGroup
 
 @click.group(cls=PolicyGroup, context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100})
 @click.version_option(package_name="psdcal")
-def cli():
+@click.option("--events", type=click.Path(dir_okay=False), envvar="PSDCAL_EVENTS", default=None,
+              help="Also append every warning line the command prints to this JSON-lines log "
+                   "(read by `psdcal dashboard --events`); default: $PSDCAL_EVENTS.")
+@click.pass_context
+def cli(ctx, events):
     """psdcal: model, calibrate and use PSD + lens angle-of-arrival sensors.
 
     Files are CSV in millimetres (docs/model.md#file-formats); a
     calibration is a JSON file.  Run `psdcal COMMAND --help` for details.
     """
+    if events:
+        from psdcal.cli._events import logging_warnings
+
+        ctx.with_resource(logging_warnings(events, ctx.invoked_subcommand or ""))
 
 
 # Command modules: each one adds its commands to `cli` when imported.
@@ -162,6 +170,7 @@ _COMMANDS = (
     "signal_cmd",
     "locate_cmd",
     "report_cmd",
+    "dashboard_cmd",
     "reproduce_cmd",
     "directions_cmd",
     "inspect_cmd",
@@ -169,6 +178,7 @@ _COMMANDS = (
     "gains_cmd",
     "export_cmd",
     "capture_cmd",
+    "selfcal_cmd",
 )
 
 

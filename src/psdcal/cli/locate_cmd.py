@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import click
 
-from psdcal.cli import cli
+from psdcal.cli import _angles, cli
 
 _PROGRESS_MIN_SAMPLES = 2_000_000
 
@@ -96,7 +96,7 @@ def _demod_options(f):
 @click.option("--distance-mm", type=float, help="Plane distance S: also write X_mm, Y_mm on that plane.")
 @click.option("--track", "track_path", type=click.Path(dir_okay=False),
               help="Also write TRACK.csv: each emitter filtered by a constant-velocity Kalman filter "
-                   "(positions, velocities, sigmas, NIS, gated); see `psdcal track --help`.")
+                   "(positions, velocities, sigmas, NIS, gated, restart, status); see `psdcal track --help`.")
 @click.option("--track-q", type=float, default=None,
               help="Tracking process noise, mm^2/s^3 (deg^2/s^3 for angles) [default: 1e6, 10].")
 @click.option("--raw-dtype", type=click.Choice(["float32", "float64", "int16"]), default="float64",
@@ -114,10 +114,11 @@ def _demod_options(f):
               help="Accept a calibration without covariance or standard errors (its uncertainty is then left out "
                    "of every sigma); refused otherwise.")
 @_demod_options
+@_angles.angles_option
 def locate_command(recordings, calib, sensors, gains_file, rate_hz, carriers, emitters, distance_mm, window_s, tdm,
                    schedule, n_emitters, check_carriers, min_snr, channels, dataset, group, chunk_samples, progress,
                    output, track_path=None, track_q=None, raw_dtype="float64", raw_scale=1.0, output_format="csv",
-                   expect_sensor=None, allow_no_covariance=False):
+                   expect_sensor=None, allow_no_covariance=False, angles=None, **table_kw):
     """Demodulate RECORDING(s) and write angles of arrival and positions.
 
     \b
@@ -130,6 +131,12 @@ def locate_command(recordings, calib, sensors, gains_file, rate_hz, carriers, em
     Several sensors (recordings from SENSORS.json or given in its order):
       psdcal locate --sensors sensors.json --rate-hz 125000 --carrier-hz 1000 -o xyz.csv
     columns: t_s,emitter,X_mm,Y_mm,Z_mm,sigma_X_mm,sigma_Y_mm,sigma_Z_mm,n_sensors,chi2
+
+    \b
+    Angles from any AoA front-end (no calibration, no recordings; docs/guide/positioning.md#angles-in):
+      psdcal locate --angles angles.csv --sensors sensors.json -o xyz.csv \\
+          [--convention tangent --align-to SENSOR --track track.csv]
+    the same columns; every emitter at every time step seen by two or more sensors.
 
     Recordings: .npy (n, 4), .csv (header vx1,vx2,vy1,vy2[,t_s]), .h5/.hdf5, .tdms.
     Sigmas are 1-sigma, from the signal noise and the calibration covariance.
@@ -147,6 +154,13 @@ def locate_command(recordings, calib, sensors, gains_file, rate_hz, carriers, em
     from psdcal.signal.recording import open_recording
     from psdcal.signal.stream import load_schedule
 
+    if angles is not None:  # angles from any front-end: psdcal.cli._angles
+        from psdcal.cli._angles import locate_angles
+
+        return locate_angles(angles, sensors, output, recordings=recordings, calib=calib, carriers=carriers,
+                             output_format=output_format, track_path=track_path, track_q=track_q, table_kw=table_kw)
+    if not carriers:
+        raise click.UsageError("Missing option '--carrier-hz' (or give --angles ANGLES.csv).")
     if (calib is None) == (sensors is None):
         raise InputError("give exactly one of --calib (one sensor) or --sensors (several)", field="calib")
     from psdcal.signal.live import is_stream_source
@@ -222,13 +236,19 @@ def locate_command(recordings, calib, sensors, gains_file, rate_hz, carriers, em
             bar.close()
     _report(summary, output)
     if track_path:
-        from psdcal.measure.tracking import track_csv
+        from psdcal.measure.tracking import summary_line, track_csv
 
         from psdcal._atomic import staged
 
         info = track_csv(staged(output), track_path, q=track_q)
-        click.echo(f"wrote {info['n_rows']} tracked rows to {track_path} ({info['n_gated']} gated, "
-                   f"mean NIS {info['mean_nis']:.3g} for {info['dims']} dimensions)")
+        click.echo(summary_line(info, track_path))
+        for w in info["warnings"]:
+            click.echo(f"psdcal: warning: {w}", err=True)
+
+
+for _p in locate_command.params:  # --carrier-hz is not needed with --angles (checked in the command)
+    if _p.name == "carriers":
+        _p.required = False
 
 
 def _report(summary, output) -> None:

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import click
 
-from psdcal.cli import cli
+from psdcal.cli import _angles, cli
 
 _FORMATS = ("npy", "csv", "hdf5", "tdms")
 
@@ -361,8 +361,8 @@ def _table_angles(path, header, rows):
 
 @cli.command("pose")
 @click.argument("source", type=click.Path(dir_okay=False, path_type=Path))
-@click.option("--calib", required=True, type=click.Path(dir_okay=False, path_type=Path),
-              help="Calibration JSON of the sensor (its covariance enters the pose's).")
+@click.option("--calib", required=False, type=click.Path(dir_okay=False, path_type=Path),
+              help="Calibration JSON of the sensor (its covariance enters the pose's); not needed for angles.")
 @click.option("--emitters", "emitters_csv", required=True, type=click.Path(dir_okay=False, path_type=Path),
               help="CSV emitter,X_m,Y_m,Z_m[,carrier_hz]: the known emitters in the room frame (metres).")
 @click.option("--rate-hz", type=float, help="Sampling rate (when the recording does not carry one).")
@@ -391,8 +391,13 @@ def _table_angles(path, header, rows):
               help="Add (or replace, by name) the entry in this sensors file (created if missing).")
 @click.option("-o", "--output", type=click.Path(dir_okay=False, path_type=Path),
               help="Write the entry alone as JSON.")
+@click.option("--sensor", "table_sensor", default=None, metavar="SENSOR",
+              help="An angles table of several sensors: the sensor whose rows to use (default: --name when the "
+                   "table has it, else the table's only sensor).")
+@_angles.table_options
 def pose_command(source, calib, emitters_csv, rate_hz, carriers, emitter_names, also, window_s, schedule, tdm, min_snr,
-                 known_rvec, known_height_m, side_point, max_extent_m, name, rec_key, into, output):
+                 known_rvec, known_height_m, side_point, max_extent_m, name, rec_key, into, output,
+                 table_sensor=None, **table_kw):
     """Estimate a calibrated sensor's rotation and position in the room (PnP + maximum likelihood).
 
     SOURCE is the sensor's recording of >= 3 emitters at known positions
@@ -401,6 +406,9 @@ def pose_command(source, calib, emitters_csv, rate_hz, carriers, emitter_names, 
     an `amplitudes` output, or angles (alpha_x_deg,alpha_y_deg and their sigma_
     columns: taken as independent, so the calibration's correlated part is not
     separated).  The windows of each emitter are averaged.
+    An angles table of any front-end (t_s, sensor, emitter, two angles in the --convention and
+    their sigmas; docs/guide/positioning.md#angles-in) needs no --calib: its rows of --sensor
+    (default --name, or its only sensor) are averaged per emitter; the entry then has no calib.
 
     \b
     Writes the sensors-file entry `locate --sensors` reads: name, calib, rvec, tvec_mm,
@@ -432,17 +440,28 @@ def pose_command(source, calib, emitters_csv, rate_hz, carriers, emitter_names, 
 
     if into is None and output is None:
         raise InputError("give --into SENSORS.json and/or -o ENTRY.json", field="output")
-    model = SensorModel.load(calib)
+    from psdcal.cli._angles import is_front_end_table
+
+    front_end = is_front_end_table(source, table_kw)  # angles of any front-end: no calibration
+    if calib is None and not front_end and not (source.suffix.lower() == ".csv" and source.exists()):
+        raise InputError("give --calib (a recording needs the sensor's calibration)", field="calib")
+    model = None if calib is None else SensorModel.load(calib)
     names_w, P, carriers_w = read_emitters(emitters_csv, max_extent_m=max_extent_m)
-    table = _read_table(source) if source.suffix.lower() == ".csv" and source.exists() else None
+    table = _read_table(source) if source.suffix.lower() == ".csv" and source.exists() and not front_end else None
     angles = None
-    if table is not None:
+    if front_end:
+        angles = "front-end"
+        recording = rec_key
+    elif table is not None:
         header, rows = table
         has = set(header)
         if not ({"x_mm", "y_mm"} <= has or {"vx1", "vx2", "vy1", "vy2"} <= has) and \
                 {"alpha_x_deg", "alpha_y_deg"} <= has:
             angles = _table_angles(source, header, rows)
         else:
+            if model is None:
+                raise InputError("give --calib (impact points or amplitudes need the sensor's calibration)",
+                                 field="calib")
             means = _table_means(source, *table, model)
         recording = rec_key
     else:
@@ -480,7 +499,11 @@ def pose_command(source, calib, emitters_csv, rate_hz, carriers, emitter_names, 
     kw = dict(known_rvec=known_rvec, known_height_mm=None if known_height_m is None else known_height_m * 1000.0,
               side_point_mm=None if side_point is None else np.array(side_point) * 1000.0,
               max_extent_mm=max_extent_m * 1000.0)
-    if angles is not None:
+    if angles == "front-end":
+        from psdcal.cli._angles import pose_angles
+
+        res, moved = pose_angles(source, names_w, P, sensor=table_sensor, name=name, table_kw=table_kw, **kw)
+    elif angles is not None:
         from psdcal.measure.pose import pose_from_angles
 
         moved = []
@@ -497,6 +520,8 @@ def pose_command(source, calib, emitters_csv, rate_hz, carriers, emitter_names, 
         return None if p is None else os.path.relpath(Path(p).resolve(), base)
 
     entry = res.sensors_entry(name, rel(calib), rel(recording), calib_names=model.names if angles is None else None)
+    if calib is None:  # angles: no calibration (`locate --angles` and `tag-pose` read the pose alone)
+        entry.pop("calib", None)
     if moved:
         entry["pose"]["warnings"].append(f"emitter(s) {moved} scatter more than their noise between windows "
                                          "(moving, or a changing signal)")
@@ -516,31 +541,64 @@ def pose_command(source, calib, emitters_csv, rate_hz, carriers, emitter_names, 
 # --------------------------------------------------------------------------- track
 @cli.command("track")
 @click.argument("located", type=click.Path(dir_okay=False, path_type=Path))
-@click.option("--q", "q", type=float, default=None,
+@click.option("--q", "q", type=str, default=None, metavar="Q|auto",
               help="Process noise: spectral density of the white acceleration, mm^2/s^3 (deg^2/s^3 for angles) "
-                   "[default: 1e6 mm^2/s^3, 10 deg^2/s^3].")
+                   "[default: 1e6 mm^2/s^3, 10 deg^2/s^3]; 'auto': the default times the factor that makes the "
+                   "NIS's 99 % point chi2's.")
 @click.option("--gate-p", type=click.FloatRange(0.5, 1.0, max_open=True), default=0.999, show_default=True,
               help="Chi2 gate probability: a measurement whose NIS exceeds this quantile is not used.")
 @click.option("--max-gated", type=click.IntRange(1, 1000), default=5, show_default=True,
-              help="Consecutive gated measurements after which a track restarts.")
+              help="Consecutive gated measurements, consistent with each other, after which the track jumps "
+                   "to them (restart=1, a warning).")
+@click.option("--max-gap-s", type=float, default=None,
+              help="A longer time without a used measurement is a gap: the track is re-acquired from the next "
+                   "measurement (restart=1) [default: 10 x the emitter's median interval].")
 @click.option("-o", "--output", required=True, type=click.Path(dir_okay=False, path_type=Path), help="Output CSV.")
-def track_command(located, q, gate_p, max_gated, output):
+@click.option("--sensors", "angle_sensors", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="LOCATED is an angles table of any front-end: triangulate it with these sensors' poses first "
+                   "(as `locate --angles`; docs/guide/positioning.md#angles-in).")
+@_angles.table_options_except("max_gap_s")  # --max-gap-s stays the track's gap
+def track_command(located, q, gate_p, max_gated, max_gap_s, output, angle_sensors=None, **table_kw):
     """Filter a `locate` output (LOCATED.csv) per emitter with a constant-velocity Kalman filter.
 
     \b
     Tracks X_mm,Y_mm,Z_mm (several sensors), else X_mm,Y_mm (--distance-mm), else the angles,
     with the measurement covariance from their sigma_ columns; each emitter has its own
     track, updated at its own times (time multiplexing needs nothing special).
-    Columns: t_s,emitter,<pos>,v<pos>_s,sigma_<pos>,sigma_v<pos>_s,nis,gated
-    (e.g. X_mm, vX_mm_s, sigma_X_mm, sigma_vX_mm_s).  NIS should average the number of
-    tracked coordinates; much more means q (or the sigmas) too small.
+    Columns: t_s,emitter,<pos>,v<pos>_s,sigma_<pos>,sigma_v<pos>_s,nis,gated,restart,status
+    (e.g. X_mm, vX_mm_s, sigma_X_mm, sigma_vX_mm_s).
+    \b
+    status: start, ok, gated (NIS beyond the gate: not used), gap (re-acquired after a gap),
+    jump (max-gated consistent measurements that did not fit the track: a reflection, or
+    motion faster than q allows), invalid (empty or non-finite input).  Gated and invalid
+    rows have EMPTY state columns: the filter's prediction is never written as a position.
+    restart is 1 on gap and jump rows, each also a warning.
+    NIS should average the number of tracked coordinates: the summary counts every row,
+    and a two-sided chi2 test of the NIS (and of the number gated) warns with the factor
+    q looks off by ('q looks 4x too small').
     Example: psdcal track xyz.csv -o track.csv     (same as: psdcal locate ... --track track.csv)
+    Angles of any front-end: psdcal track angles.csv --sensors sensors.json -o track.csv
+    (triangulated first, as `locate --angles`; the table options as there).
     """
-    from psdcal.measure.tracking import track_csv
+    from psdcal.errors import InputError
+    from psdcal.measure.tracking import summary_line, track_csv
 
-    info = track_csv(located, output, q=q, gate_p=gate_p, max_gated=max_gated)
-    click.echo(f"wrote {info['n_rows']} tracked rows to {output} ({info['n_gated']} gated, mean NIS "
-               f"{info['mean_nis']:.3g} for {info['dims']} dimensions)")
+    if q is not None and q.strip().lower() != "auto":
+        try:
+            q = float(q)
+        except ValueError:
+            raise InputError(f"--q must be a number or 'auto', got {q!r}", field="q") from None
+    if max_gap_s is not None and not max_gap_s > 0:
+        raise InputError(f"--max-gap-s must be positive, got {max_gap_s}", field="max_gap_s")
+    if angle_sensors is not None:  # angles in: triangulated first (psdcal.cli._angles)
+        from psdcal.cli._angles import track_angles
+
+        return track_angles(located, angle_sensors, output, table_kw, q=q, gate_p=gate_p, max_gated=max_gated,
+                            max_gap_s=max_gap_s)
+    info = track_csv(located, output, q=q, gate_p=gate_p, max_gated=max_gated, max_gap_s=max_gap_s)
+    click.echo(summary_line(info, output))
+    for w in info["warnings"]:
+        click.echo(f"psdcal: warning: {w}", err=True)
 
 
 # --------------------------------------------------------------------------- bundle
@@ -577,8 +635,8 @@ def _calib_blocks(dns, cal_covs, keep):
 
 
 @cli.command("bundle")
-@click.argument("located", nargs=-1, required=True)
-@click.option("--calib", "calibs", multiple=True, required=True,
+@click.argument("located", nargs=-1, required=False)
+@click.option("--calib", "calibs", multiple=True, required=False,
               help="Calibration JSON: one for every sensor, or NAME=CALIB.json per sensor (repeat).")
 @click.option("--known", "known_csv", required=True, type=click.Path(dir_okay=False, path_type=Path),
               help="CSV emitter,X_m,Y_m,Z_m of the emitters at known positions (>= 3, not collinear): they fix "
@@ -589,7 +647,8 @@ def _calib_blocks(dns, cal_covs, keep):
               help="Also write the estimated emitter positions: emitter,X_m,Y_m,Z_m,sigma_X_mm,sigma_Y_mm,sigma_Z_mm.")
 @click.option("-o", "--output", required=True, type=click.Path(dir_okay=False, path_type=Path),
               help="Sensors file (JSON) with every pose and its pose_covariance.")
-def bundle_command(located, calibs, known_csv, wands, points_out, output):
+@_angles.angles_option
+def bundle_command(located, calibs, known_csv, wands, points_out, output, angles=None, **table_kw):
     """Calibrate several sensors together: all poses and emitter positions in one bundle adjustment.
 
     LOCATED are NAME=FILE.csv, one per sensor: `psdcal locate REC --calib ...` outputs (columns
@@ -597,6 +656,8 @@ def bundle_command(located, calibs, known_csv, wands, points_out, output):
     windows).  Fixed emitters (known or not) are averaged over their windows; a --wand
     emitter gives a point per window, matched between sensors by t_s.  Each sensor
     must see >= 3 known emitters (its starting pose); every unknown point >= 2 sensors.
+    Or --angles ANGLES.csv: one angles table of every sensor from any front-end (no LOCATED,
+    no --calib; docs/guide/positioning.md#angles-in); a --wand emitter's rows are matched by t_s.
 
     \b
     Example:
@@ -618,6 +679,14 @@ def bundle_command(located, calibs, known_csv, wands, points_out, output):
     from psdcal.measure.pose import estimate_pose, mean_points, read_emitters
     from psdcal.measure.sensor_model import SensorModel
 
+    if angles is not None:  # angles from any front-end, no calibration: psdcal.cli._angles
+        from psdcal.cli._angles import bundle_angles
+
+        return bundle_angles(angles, located=located, calibs=calibs, known_csv=known_csv, wands=wands,
+                             points_out=points_out, output=output, table_kw=table_kw)
+    if not located or not calibs:
+        raise click.UsageError("Missing " + ("argument 'LOCATED...'" if not located else "option '--calib'")
+                               + " (or give --angles ANGLES.csv).")
     files = _name_value(located, "LOCATED")
     if len(files) < 2:
         raise InputError("give at least two sensors NAME=LOCATED.csv", field="LOCATED")
@@ -856,11 +925,13 @@ def live_locate(recordings, calib, rate_hz, carriers, emitters, distance_mm, win
            f"{summary.n_windows} windows, {summary.n_skipped} below --min-snr); {summary.latency_text()}")
     click.echo(msg, err=str(output) == "-")
     if track_path:
-        from psdcal.measure.tracking import track_csv
+        from psdcal.measure.tracking import summary_line, track_csv
 
         if str(output) == "-":
             raise InputError("--track needs -o FILE (not stdout) with live input", field="track")
         from psdcal._atomic import staged
 
         info = track_csv(staged(output), track_path, q=track_q)
-        click.echo(f"wrote {info['n_rows']} tracked rows to {track_path} ({info['n_gated']} gated)")
+        click.echo(summary_line(info, track_path))
+        for w in info["warnings"]:
+            click.echo(f"psdcal: warning: {w}", err=True)
