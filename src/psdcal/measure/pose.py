@@ -87,7 +87,7 @@ class PoseResult:
         Residuals in normalised coordinates.
     warnings : tuple of str
     checks : tuple of psdcal._consistency.Check
-        ``pose_chi2``, ``handedness`` and (when it fails) ``units``.
+        ``pose_chi2``, ``unique``, ``handedness``, and when they fail ``units`` and ``layout``.
     usable : bool
         False when a severe check failed (a mirrored survey, the sensor on
         the unexpected side of a coplanar layout, a unit error).
@@ -267,8 +267,9 @@ def estimate_pose(n, cov_n_noise, points_w_mm, *, dn_dp=None, cov_params=None, k
         degrees of freedom: when it fails, the covariance is multiplied by
         ``chi2 / dof``, see :mod:`psdcal._consistency`), ``handedness`` (the
         mirror image of the survey fitted too: a mirrored survey, or a sensor
-        on the unexpected side of a coplanar layout, fails it) and ``units``
-        (only when it fails). ``usable`` is False when a severe check failed
+        on the unexpected side of a coplanar layout, fails it), ``unique`` (a
+        second minimum that fits outside the stated uncertainty fails it), and
+        only when they fail ``units`` and ``layout`` (the poor-layout warning). ``usable`` is False when a severe check failed
         (a mirrored survey, a sensor on the wrong side, a unit error): the
         pose is then not to be used, and ``warnings`` says why.
 
@@ -391,9 +392,13 @@ def estimate_pose(n, cov_n_noise, points_w_mm, *, dn_dp=None, cov_params=None, k
     sig_c = np.sqrt(np.clip(np.diag(cov)[3:], 0, None))
     dist = float(np.mean(np.linalg.norm(P - c, axis=1)))
     if sig_rot.max() > warn_rotation_deg or sig_c.max() > warn_center_frac * dist:
-        warnings.append(
-            f"poor emitter layout: pose 1-sigma {sig_rot.max():.3g} deg, centre {sig_c.max():.3g} mm at "
-            f"{dist / 1000:.3g} m (spread the emitters wider, in depth too, or add more)")
+        msg = (f"poor emitter layout: pose 1-sigma {sig_rot.max():.3g} deg, centre {sig_c.max():.3g} mm at "
+               f"{dist / 1000:.3g} m (spread the emitters wider, in depth too, or add more)")
+        warnings.append(msg)
+        checks.append(Check("layout", float(sig_rot.max()), float(warn_rotation_deg), None, 0.0, False,
+                            msg + "; so far from a quadratic bowl, the sigmas and even the minimum found (another "
+                                  "may fit as well) are not to be relied on",
+                            advice="spread the emitters wider, in depth too, or add more"))
     rvec = r_from_R(R)
     R = R_from_r(rvec)  # what is written (rvec, tvec) is exactly the pose whose centre is reported
     usable = not any(chk.passed is False and chk.severe for chk in checks)
