@@ -42,7 +42,6 @@ sys.path.insert(0, str(HERE))
 sys.path.insert(0, str(HERE.parent / "tests"))
 
 import _pose_rooms_sim as sim  # noqa: E402
-from _timing import median_seconds  # noqa: E402
 
 TIMING = r"""
 import json, sys, numpy as np

@@ -15,7 +15,7 @@ import pytest
 from hypothesis import given, settings, strategies as st
 
 import _pose_rooms_sim as sim
-from psdcal.errors import InputError
+from psdcal.errors import InputError, PsdcalError
 from psdcal.measure._pose_solve import linear_starts, p3p, rays
 from psdcal.measure.pose import estimate_pose, expected_side, read_emitters
 from psdcal.model.projection import R_from_r
@@ -169,8 +169,7 @@ def test_every_pose_is_a_rotation_and_what_is_written_is_what_is_fitted(seed, ki
     Ps = sim.corrupt(P, survey, box)
     try:
         r = estimate_pose(n, cov, Ps)
-    except Exception as exc:
-        assert type(exc).__module__.startswith("psdcal"), exc
+    except PsdcalError:  # a refusal (one of psdcal's errors) is allowed; anything else fails the test
         return
     Rw = R_from_r(np.array(r.rvec))
     assert np.linalg.det(Rw) == pytest.approx(1.0, abs=1e-12)
