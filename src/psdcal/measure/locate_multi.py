@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from psdcal._atomic import atomic_path
-from psdcal._consistency import extra_variance_on_grid
+from psdcal._consistency import ALPHA, extra_variance_on_grid
 from psdcal.errors import InputError, ZeroSignalError
 from psdcal.measure.aoa import angles_from_amplitudes
 from psdcal.measure.positioning import (
@@ -157,7 +157,8 @@ def locate_multi_to_csv(recordings, sensors, out_path, config: LocateConfig,
 class _RowPool:
     """The file's pooled chi-squared and residual sums over :data:`EXTRA_GRID` (bounded memory)."""
 
-    def __init__(self):
+    def __init__(self, alpha: float = ALPHA):
+        self.alpha = alpha
         self.chi2 = 0.0
         self.dof = 0
         self.points = 0
@@ -172,7 +173,7 @@ class _RowPool:
 
     def result(self):
         """``(check, s2)``: the pooled test and the extra ray variance (0 when it passed)."""
-        check = pooled_check(self.chi2, self.dof, self.points)
+        check = pooled_check(self.chi2, self.dof, self.points, self.alpha)
         if check.passed is not False:
             return check, 0.0
         return check, extra_variance_on_grid(EXTRA_GRID, self.sums, self.dof)
