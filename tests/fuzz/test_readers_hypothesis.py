@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -59,9 +60,13 @@ def test_reader_raises_only_input_errors(name, data, tmp_path_factory):
     try:
         READERS[name](p)
     except PsdcalError as exc:
-        assert isinstance(exc, InputError) or "Error" in type(exc).__name__
-        assert "\n" not in " ".join(str(exc).split("\n"))  # one line once joined by the CLI
-        assert str(p.name) in str(exc) or getattr(exc, "path", None) is not None, str(exc)
+        # bad bytes are bad input: the project's InputError (not a solver's error), naming THIS file
+        assert isinstance(exc, InputError), (type(exc).__name__, str(exc))
+        assert exc.path is not None and Path(exc.path).name == p.name, str(exc)
+        assert str(exc).startswith(exc.path), str(exc)
+        # one line a user can act on: no newline, and a message beyond the location
+        assert "\n" not in str(exc) and "\r" not in str(exc), repr(str(exc))
+        assert exc.detail.strip(), repr(str(exc))
 
 
 @settings(max_examples=40, deadline=None)
