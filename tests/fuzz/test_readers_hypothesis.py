@@ -17,6 +17,8 @@ def _readers():
     from psdcal.measure.pose import read_emitters
     from psdcal.measure.positioning import load_sensors
     from psdcal.measure.sensor_model import SensorModel
+    from psdcal.calibration.bench import read_bench_amplitudes, read_positions
+    from psdcal.signal.module import read_module
     from psdcal.signal.recording import open_recording
     from psdcal.signal.stream import load_schedule
 
@@ -36,13 +38,16 @@ def _readers():
         "emitters.csv": read_emitters,
         "rec.csv": rec,
         "rec.npy": rec,
+        "spots.csv": read_positions,
+        "bench.csv": lambda p: read_bench_amplitudes(p, {"s0": np.zeros(2), "s1": np.ones(2)}),
+        "module.txt": lambda p: read_module(p, "t,x,y,sum"),
     }
 
 
 READERS = _readers()
 
 # text that looks like the files: headers, numbers, separators, odd characters
-_TOKENS = st.sampled_from(["point_id", "X_mm", "Y_mm", "image_id", "x_mm", "y_mm", "vx1", "vx2", "vy1", "vy2",
+_TOKENS = st.sampled_from(["point_id", "X_mm", "sum", "t", "Y_mm", "image_id", "x_mm", "y_mm", "vx1", "vx2", "vy1", "vy2",
                            "emitter", "t_start_s", "t_end_s", "X_m", "Y_m", "Z_m", ",", ",", "\n", "\n", "0", "1",
                            "-2.5", "1e308", "nan", "inf", "\"", "\ufeff", "\x00", "é", "{", "}", "[", "]", ":",
                            "\"intrinsics\"", "\"f_mm\"", "\"covariance\"", "\"sensors\"", "null", "true", "  "])
