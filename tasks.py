@@ -35,7 +35,7 @@ def ensure_venv() -> None:
     subprocess.check_call([str(PY), "-m", "pip", "install", "-q", "--upgrade", "pip"])
     subprocess.check_call([str(PY), "-m", "pip", "install", "-q", "-e", f"{ROOT}[test]"])
     # compile the numerical kernels now (once per machine), so that no later run stalls on it
-    subprocess.call([str(PY), "-c", "from psdcal._jit import warm_up; warm_up()"])
+    subprocess.call([str(PY), "-c", "from psdcal.study.warmup import warm_up; warm_up()"])
     STAMP.write_bytes(pyproject)
 
 

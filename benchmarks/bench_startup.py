@@ -72,7 +72,7 @@ def main(argv=None) -> int:
     env = {**os.environ, "OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1"}
     psdcal = str(BIN / "psdcal")
     pts, tpl = str(DATA / "default_points.csv"), str(DATA / "default_template.csv")
-    subprocess.run([sys.executable, "-c", "from psdcal._jit import warm_up; warm_up(False)"], check=True, env=env)
+    subprocess.run([sys.executable, "-c", "from psdcal.study.warmup import warm_up; warm_up(False)"], check=True, env=env)
     with tempfile.TemporaryDirectory() as tmp:
         out = str(Path(tmp) / "c.json")
         t_cv = _median_seconds([sys.executable, "-c", _OPENCV, tpl, pts, out], a.repeats, env)

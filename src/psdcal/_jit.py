@@ -12,7 +12,7 @@ checked against them in the tests.
 ``PSDCAL_JIT=0`` in the environment (or numba missing) selects the numpy
 code everywhere. Compiled functions are cached on disk (``cache=True``):
 the first calibration on a machine compiles them (some seconds; ``python3
-tasks.py`` does it once during the set-up, see :func:`warm_up`), later
+tasks.py`` does it once during the set-up, see :func:`psdcal.study.warmup.warm_up`), later
 processes load them.
 
 numba is imported only when a compiled kernel is first needed (importing it
@@ -152,38 +152,3 @@ def cache_is_warm() -> bool:
         except OSError:
             continue
     return False
-
-
-def warm_up(verbose: bool = True) -> float:
-    """Compile (or load) every kernel once by running a small calibration, angles and locate; seconds taken."""
-    import time
-
-    import numpy as np
-
-    t0 = time.perf_counter()
-    if not AVAILABLE:
-        return 0.0
-    if verbose:
-        print("psdcal: compiling the numerical kernels (once per machine and version) ...", file=sys.stderr, flush=True)
-    from psdcal.calibration.core import calibrate
-    from psdcal.study.simulate import simulate_set
-
-    s = simulate_set("lens2", n_images=6, noise_mm=0.002, seed=0)
-    for kw in (dict(radial=2, tangential=True), dict(radial=2, tangential=False, cost="template"),
-               dict(radial=2, psd_radial=1, aspect=True), dict(radial=2, tangential=False, fit_gains=True)):
-        try:
-            calibrate(s.template_mm, s.points_mm, **kw)
-        except Exception:  # a warm-up: the kernels are compiled even when a fit fails
-            pass
-    from psdcal.measure.aoa import angles_from_points
-    from psdcal.measure.sensor_model import SensorModel
-
-    model = SensorModel.from_dict({"intrinsics": {"f_mm": 8.0, "cx_mm": 0.0, "cy_mm": 0.0}})
-    angles_from_points(np.zeros((4, 2)), model, np.zeros((4, 2, 2)))
-    from psdcal.measure._csvtext import rows_text  # locate's CSV writer
-
-    rows_text([np.zeros(2), np.array(["a", "b"], dtype=object), np.arange(2)])
-    dt = time.perf_counter() - t0
-    if verbose:
-        print(f"psdcal: kernels ready ({dt:.1f} s)", file=sys.stderr, flush=True)
-    return dt

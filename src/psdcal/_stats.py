@@ -3,7 +3,8 @@
 The verdict of every calibration (:mod:`psdcal.calibration.verdict`) needs a
 handful of p-values and critical values; importing ``scipy.special`` for them
 would cost a fresh ``psdcal calibrate`` process more than the calibration
-itself. These functions use only :mod:`math`:
+itself. These functions use only :mod:`math` (numpy only in
+:func:`std_standard_error`, the Monte Carlo standard error of a std):
 
 - the chi-squared survival function is the regularised upper incomplete gamma
   function, ``Q(k/2, x/2)``, by its power series below ``a + 1`` and its
@@ -164,7 +165,8 @@ def _isf(sf, logpdf, alpha: float, guess: float) -> float:
             hi = x
         g = math.log(max(s, _TINY)) - target
         # d log sf / dx = -pdf / sf
-        step = g / (math.exp(logpdf(x)) / max(s, _TINY)) if x > 0 else 0.0
+        pdf = math.exp(logpdf(x)) if x > 0 else 0.0  # underflows far in the tail of a large dof
+        step = g / (pdf / max(s, _TINY)) if pdf > 0.0 else math.inf  # inf: a bisection step
         nx = x + step
         if not lo < nx < hi:
             nx = 0.5 * (lo + hi)
@@ -184,4 +186,36 @@ def f_isf(alpha: float, d1: float, d2: float) -> float:
     return _isf(lambda x: f_sf(x, d1, d2), lambda x: _f_logpdf(x, d1, d2), alpha, 1.0)
 
 
-__all__ = ["beta_i", "chi2_isf", "chi2_sf", "f_isf", "f_sf", "gamma_q"]
+def std_standard_error(values) -> float:
+    """Standard error of the sample standard deviation, without assuming normality.
+
+    ``var(s^2) ~ (m4 - s^4 (n - 3) / (n - 1)) / n`` (``m4`` the fourth
+    central sample moment) and ``se(s) = sqrt(var(s^2)) / (2 s)`` (delta
+    method).  For normal data this is ``s / sqrt(2 (n - 1))``.  NaNs are
+    ignored; NaN for fewer than 2 values or ``s = 0``.
+
+    Parameters
+    ----------
+    values : (n,) array_like
+
+    Returns
+    -------
+    float
+    """
+    import numpy as np
+
+    v = np.asarray(values, dtype=float).ravel()
+    v = v[np.isfinite(v)]
+    n = v.size
+    if n < 2:
+        return float("nan")
+    s2 = v.var(ddof=1)
+    if s2 == 0:
+        return float("nan")
+    m4 = np.mean((v - v.mean()) ** 4)
+    var_s2 = (m4 - s2 * s2 * (n - 3) / (n - 1)) / n
+    return float(np.sqrt(max(var_s2, 0.0)) / (2.0 * np.sqrt(s2)))
+
+
+
+__all__ = ["beta_i", "chi2_isf", "chi2_sf", "f_isf", "f_sf", "gamma_q", "std_standard_error"]

@@ -208,7 +208,7 @@ def with_gains(model, gains, cov_gains):
     measurement is independent of the geometric calibration, so the new
     covariance is block diagonal.
     """
-    from psdcal.measure.sensor_model import SensorModel
+    import dataclasses
 
     keep = [i for i, n in enumerate(model.names) if n not in GAIN_NAMES]
     names = tuple(model.names[i] for i in keep) + GAIN_NAMES
@@ -216,6 +216,5 @@ def with_gains(model, gains, cov_gains):
     cov = np.zeros((k + 3, k + 3))
     cov[:k, :k] = np.asarray(model.covariance)[np.ix_(keep, keep)]
     cov[k:, k:] = np.asarray(cov_gains, dtype=float)
-    return SensorModel(intrinsics=model.intrinsics, distortion=model.distortion, names=names, covariance=cov,
-                       gains=np.asarray(gains, dtype=float), lx_mm=model.lx_mm, ly_mm=model.ly_mm,
-                       source=model.source)
+    # the model's own class (a SensorModel, psdcal.measure): a copy with the bench gains
+    return dataclasses.replace(model, names=names, covariance=cov, gains=np.asarray(gains, dtype=float))

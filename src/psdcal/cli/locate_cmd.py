@@ -96,7 +96,7 @@ def _demod_options(f):
 @click.option("--distance-mm", type=float, help="Plane distance S: also write X_mm, Y_mm on that plane.")
 @click.option("--track", "track_path", type=click.Path(dir_okay=False),
               help="Also write TRACK.csv: each emitter filtered by a constant-velocity Kalman filter "
-                   "(positions, velocities, sigmas, NIS, gated); see `psdcal track --help`.")
+                   "(positions, velocities, sigmas, NIS, gated, restart, status); see `psdcal track --help`.")
 @click.option("--track-q", type=float, default=None,
               help="Tracking process noise, mm^2/s^3 (deg^2/s^3 for angles) [default: 1e6, 10].")
 @click.option("--raw-dtype", type=click.Choice(["float32", "float64", "int16"]), default="float64",
@@ -222,13 +222,14 @@ def locate_command(recordings, calib, sensors, gains_file, rate_hz, carriers, em
             bar.close()
     _report(summary, output)
     if track_path:
-        from psdcal.measure.tracking import track_csv
+        from psdcal.measure.tracking import summary_line, track_csv
 
         from psdcal._atomic import staged
 
         info = track_csv(staged(output), track_path, q=track_q)
-        click.echo(f"wrote {info['n_rows']} tracked rows to {track_path} ({info['n_gated']} gated, "
-                   f"mean NIS {info['mean_nis']:.3g} for {info['dims']} dimensions)")
+        click.echo(summary_line(info, track_path))
+        for w in info["warnings"]:
+            click.echo(f"psdcal: warning: {w}", err=True)
 
 
 def _report(summary, output) -> None:

@@ -6,6 +6,7 @@ from pathlib import Path
 import click
 
 from psdcal.cli import cli
+from psdcal.cli._cluster import scheduler_option, trial_executor
 
 #: ``--quick``: trials per case and per remedy case (a smoke run for CI, under a minute).
 QUICK_TRIALS = (3, 2)
@@ -24,8 +25,9 @@ QUICK_TRIALS = (3, 2)
               help=f"Smoke run for CI: {QUICK_TRIALS[0]} trials per case, {QUICK_TRIALS[1]} per remedy case.")
 @click.option("--seed", type=int, default=0, show_default=True, help="Root random seed (same seed, same tables).")
 @click.option("--workers", type=click.IntRange(min=1), default=None,
-              help="Worker processes.  [default: CPU count]")
-def reproduce_command(tables, trials, gain_trials, out_dir, quick, seed, workers):
+              help="Worker processes on this machine.  [default: CPU count]")
+@scheduler_option
+def reproduce_command(tables, trials, gain_trials, out_dir, quick, seed, workers, scheduler):
     """Regenerate the paper's Tables 1-10 and Figure 9 beside the paper's numbers.
 
     Each table is written as CSV and Markdown with the paper's values, an
@@ -35,6 +37,8 @@ def reproduce_command(tables, trials, gain_trials, out_dir, quick, seed, workers
     calibration, general intrinsic matrix) on held-out emitters.
 
     Example: psdcal reproduce --table 3 --table 4 --trials 200 --out repro/
+
+    On a cluster: psdcal reproduce --scheduler tcp://10.0.0.5:8786 --out repro/
     """
     import time
 
@@ -45,8 +49,9 @@ def reproduce_command(tables, trials, gain_trials, out_dir, quick, seed, workers
     if not quick and trials < PAPER_TRIALS:
         click.echo(f"note: {trials} trials per case (the paper ran {PAPER_TRIALS})", err=True)
     t0 = time.perf_counter()
-    study = run_study(chosen, n, seed, gain_trials=g, workers=workers, progress=True,
-                      log=lambda msg: click.echo(f"  {msg}", err=True))
+    with trial_executor(scheduler) as executor:
+        study = run_study(chosen, n, seed, gain_trials=g, workers=workers, executor=executor, progress=True,
+                          log=lambda msg: click.echo(f"  {msg}", err=True))
     paths = write_outputs(study, out_dir)
     click.echo(f"wrote {len(paths)} files to {out_dir} in {time.perf_counter() - t0:.0f} s "
                f"(tables {', '.join(str(t) for t in study.tables)}; {n} trials per case, {g} per remedy case)")

@@ -502,31 +502,53 @@ def pose_command(source, calib, emitters_csv, rate_hz, carriers, emitter_names, 
 # --------------------------------------------------------------------------- track
 @cli.command("track")
 @click.argument("located", type=click.Path(dir_okay=False, path_type=Path))
-@click.option("--q", "q", type=float, default=None,
+@click.option("--q", "q", type=str, default=None, metavar="Q|auto",
               help="Process noise: spectral density of the white acceleration, mm^2/s^3 (deg^2/s^3 for angles) "
-                   "[default: 1e6 mm^2/s^3, 10 deg^2/s^3].")
+                   "[default: 1e6 mm^2/s^3, 10 deg^2/s^3]; 'auto': the default times the factor that makes the "
+                   "NIS's 99 % point chi2's.")
 @click.option("--gate-p", type=click.FloatRange(0.5, 1.0, max_open=True), default=0.999, show_default=True,
               help="Chi2 gate probability: a measurement whose NIS exceeds this quantile is not used.")
 @click.option("--max-gated", type=click.IntRange(1, 1000), default=5, show_default=True,
-              help="Consecutive gated measurements after which a track restarts.")
+              help="Consecutive gated measurements, consistent with each other, after which the track jumps "
+                   "to them (restart=1, a warning).")
+@click.option("--max-gap-s", type=float, default=None,
+              help="A longer time without a used measurement is a gap: the track is re-acquired from the next "
+                   "measurement (restart=1) [default: 10 x the emitter's median interval].")
 @click.option("-o", "--output", required=True, type=click.Path(dir_okay=False, path_type=Path), help="Output CSV.")
-def track_command(located, q, gate_p, max_gated, output):
+def track_command(located, q, gate_p, max_gated, max_gap_s, output):
     """Filter a `locate` output (LOCATED.csv) per emitter with a constant-velocity Kalman filter.
 
     \b
     Tracks X_mm,Y_mm,Z_mm (several sensors), else X_mm,Y_mm (--distance-mm), else the angles,
     with the measurement covariance from their sigma_ columns; each emitter has its own
     track, updated at its own times (time multiplexing needs nothing special).
-    Columns: t_s,emitter,<pos>,v<pos>_s,sigma_<pos>,sigma_v<pos>_s,nis,gated
-    (e.g. X_mm, vX_mm_s, sigma_X_mm, sigma_vX_mm_s).  NIS should average the number of
-    tracked coordinates; much more means q (or the sigmas) too small.
+    Columns: t_s,emitter,<pos>,v<pos>_s,sigma_<pos>,sigma_v<pos>_s,nis,gated,restart,status
+    (e.g. X_mm, vX_mm_s, sigma_X_mm, sigma_vX_mm_s).
+    \b
+    status: start, ok, gated (NIS beyond the gate: not used), gap (re-acquired after a gap),
+    jump (max-gated consistent measurements that did not fit the track: a reflection, or
+    motion faster than q allows), invalid (empty or non-finite input).  Gated and invalid
+    rows have EMPTY state columns: the filter's prediction is never written as a position.
+    restart is 1 on gap and jump rows, each also a warning.
+    NIS should average the number of tracked coordinates: the summary counts every row,
+    and a two-sided chi2 test of the NIS (and of the number gated) warns with the factor
+    q looks off by ('q looks 4x too small').
     Example: psdcal track xyz.csv -o track.csv     (same as: psdcal locate ... --track track.csv)
     """
-    from psdcal.measure.tracking import track_csv
+    from psdcal.errors import InputError
+    from psdcal.measure.tracking import summary_line, track_csv
 
-    info = track_csv(located, output, q=q, gate_p=gate_p, max_gated=max_gated)
-    click.echo(f"wrote {info['n_rows']} tracked rows to {output} ({info['n_gated']} gated, mean NIS "
-               f"{info['mean_nis']:.3g} for {info['dims']} dimensions)")
+    if q is not None and q.strip().lower() != "auto":
+        try:
+            q = float(q)
+        except ValueError:
+            raise InputError(f"--q must be a number or 'auto', got {q!r}", field="q") from None
+    if max_gap_s is not None and not max_gap_s > 0:
+        raise InputError(f"--max-gap-s must be positive, got {max_gap_s}", field="max_gap_s")
+    info = track_csv(located, output, q=q, gate_p=gate_p, max_gated=max_gated, max_gap_s=max_gap_s)
+    click.echo(summary_line(info, output))
+    for w in info["warnings"]:
+        click.echo(f"psdcal: warning: {w}", err=True)
 
 
 # --------------------------------------------------------------------------- bundle
@@ -847,11 +869,13 @@ def live_locate(recordings, calib, rate_hz, carriers, emitters, distance_mm, win
            f"{summary.n_windows} windows, {summary.n_skipped} below --min-snr); {summary.latency_text()}")
     click.echo(msg, err=str(output) == "-")
     if track_path:
-        from psdcal.measure.tracking import track_csv
+        from psdcal.measure.tracking import summary_line, track_csv
 
         if str(output) == "-":
             raise InputError("--track needs -o FILE (not stdout) with live input", field="track")
         from psdcal._atomic import staged
 
         info = track_csv(staged(output), track_path, q=track_q)
-        click.echo(f"wrote {info['n_rows']} tracked rows to {track_path} ({info['n_gated']} gated)")
+        click.echo(summary_line(info, track_path))
+        for w in info["warnings"]:
+            click.echo(f"psdcal: warning: {w}", err=True)

@@ -25,7 +25,7 @@ import math
 import numpy as np
 
 from psdcal._jit import njit
-from psdcal.calibration._image_kernel import _model_terms
+from psdcal.model._point_kernel import _model_terms
 
 #: parameter codes of :func:`angles_kernel` (index into this tuple)
 PARAM_CODES = ("f_mm", "cx_mm", "cy_mm", "skew", "fy_mm", "k1", "k2", "k3", "p1", "p2", "l1", "l2",

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from psdcal.errors import ZeroSignalError
+from psdcal.errors import InputError, ZeroSignalError
 
 #: Active area of the Hamamatsu S5991-01, mm (docs/model.md#frames-and-units).
 LX_MM = 9.0
@@ -151,3 +151,29 @@ def gain_homography(gains, lx_mm: float = LX_MM, ly_mm: float = LY_MM):
     # rows act on (1, a, b); convert to (x, y, 1) columns.
     conv = np.array([[0.0, 0.0, 1.0], [2.0 / lx_mm, 0.0, 0.0], [0.0, 2.0 / ly_mm, 0.0]])
     return np.stack([num_x, num_y, den]) @ conv
+
+
+def sensor_grid_mm(sensor_mm=(9.0, 9.0), n: int = 41, *, margin_mm: float = 0.0) -> np.ndarray:
+    """A regular grid of points over the sensor.
+
+    Parameters
+    ----------
+    sensor_mm : (Lx, Ly), mm
+    n : int
+        Points per side.
+    margin_mm : float
+        Keep this far from the sensor's edges.
+
+    Returns
+    -------
+    (n, n, 2) ndarray, mm; ``[i, j]`` is row ``i`` (y) and column ``j`` (x).
+    """
+    hx, hy = sensor_mm[0] / 2 - margin_mm, sensor_mm[1] / 2 - margin_mm
+    if hx <= 0 or hy <= 0:
+        raise InputError(f"margin {margin_mm} mm leaves nothing of the {sensor_mm[0]:g} x {sensor_mm[1]:g} mm sensor",
+                         field="margin_mm")
+    xs = np.linspace(-hx, hx, n)
+    ys = np.linspace(-hy, hy, n)
+    X, Y = np.meshgrid(xs, ys)
+    return np.stack([X, Y], axis=-1)
+

@@ -25,34 +25,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from psdcal.errors import InputError
+from psdcal.model.readout import sensor_grid_mm
 
 #: Above this maximum Mahalanobis length (over the field of view) two calibrations differ visibly.
 VISIBLE_SIGMA = 4.0
 
-
-def sensor_grid_mm(sensor_mm=(9.0, 9.0), n: int = 41, *, margin_mm: float = 0.0) -> np.ndarray:
-    """A regular grid of points over the sensor.
-
-    Parameters
-    ----------
-    sensor_mm : (Lx, Ly), mm
-    n : int
-        Points per side.
-    margin_mm : float
-        Keep this far from the sensor's edges.
-
-    Returns
-    -------
-    (n, n, 2) ndarray, mm; ``[i, j]`` is row ``i`` (y) and column ``j`` (x).
-    """
-    hx, hy = sensor_mm[0] / 2 - margin_mm, sensor_mm[1] / 2 - margin_mm
-    if hx <= 0 or hy <= 0:
-        raise InputError(f"margin {margin_mm} mm leaves nothing of the {sensor_mm[0]:g} x {sensor_mm[1]:g} mm sensor",
-                         field="margin_mm")
-    xs = np.linspace(-hx, hx, n)
-    ys = np.linspace(-hy, hy, n)
-    X, Y = np.meshgrid(xs, ys)
-    return np.stack([X, Y], axis=-1)
 
 
 def sensor_model(result):

@@ -192,7 +192,7 @@ def fit_opencv(result, *, pixel_um: float = 1.0, n_coeffs: int = 5, n_grid: int 
     """
     from psdcal.measure.aoa import angles_from_points
     from psdcal.measure.sensor_model import SensorModel
-    from psdcal.report.compare import sensor_grid_mm
+    from psdcal.model.readout import sensor_grid_mm
 
     if n_coeffs not in OPENCV_COUNTS:
         raise InputError(f"the number of OpenCV coefficients must be one of {OPENCV_COUNTS}, got {n_coeffs}",

@@ -332,7 +332,7 @@ def distortion_field(result, *, n: int = 15) -> Figure:
     -------
     Figure
     """
-    from psdcal.report.compare import sensor_grid_mm
+    from psdcal.model.readout import sensor_grid_mm
 
     d = sensor_grid_mm(result.sensor_mm, n)
     corr = result.undistort(d) - d

@@ -721,7 +721,7 @@ class NoiseVsSnr:
     measured_std_mm : (k, 2) ndarray
         Sample standard deviation of the measured ``(x, y)``, mm.
     measured_std_se_mm : (k, 2) ndarray
-        Its standard error (:func:`psdcal.study.montecarlo.std_standard_error`).
+        Its standard error (:func:`psdcal._stats.std_standard_error`).
     predicted_std_mm : (k, 2) ndarray
         First-order prediction (:func:`predicted_point_std`).
     mean_mm : (k, 2) ndarray
@@ -785,7 +785,7 @@ def point_noise_vs_snr(
     -------
     NoiseVsSnr
     """
-    from psdcal.study.montecarlo import std_standard_error
+    from psdcal._stats import std_standard_error
 
     s = ChainSettings() if settings is None else settings
     snrs = np.atleast_1d(np.asarray(snr_db_values, dtype=float))

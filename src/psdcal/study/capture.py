@@ -238,7 +238,7 @@ def next_view(template_mm, intr, dist, spec, S_current, noise_mm: float, *, cand
         A subset of ``spec.global_names`` when some were held fixed (``calibrate --fix``): the information
         is then restricted to them (``S_current`` may be over either set of names).
     """
-    from psdcal.report.compare import sensor_grid_mm
+    from psdcal.model.readout import sensor_grid_mm
 
     if candidates is None:
         candidates = candidate_views(template_mm, intr, dist, sensor_mm=sensor_mm)
@@ -265,7 +265,7 @@ def next_view(template_mm, intr, dist, spec, S_current, noise_mm: float, *, cand
 def guided_sequence(template_mm, intr, dist, spec, S_start, noise_mm, n_views: int, *, candidates=None,
                     grid: int = 11, sensor_mm=(LX_MM, LY_MM)):
     """Greedy views: each the candidate that lowers the worst AoA uncertainty most. Returns (views, worst_deg list)."""
-    from psdcal.report.compare import sensor_grid_mm
+    from psdcal.model.readout import sensor_grid_mm
 
     if candidates is None:
         candidates = candidate_views(template_mm, intr, dist, sensor_mm=sensor_mm)

@@ -43,6 +43,7 @@ from types import MappingProxyType
 import numpy as np
 
 from psdcal._atomic import write_text_atomic
+from psdcal._stats import std_standard_error  # noqa: F401  (re-exported)
 from psdcal.errors import PsdcalError
 
 #: Columns every :class:`TrialTable` has, in this order.
@@ -65,34 +66,6 @@ class TrialFailureWarning(UserWarning):
 # Statistics
 # ---------------------------------------------------------------------------
 
-
-def std_standard_error(values) -> float:
-    """Standard error of the sample standard deviation, without assuming normality.
-
-    ``var(s^2) ~ (m4 - s^4 (n - 3) / (n - 1)) / n`` (``m4`` the fourth
-    central sample moment) and ``se(s) = sqrt(var(s^2)) / (2 s)`` (delta
-    method).  For normal data this is ``s / sqrt(2 (n - 1))``.  NaNs are
-    ignored; NaN for fewer than 2 values or ``s = 0``.
-
-    Parameters
-    ----------
-    values : (n,) array_like
-
-    Returns
-    -------
-    float
-    """
-    v = np.asarray(values, dtype=float).ravel()
-    v = v[np.isfinite(v)]
-    n = v.size
-    if n < 2:
-        return float("nan")
-    s2 = v.var(ddof=1)
-    if s2 == 0:
-        return float("nan")
-    m4 = np.mean((v - v.mean()) ** 4)
-    var_s2 = (m4 - s2 * s2 * (n - 3) / (n - 1)) / n
-    return float(np.sqrt(max(var_s2, 0.0)) / (2.0 * np.sqrt(s2)))
 
 
 @dataclass(frozen=True)

@@ -83,7 +83,7 @@ class Study:
 
 
 def run_study(tables=tuple(range(1, 11)), n_trials: int = PAPER_TRIALS, seed: int = 0, *, gain_trials: int | None = None,
-              workers: int | None = None, progress: bool = True, log=None) -> Study:
+              workers: int | None = None, executor=None, progress: bool = True, log=None) -> Study:
     """Run the cases behind the requested tables, and the gain remedies, and compare with the paper.
 
     Parameters
@@ -96,7 +96,12 @@ def run_study(tables=tuple(range(1, 11)), n_trials: int = PAPER_TRIALS, seed: in
         Trials per remedy case (default ``max(4, n_trials // 4)``); the
         remedies run when Table 5 or 6 is asked for.
     workers : int, optional
-        Processes (default: CPU count); 1 runs serially.
+        Processes (default: CPU count); 1 runs serially. Ignored with ``executor``.
+    executor : concurrent.futures.Executor, optional
+        Where the trials run instead of a local process pool (e.g. a Dask
+        ``distributed.Client(address).get_executor()``); it is not shut down.
+        The tables do not depend on it: every trial is seeded from the root
+        seed and its index only.
     progress : bool
         Progress bar per case (stderr terminal only).
     log : callable, optional
@@ -113,8 +118,10 @@ def run_study(tables=tuple(range(1, 11)), n_trials: int = PAPER_TRIALS, seed: in
         raise InputError("need at least 2 trials per case", field="trials")
     g_trials = max(4, int(n_trials) // 4) if gain_trials is None else int(gain_trials)
     t0 = time.perf_counter()
-    n_workers = workers or os.cpu_count() or 1
-    executor = "serial" if n_workers == 1 else cf.ProcessPoolExecutor(max_workers=n_workers)
+    own = executor is None
+    if own:
+        n_workers = workers or os.cpu_count() or 1
+        executor = "serial" if n_workers == 1 else cf.ProcessPoolExecutor(max_workers=n_workers)
     results = {}
     todo = [(k, c, int(n_trials)) for k, c in required_cases(tables)]
     for lens in sorted({_lens_of(t) for t in tables if t in (5, 6)}):
@@ -128,7 +135,7 @@ def run_study(tables=tuple(range(1, 11)), n_trials: int = PAPER_TRIALS, seed: in
             else:
                 results[key] = run_case(case, n, seed, executor=executor, progress=progress)
     finally:
-        if executor != "serial":
+        if own and executor != "serial":
             executor.shutdown(wait=True, cancel_futures=True)
     paper = paper_values()
     rows = {t: compare_rows(t, results, paper) for t in tables}

@@ -1,0 +1,50 @@
+"""Compile (or load from the cache) every numerical kernel once, by running each compiled path.
+
+``python3 tasks.py`` calls :func:`warm_up` during the set-up, so that no later
+command stalls on compilation. It lives here, above every layer whose kernels
+it runs (calibration, measure, study), and not in :mod:`psdcal._jit`, which the
+lowest layers import.
+"""
+from __future__ import annotations
+
+import sys
+
+from psdcal import _jit
+
+
+def warm_up(verbose: bool = True) -> float:
+    """Compile (or load) every kernel once by running a small calibration, angles and locate; seconds taken."""
+    import time
+
+    import numpy as np
+
+    t0 = time.perf_counter()
+    if not _jit.AVAILABLE:
+        return 0.0
+    if verbose:
+        print("psdcal: compiling the numerical kernels (once per machine and version) ...", file=sys.stderr, flush=True)
+    from psdcal.calibration.core import calibrate
+    from psdcal.study.simulate import simulate_set
+
+    s = simulate_set("lens2", n_images=6, noise_mm=0.002, seed=0)
+    for kw in (dict(radial=2, tangential=True), dict(radial=2, tangential=False, cost="template"),
+               dict(radial=2, psd_radial=1, aspect=True), dict(radial=2, tangential=False, fit_gains=True)):
+        try:
+            calibrate(s.template_mm, s.points_mm, **kw)
+        except Exception:  # a warm-up: the kernels are compiled even when a fit fails
+            pass
+    from psdcal.measure.aoa import angles_from_points
+    from psdcal.measure.sensor_model import SensorModel
+
+    model = SensorModel.from_dict({"intrinsics": {"f_mm": 8.0, "cx_mm": 0.0, "cy_mm": 0.0}})
+    angles_from_points(np.zeros((4, 2)), model, np.zeros((4, 2, 2)))
+    from psdcal.measure._csvtext import rows_text  # locate's CSV writer
+
+    rows_text([np.zeros(2), np.array(["a", "b"], dtype=object), np.arange(2)])
+    dt = time.perf_counter() - t0
+    if verbose:
+        print(f"psdcal: kernels ready ({dt:.1f} s)", file=sys.stderr, flush=True)
+    return dt
+
+
+__all__ = ["warm_up"]
