@@ -22,7 +22,8 @@ rendered) that runs as Python in the same directory::
 A check sees ``out`` (stdout + stderr of the run block before it),
 ``csv_rows(path)`` (a list of dicts, numbers as floats), ``load_json(path)``,
 ``np`` and ``Path``; it compares the outputs with the simulated truth or with
-the numbers the page shows.
+the numbers the page shows. A page that must stay short (README.md) gets its
+checks from :data:`ATTACHED_CHECKS` here instead.
 """
 from __future__ import annotations
 
@@ -141,6 +142,42 @@ def run_blocks(text: str, source: str = "<text>") -> list[Block]:
     return blocks
 
 
+#: Checks kept here for pages that must stay short (README.md: at most 250 lines, tests/test_repo_hygiene.py):
+#: (page, text of a line of the run block, the check run after it). Same prelude as a ``<!-- check -->``.
+ATTACHED_CHECKS = [
+    ("README.md", "    -o xyz.csv --track track.csv --track-q 1e5", """\
+cal, truth = load_json("calib.json"), load_json("cal/truth.json")
+assert all(abs(cal["intrinsics"][n] - truth["intrinsics"][n]) < 4 * cal["std"][n] for n in ("f_mm", "cx_mm", "cy_mm"))
+tag = [r for r in csv_rows("room/truth_track.csv") if r["emitter"] == "tag"]
+for r in csv_rows("xyz.csv")[10:]:  # positions against the true track, in their stated sigmas
+    for a in "XYZ":
+        true = np.interp(r["t_s"], [q["t_s"] for q in tag], [q[f"{a}_mm"] for q in tag])
+        assert abs(r[f"{a}_mm"] - true) < 4 * r[f"sigma_{a}_mm"], (r["t_s"], a)
+"""),
+    ("README.md", "calib = res.to_dict()", """\
+f, sf = map(float, out.split()[:2])
+assert abs(f - load_json("sim/truth.json")["intrinsics"]["f_mm"]) < 4 * sf and 0 < sf < 0.05
+"""),
+]
+
+
+def with_attached_checks(blocks: list[Block], source: str) -> list[Block]:
+    """``blocks`` with the :data:`ATTACHED_CHECKS` of ``source`` after their run blocks (each must find one)."""
+    out = []
+    mine = [(line, code) for page, line, code in ATTACHED_CHECKS if page == source]
+    used = set()
+    for b in blocks:
+        out.append(b)
+        for k, (line, code) in enumerate(mine):
+            if b.language != "check" and any(line.strip() in ln for ln in b.code.splitlines()):
+                out.append(Block(line=b.line, language="check", code=code))
+                used.add(k)
+    missing = [mine[k][0] for k in range(len(mine)) if k not in used]
+    if missing:
+        raise RunBlockError(f"{source}: attached checks find no run block with the line(s) {missing}")
+    return out
+
+
 def is_check(b: Block) -> bool:
     return b.language == "check" or (b.language == "python" and re.search(r"^\s*assert\b", b.code, re.M) is not None)
 
@@ -175,7 +212,7 @@ def files_with_run_blocks() -> list[Path]:
 def run_file(path: Path, workdir: Path) -> None:
     """Run every block of ``path`` in ``workdir``; fail with the block's line and output."""
     source = path.relative_to(ROOT).as_posix()
-    blocks = run_blocks(path.read_text(encoding="utf-8"), source)
+    blocks = with_attached_checks(run_blocks(path.read_text(encoding="utf-8"), source), source)
     assert blocks, f"{source}: has '{MARKER}' but no run block"
     bindir = str(Path(sys.executable).parent)
     env = {**os.environ, "PATH": bindir + os.pathsep + os.environ.get("PATH", ""), "MPLBACKEND": "Agg",
@@ -213,7 +250,7 @@ def test_readme_has_a_runnable_example():
 def test_every_run_block_is_checked(path):
     """A run block that only has to exit 0 shows nothing: each is followed by a check of what it claims."""
     source = path.relative_to(ROOT).as_posix()
-    bad = unchecked_blocks(run_blocks(path.read_text(encoding="utf-8"), source))
+    bad = unchecked_blocks(with_attached_checks(run_blocks(path.read_text(encoding="utf-8"), source), source))
     assert not bad, f"{source}: run blocks at lines {[b.line for b in bad]} are followed by no check"
 
 
