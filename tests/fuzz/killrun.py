@@ -145,8 +145,8 @@ def _events(log: Path):
     return [ln.split(" ", 2)[1:] for ln in log.read_text().splitlines()] if log.exists() else []
 
 
-def run_kills_at_every_write(root, name: str, log=None) -> Counter:
-    """Kill scenario ``name`` at every write event in turn (see ``killhook.py``), over A and fresh.
+def run_kills_at_every_write(root, name: str, log=None, fresh_too: bool = True) -> Counter:
+    """Kill scenario ``name`` at every write event in turn (see ``killhook.py``), over A (and fresh).
 
     A dry run lists the events (each output's staged write, then each rename
     of the commit: the journal, the outputs).  Then one run per event, over
@@ -169,7 +169,7 @@ def run_kills_at_every_write(root, name: str, log=None) -> Counter:
     written = [n for kind, n in events if kind == "written"]
     assert sorted(written) == sorted(Path(o).name for o in outputs), events  # every output through the writer
     outcomes = Counter()
-    for fresh in (False, True):
+    for fresh in (False, True) if fresh_too else (False,):
         for k, (kind, target) in enumerate(events):
             work = root / f"det-{name}-{k}-{'fresh' if fresh else 'over'}"
             shutil.copytree(src, work)
