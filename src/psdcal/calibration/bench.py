@@ -36,17 +36,13 @@ AMP_COLS = ("vx1", "vx2", "vy1", "vy2")
 
 
 def _read_csv(path: Path):
-    try:
-        fh = open(path, newline="", encoding="utf-8-sig")
-    except FileNotFoundError:
-        raise InputError("file not found", path=path) from None
-    except OSError as exc:
-        raise InputError(f"cannot read ({exc.strerror})", path=path) from None
-    with fh:
-        try:
-            rows = list(csv.reader(fh))
-        except UnicodeDecodeError:
-            raise InputError("not a UTF-8 text file", path=path) from None
+    """Header and rows of a text CSV; the project's checked reader (no device, no binary, size and field limits)."""
+    import io as _io
+
+    from psdcal.io import csv_rows_checked, read_text_file
+
+    text = read_text_file(path, "CSV file")
+    rows = list(csv_rows_checked(csv.reader(_io.StringIO(text, newline="")), path))
     if not rows:
         raise InputError("empty file", path=path)
     return [h.strip() for h in rows[0]], rows[1:]

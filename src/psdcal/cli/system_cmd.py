@@ -697,6 +697,11 @@ def bundle_command(located, calibs, known_csv, wands, points_out, output, angles
         missing = [k for k in files if k not in calib_paths]
         if missing:
             raise InputError(f"no --calib for sensor(s) {missing}", field="calib")
+    # the NAME=PATH inputs are plain text to click: the output policy's input check, for them
+    from psdcal._atomic import guard_outputs
+
+    guard_outputs([("LOCATED", Path(v)) for v in files.values()] + [("--calib", Path(v)) for v in calib_paths.values()],
+                  [("--output", output), ("--points-out", points_out)], force=True)
     known_names, known_P, _ = read_emitters(known_csv)
     known = dict(zip(known_names, known_P))
     sensors = sorted(files)  # the answer does not depend on the order; keep the file's stable
