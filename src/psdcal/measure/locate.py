@@ -145,7 +145,7 @@ def prescan(recording: Recording, config: LocateConfig) -> tuple[float, list[str
     finder of :mod:`psdcal.signal.inspect`).  Only recordings in files
     (kinds npy, csv, hdf5, tdms) are scanned: a live stream is not read twice.
     """
-    from psdcal.signal.inspect import carrier_near, check_carrier, choose_tdm_window, read_prefix, scan_tdm
+    from psdcal.signal.inspect import check_carrier, choose_tdm_window, measure_carrier, read_prefix, scan_tdm
 
     warnings: list[str] = []
     window_s = config.window_s
@@ -164,8 +164,9 @@ def prescan(recording: Recording, config: LocateConfig) -> tuple[float, list[str
     if config.check_carriers and x is not None and x.shape[1] >= 64:
         cache: dict = {}  # one spectrum for all the carriers
         for f in config.carriers_hz:
-            chk = check_carrier(f, carrier_near(x, recording.rate_hz, f, spectrum_cache=cache), window_s,
-                                tdm=config.tdm)
+            measured = measure_carrier(x, recording.rate_hz, f, tdm=config.tdm, min_snr=config.min_snr,
+                                       spectrum_cache=cache)
+            chk = check_carrier(f, measured, window_s, tdm=config.tdm)
             if not chk.ok:
                 warnings.append(f"{recording.path}: {chk.message}")
     return window_s, warnings

@@ -59,6 +59,10 @@ class Carrier:
         a time-multiplexed LED's amplitude times its duty cycle).
     noise_sigma : (4,) ndarray
         White-noise sigma per sample of each channel (from the median floor).
+    precision_hz : float
+        Standard error of ``freq_hz`` when the estimator gives one
+        (:func:`carrier_in_bursts`); nan for a spectral peak (whose
+        precision is taken as a tenth of ``resolution_hz``).
     """
 
     freq_hz: float
@@ -66,6 +70,7 @@ class Carrier:
     snr_db: np.ndarray
     amplitude: np.ndarray
     noise_sigma: np.ndarray
+    precision_hz: float = math.nan
 
 
 def read_prefix(recording, max_samples: int = DEFAULT_SCAN_SAMPLES) -> np.ndarray:
@@ -214,6 +219,117 @@ def carrier_near(x, rate_hz: float, asked_hz: float, *, rel: float = 0.05,
     return _carrier_at(max(k, 1), p, ptot, floor, df, wsum, w2sum)
 
 
+#: Windows of a burst (after its two edge windows are dropped) needed for a phase slope.
+MIN_BURST_WINDOWS = 3
+
+
+def carrier_in_bursts(x, rate_hz: float, asked_hz: float, *, min_snr: float = 10.0) -> Carrier | None:
+    """The carrier of a time-multiplexed or blinking record, from the phase slope inside its bursts.
+
+    The spectrum of a record whose LEDs take turns is the carrier convolved
+    with the on/off pattern: when each slot starts with its own phase (a
+    different LED, or an LED switched on again), the strongest peak near the
+    carrier is often a keying side-band, and :func:`carrier_near` would
+    report it as the carrier (the tutorial's views: 985 Hz for 1000 Hz).
+    Here the record is demodulated at ``asked_hz`` in short windows
+    (:data:`psdcal.signal.stream.MIN_PERIODS` periods, at least 32 samples);
+    the windows whose total amplitude exceeds ``min_snr`` sigmas form the
+    bursts, cut where the channel ratios or the phase jump (another LED with
+    no dark window between); windows below 0.8 of their burst's median
+    amplitude (part of the window dark) and the two edge windows of each
+    burst are dropped.  In each burst the common phase drifts as
+    ``2 pi (f - asked) t``.
+    The slope is fitted per burst (weights from the windows' own noise) and
+    the bursts are averaged, inverse-variance weighted: a phase that jumps
+    from burst to burst does not matter.
+
+    Returns
+    -------
+    Carrier or None
+        ``freq_hz = asked_hz + slope / 2 pi`` with ``precision_hz`` its
+        standard error (scaled up by the fit's reduced chi-squared when above
+        one); ``amplitude`` and ``noise_sigma`` are the medians over the
+        burst windows (an LED's amplitude while it is on, not the duty-cycle
+        average); ``resolution_hz`` is one over the longest burst; ``snr_db``
+        as :class:`Carrier` for the on-samples.  None when no burst has
+        :data:`MIN_BURST_WINDOWS` clean windows (then use :func:`carrier_near`).
+    """
+    from psdcal.signal.stream import MIN_PERIODS, MultiCarrierLockin
+
+    x = np.asarray(x, dtype=float)
+    periods = max(MIN_PERIODS, math.ceil(32 * asked_hz / rate_hz))
+    w0 = math.ceil(periods / asked_hz * rate_hz) / rate_hz
+    if x.ndim != 2 or x.shape[1] < 3 * round(w0 * rate_hz):
+        return None
+    try:
+        lk = MultiCarrierLockin(rate_hz, [asked_hz], w0)
+    except InputError:
+        return None
+    wb = lk.process(0.0, x)
+    a = wb.amplitude[:, 0, :]  # (nw, 4)
+    total = a.sum(-1)
+    var_total = wb.var_amplitude[:, 0, :].sum(-1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        on = np.isfinite(total) & (total > min_snr * np.sqrt(var_total))
+    idx = np.flatnonzero(on)
+    if idx.size == 0:
+        return None
+    ratio = a / np.where(total != 0, total, 1.0)[:, None]
+    sd_ratio = np.sqrt(wb.var_amplitude[:, 0, :].max(-1)) / np.where(total > 0, total, 1.0)
+    step = np.angle(np.exp(1j * np.diff(wb.phase_rad[:, 0])))  # wrapped phase step between windows
+    sd_step = np.sqrt(var_total[:-1] / np.maximum(total[:-1], 1e-300) ** 2
+                      + var_total[1:] / np.maximum(total[1:], 1e-300) ** 2)
+    m_step = float(np.median(step[on[:-1] & on[1:]])) if np.any(on[:-1] & on[1:]) else 0.0
+    # a burst ends where the windows stop being consecutive, or where another LED takes over with no dark
+    # window between (the channel ratios or the phase jump)
+    cut = (np.diff(idx) > 1)
+    j = idx[:-1]
+    cut |= np.max(np.abs(ratio[j + 1] - ratio[j]), axis=-1) > 0.02 + 6 * np.hypot(sd_ratio[j], sd_ratio[j + 1])
+    cut |= np.abs(np.angle(np.exp(1j * (step[j] - m_step)))) > 0.2 + 6 * sd_step[j]
+    runs = []
+    for r in np.split(idx, np.flatnonzero(cut) + 1):
+        # windows that hold only part of the on-time are weaker: dropped, and the rest split where they were
+        r = r[total[r] >= 0.8 * np.median(total[r])]
+        runs += np.split(r, np.flatnonzero(np.diff(r) > 1) + 1)
+    slopes, weights, chi2, dof, spans, used = [], [], 0.0, 0, [], []
+    for r in runs:
+        r = r[1:-1]  # the edge windows may straddle the switching
+        if r.size < MIN_BURST_WINDOWS:
+            continue
+        t = wb.t_s[r]
+        ph = np.unwrap(wb.phase_rad[r, 0])
+        w = total[r] ** 2 / np.maximum(var_total[r], 1e-300)  # 1 / var(phase)
+        tm = np.sum(w * t) / w.sum()
+        sxx = np.sum(w * (t - tm) ** 2)
+        if sxx <= 0:
+            continue
+        pm = np.sum(w * ph) / w.sum()
+        b = np.sum(w * (t - tm) * (ph - pm)) / sxx
+        chi2 += float(np.sum(w * (ph - pm - b * (t - tm)) ** 2))
+        dof += r.size - 2
+        slopes.append(b)
+        weights.append(sxx)
+        spans.append(t[-1] - t[0] + lk.window_s)
+        used.append(r)
+    if not slopes:
+        return None
+    slopes, weights = np.array(slopes), np.array(weights)
+    b = float(np.sum(weights * slopes) / weights.sum())
+    var_b = 1.0 / weights.sum()
+    if len(slopes) > 1:
+        chi2 += float(np.sum(weights * (slopes - b) ** 2))
+        dof += len(slopes) - 1
+    if dof > 0:
+        var_b *= max(1.0, chi2 / dof)
+    u = np.concatenate(used)
+    amp = np.median(np.abs(a[u]), axis=0)
+    sigma = np.median(wb.noise_sigma[u], axis=0)
+    n_on = u.size * lk.n_window
+    snr = 20 * np.log10(np.maximum(amp * n_on / 2, 1e-300) / np.maximum(sigma * math.sqrt(n_on), 1e-300))
+    return Carrier(freq_hz=asked_hz + b / (2 * math.pi), resolution_hz=float(1.0 / max(spans)), snr_db=snr,
+                   amplitude=amp, noise_sigma=sigma, precision_hz=float(math.sqrt(var_b) / (2 * math.pi)))
+
+
 @dataclass(frozen=True)
 class CarrierCheck:
     """An asked carrier against the measured one.
@@ -255,6 +371,8 @@ def check_carrier(asked_hz: float, measured: Carrier | None, window_s: float, *,
     tdm : bool
         Time multiplexing (a missing carrier may just be an LED that is off
         in the scanned part; the amplitude is then not the duty-cycle average).
+        Measure a time-multiplexed carrier with :func:`carrier_in_bursts`
+        (see :func:`measure_carrier`): the spectral peak may be a side-band.
     """
     if measured is None:
         return CarrierCheck(asked_hz, None, math.nan, math.nan, math.nan, False,
@@ -262,21 +380,36 @@ def check_carrier(asked_hz: float, measured: Carrier | None, window_s: float, *,
                             "check --carrier-hz and --rate-hz with 'psdcal inspect'")
     c = measured
     off = c.freq_hz - asked_hz
-    # the measurement's own precision: a tenth of a bin (Hann + parabolic interpolation)
-    eff = max(abs(off) - 0.1 * c.resolution_hz, 0.0)
+    # the measurement's own precision: three standard errors when the estimator gives one
+    # (carrier_in_bursts), else a tenth of a bin (Hann + parabolic interpolation)
+    tol = 3.0 * c.precision_hz if math.isfinite(c.precision_hz) else 0.1 * c.resolution_hz
+    eff = max(abs(off) - tol, 0.0)
     x = math.pi * eff * window_s
     a = float(np.max(c.amplitude))
     s = float(np.max(c.noise_sigma[np.argmax(c.amplitude)]))
-    if tdm:
-        pass  # the record-averaged amplitude underestimates an LED's: the inflation is a lower bound
+    # tdm with a spectral measurement: the record-averaged amplitude underestimates an LED's (a lower bound);
+    # with carrier_in_bursts the amplitude is the on-time one
     infl = math.sqrt(1.0 + (a * x) ** 2 / (6.0 * max(s, 1e-300) ** 2))
     loss = 1.0 - (math.sin(x) / x if x > 0 else 1.0)
     ok = infl <= MAX_SIGMA_INFLATION and loss <= MAX_AMPLITUDE_LOSS
+    prec = (f"standard error {c.precision_hz:.2g} Hz in the bursts" if math.isfinite(c.precision_hz)
+            else f"resolution {c.resolution_hz:.2g} Hz")
     msg = "" if ok else (
-        f"carrier asked at {asked_hz:g} Hz is measured at {c.freq_hz:.6g} Hz ({off:+.3g} Hz, resolution "
-        f"{c.resolution_hz:.2g} Hz): in a {window_s:g} s window this inflates the sigmas about "
+        f"carrier asked at {asked_hz:g} Hz is measured at {c.freq_hz:.6g} Hz ({off:+.3g} Hz, {prec}): in a {window_s:g} s window this inflates the sigmas about "
         f"{infl:.3g}x and loses {100 * loss:.2g} % of the amplitude (check --carrier-hz and --rate-hz)")
     return CarrierCheck(asked_hz, c, off, infl, loss, ok, msg)
+
+
+def measure_carrier(x, rate_hz: float, asked_hz: float, *, tdm: bool = False, min_snr: float = 10.0,
+                    spectrum_cache: dict | None = None) -> Carrier | None:
+    """The carrier near ``asked_hz``: from the bursts' phase slope for time multiplexing
+    (:func:`carrier_in_bursts`, falling back on the spectrum when no burst is found), else
+    the spectral peak (:func:`carrier_near`)."""
+    if tdm:
+        c = carrier_in_bursts(x, rate_hz, asked_hz, min_snr=min_snr)
+        if c is not None:
+            return c
+    return carrier_near(x, rate_hz, asked_hz, spectrum_cache=spectrum_cache)
 
 
 @dataclass(frozen=True)
