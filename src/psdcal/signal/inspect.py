@@ -237,8 +237,10 @@ def carrier_in_bursts(x, rate_hz: float, asked_hz: float, *, min_snr: float = 10
     bursts, cut where the channel ratios or the phase jump (another LED with
     no dark window between); windows below 0.8 of their burst's median
     amplitude (part of the window dark) and the two edge windows of each
-    burst are dropped.  In each burst the common phase drifts as
-    ``2 pi (f - asked) t``.
+    burst are dropped.  In each burst, the samples between the end of its
+    first window and the start of its last one (the LED certainly on, no
+    switching inside) are cut into sub-windows of one period; their common
+    phase drifts as ``2 pi (f - asked) t``.
     The slope is fitted per burst (weights from the windows' own noise) and
     the bursts are averaged, inverse-variance weighted: a phase that jumps
     from burst to burst does not matter.
@@ -291,26 +293,33 @@ def carrier_in_bursts(x, rate_hz: float, asked_hz: float, *, min_snr: float = 10
         # windows that hold only part of the on-time are weaker: dropped, and the rest split where they were
         r = r[total[r] >= 0.8 * np.median(total[r])]
         runs += np.split(r, np.flatnonzero(np.diff(r) > 1) + 1)
-    slopes, weights, chi2, dof, spans, used = [], [], 0.0, 0, [], []
+    n_w = lk.n_window
+    period = max(4, int(round(rate_hz / asked_hz)))  # samples per sub-window: one period, at least 4 samples
+    slopes, weights, chi2, dof, spans, amps, sigmas, n_on = [], [], 0.0, 0, [], [], [], 0
     for r in runs:
-        r = r[1:-1]  # the edge windows may straddle the switching
-        if r.size < MIN_BURST_WINDOWS:
+        if r.size < 3:
             continue
-        t = wb.t_s[r]
-        ph = np.unwrap(wb.phase_rad[r, 0])
-        w = total[r] ** 2 / np.maximum(var_total[r], 1e-300)  # 1 / var(phase)
-        tm = np.sum(w * t) / w.sum()
-        sxx = np.sum(w * (t - tm) ** 2)
-        if sxx <= 0:
+        # the LED is on from the end of the run's first window to the start of its last one: only those
+        # samples are used (a window that holds the switching has a biased phase)
+        s0, s1 = int(r[0] + 1) * n_w, int(r[-1]) * n_w
+        k = min((s1 - s0) // period, 64)
+        if k < MIN_BURST_WINDOWS:
             continue
-        pm = np.sum(w * ph) / w.sum()
-        b = np.sum(w * (t - tm) * (ph - pm)) / sxx
-        chi2 += float(np.sum(w * (ph - pm - b * (t - tm)) ** 2))
-        dof += r.size - 2
-        slopes.append(b)
-        weights.append(sxx)
-        spans.append(t[-1] - t[0] + lk.window_s)
-        used.append(r)
+        m = (s1 - s0) // k
+        fit = _sub_window_phases(x[:, s0: s0 + k * m], rate_hz, asked_hz, s0 / rate_hz, k, m)
+        if fit is None:
+            continue
+        for piece in _phase_pieces(fit[1], fit[2], fit[5]):
+            t, ph, var_ph = fit[0][piece], fit[1][piece], fit[2][piece]
+            b, sxx, c2 = _phase_slope(t, ph, var_ph)
+            chi2 += c2
+            dof += piece.size - 2
+            slopes.append(b)
+            weights.append(sxx)
+            spans.append(piece.size * m / rate_hz)
+            amps.append(fit[3])
+            sigmas.append(fit[4])
+            n_on += piece.size * m
     if not slopes:
         return None
     slopes, weights = np.array(slopes), np.array(weights)
@@ -321,13 +330,75 @@ def carrier_in_bursts(x, rate_hz: float, asked_hz: float, *, min_snr: float = 10
         dof += len(slopes) - 1
     if dof > 0:
         var_b *= max(1.0, chi2 / dof)
-    u = np.concatenate(used)
-    amp = np.median(np.abs(a[u]), axis=0)
-    sigma = np.median(wb.noise_sigma[u], axis=0)
-    n_on = u.size * lk.n_window
+    amp = np.median(np.array(amps), axis=0)
+    sigma = np.median(np.array(sigmas), axis=0)
     snr = 20 * np.log10(np.maximum(amp * n_on / 2, 1e-300) / np.maximum(sigma * math.sqrt(n_on), 1e-300))
     return Carrier(freq_hz=asked_hz + b / (2 * math.pi), resolution_hz=float(1.0 / max(spans)), snr_db=snr,
                    amplitude=amp, noise_sigma=sigma, precision_hz=float(math.sqrt(var_b) / (2 * math.pi)))
+
+
+def _phase_slope(t, ph, var_ph):
+    """Weighted straight-line fit ``ph ~ p0 + b (t - tm)``: ``(b, sum w (t - tm)^2, chi2)`` (``w = 1 / var_ph``)."""
+    w = 1.0 / var_ph
+    tm = np.sum(w * t) / w.sum()
+    sxx = float(np.sum(w * (t - tm) ** 2))
+    pm = np.sum(w * ph) / w.sum()
+    b = float(np.sum(w * (t - tm) * (ph - pm)) / sxx)
+    return b, sxx, float(np.sum(w * (ph - pm - b * (t - tm)) ** 2))
+
+
+def _phase_pieces(ph, var_ph, mag):
+    """Runs of sub-windows of one LED: amplitude ``mag`` at least 0.8 of the median, phase steps that
+    agree with the median step within 6 sigma.
+
+    A weaker sub-window holds a switching (part dark, or two LEDs whose phases cancel in part); a
+    step that disagrees is another LED.  The burst is cut there, the sub-windows on both sides of a
+    bad step are dropped, and runs shorter than :data:`MIN_BURST_WINDOWS` are left out.
+    """
+    full = mag >= 0.8 * np.median(mag)
+    step = np.diff(ph)
+    both = full[:-1] & full[1:]
+    med = float(np.median(step[both])) if np.any(both) else 0.0
+    sd = np.sqrt(var_ph[:-1] + var_ph[1:])
+    bad = ~both | (np.abs(np.angle(np.exp(1j * (step - med)))) > 6 * sd)
+    keep = full.copy()
+    keep[:-1] &= ~bad | ~full[1:]  # a bad step to a weak sub-window only drops the weak one
+    keep[1:] &= ~bad | ~full[:-1]
+    idx = np.flatnonzero(keep)
+    pieces = np.split(idx, np.flatnonzero(np.diff(idx) > 1) + 1) if idx.size else []
+    return [p for p in pieces if p.size >= MIN_BURST_WINDOWS]
+
+
+def _sub_window_phases(xs, rate_hz: float, f_hz: float, t0_s: float, k: int, m: int):
+    """Common phase of ``k`` consecutive sub-windows of ``m`` samples of ``xs`` (4, k m) starting at ``t0_s``.
+
+    Each sub-window is fitted by least squares with ``sin, cos`` at ``f_hz`` and an offset on its own
+    time axis; the phase is referred to the recording's time.  Returns ``(t_s, phase_rad (unwrapped),
+    var_phase, amplitude (4,), noise_sigma (4,), |sum of the complex amplitudes| (k,))`` (amplitude
+    and noise_sigma medians over the sub-windows), or None
+    when the carrier vanishes in a sub-window.
+    """
+    tau = np.arange(m) / rate_hz
+    wt = 2 * np.pi * f_hz * tau
+    basis = np.stack([np.sin(wt), np.cos(wt), np.ones(m)], axis=1)  # (m, 3)
+    gram = basis.T @ basis
+    coef = np.einsum("cjm,mp->jpc", xs.reshape(4, k, m), basis @ np.linalg.inv(gram))  # (k, 3, 4)
+    res = xs.reshape(4, k, m) - np.einsum("jpc,mp->cjm", coef, basis)
+    var_c = (res ** 2).sum(-1).T / max(m - 3, 1)  # (k, 4)
+    z = coef[:, 0, :] + 1j * coef[:, 1, :]  # x ~ i sin + q cos
+    zs = z.sum(-1)  # (k,)
+    mag = np.abs(zs)
+    if np.any(mag <= 0) or not np.all(np.isfinite(mag)):
+        return None
+    gi = np.linalg.inv(gram)[:2, :2]
+    u = zs / mag
+    # variance of the component of the summed amplitude across its phase, over |z|^2
+    perp = (u.real ** 2) * gi[1, 1] - 2 * u.real * u.imag * gi[0, 1] + (u.imag ** 2) * gi[0, 0]
+    var_ph = np.maximum(var_c.sum(-1) * perp / mag ** 2, 1e-300)
+    t_start = t0_s + np.arange(k) * m / rate_hz
+    ph = np.unwrap(np.angle(zs) - 2 * np.pi * f_hz * (t_start - t0_s))
+    amp = np.median(np.abs((z * np.conj(u)[:, None]).real), axis=0)
+    return t_start + 0.5 * (m - 1) / rate_hz, ph, var_ph, amp, np.median(np.sqrt(var_c), axis=0), mag
 
 
 @dataclass(frozen=True)
