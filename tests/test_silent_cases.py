@@ -69,3 +69,84 @@ def test_tutorial_tdm_views_do_not_cry_wolf_and_a_wrong_rate_is_caught(tmp_path,
                "--tdm", "-o", "off.csv"])
     err = capsys.readouterr().err
     assert re.search(r"measured at 100(4\.99|5 |5\.00)", err), err
+
+
+# --------------------------------------------------------------------------- live channel order
+def _live_setup(tmp_path, *, n=12_000):
+    from psdcal.study.recordings import amplitudes, calib_dict, model, signals, spot_for_angles
+
+    m = model()
+    (tmp_path / "calib.json").write_text(json.dumps(calib_dict()))
+    rng = np.random.default_rng(5)
+    # alpha_y 0.27 deg (the case seen) and a larger one
+    d1 = spot_for_angles(m, np.radians([2.0, 0.27]))
+    d2 = spot_for_angles(m, np.radians([-5.0, 4.0]))
+    return signals(20_000.0, n, [(amplitudes(m, d1), 1000.0, 0.3), (amplitudes(m, d2), 1300.0, 1.1)],
+                   noise=1e-3, rng=rng)
+
+
+def _run_live(monkeypatch, frames, out, extra=()):
+    import io
+    import sys
+
+    class _Stdin:
+        buffer = io.BytesIO(np.ascontiguousarray(frames).astype("<f8").tobytes())
+
+    monkeypatch.setattr(sys, "stdin", _Stdin())
+    return main(["locate", "-", "--calib", "calib.json", "--rate-hz", "20000", "--carrier-hz", "1000",
+                 "--carrier-hz", "1300", "-o", str(out), *extra])
+
+
+def _alpha(path):
+    rows = np.genfromtxt(path, delimiter=",", names=True, dtype=None, encoding="utf-8")
+    return np.array([[r["alpha_x_deg"], r["alpha_y_deg"]] for r in rows if r["emitter"] == "1000Hz"])
+
+
+def test_live_channels_in_another_order_are_caught_and_reordered(tmp_path, monkeypatch, capsys):
+    """Issue 19: frames wired vx1,vy1,vx2,vy2 gave alpha_y 0 for 0.27 deg with no warning."""
+    monkeypatch.chdir(tmp_path)
+    x = _live_setup(tmp_path)
+    swapped = x[[0, 2, 1, 3]].T  # frames vx1, vy1, vx2, vy2
+    # the documented order: right angles, no warning (no false alarm)
+    assert _run_live(monkeypatch, x.T, "ok.csv") == 0
+    assert "warning" not in capsys.readouterr().err
+    a_ok = _alpha("ok.csv")
+    np.testing.assert_allclose(a_ok.mean(0), [2.0, 0.27], atol=0.01)
+    # another order, not said: the sums show it, and the warning says what to do
+    assert _run_live(monkeypatch, swapped, "bad.csv") == 0
+    err = capsys.readouterr().err
+    assert "channel sums differ" in err and "--raw-order" in err and "Traceback" not in err
+    rows = np.genfromtxt("bad.csv", delimiter=",", names=True, dtype=None, encoding="utf-8")
+    assert np.all(np.abs(rows["y_mm"]) < 1e-3)  # what it would have been: the impact point's y read as 0
+    # the order given: the same rows as the documented order, no warning
+    assert _run_live(monkeypatch, swapped, "fixed.csv", ["--raw-order", "vx1,vy1,vx2,vy2"]) == 0
+    assert "warning" not in capsys.readouterr().err
+    np.testing.assert_allclose(_alpha("fixed.csv"), a_ok, rtol=1e-9, atol=1e-12)
+
+
+@pytest.mark.parametrize("extra, field", [
+    (["--raw-order", "vx1,vy1,vx2"], "raw_order"),
+    (["--raw-order", "vx1,vx1,vy1,vy2"], "raw_order"),
+    (["--channels", "a,b,c,d"], "channels"),
+])
+def test_live_bad_channel_order_is_one_line(tmp_path, monkeypatch, capsys, extra, field):
+    monkeypatch.chdir(tmp_path)
+    x = _live_setup(tmp_path, n=2000)
+    assert _run_live(monkeypatch, x.T, "out.csv", extra) == 2
+    line = _one_error_line(capsys.readouterr().err)
+    assert f"field '{field}'" in line
+    assert not (tmp_path / "out.csv").exists()
+
+
+def test_file_channels_in_another_order_are_caught(tmp_path, monkeypatch, capsys):
+    from psdcal.study.recordings import write_recording
+
+    monkeypatch.chdir(tmp_path)
+    x = _live_setup(tmp_path)
+    write_recording(tmp_path / "ok.npy", x, 20_000.0)
+    write_recording(tmp_path / "bad.npy", x[[0, 2, 1, 3]], 20_000.0)
+    args = ["--calib", "calib.json", "--rate-hz", "20000", "--carrier-hz", "1000", "--carrier-hz", "1300"]
+    assert main(["locate", "ok.npy", *args, "-o", "ok.csv"]) == 0
+    assert "warning" not in capsys.readouterr().err
+    assert main(["locate", "bad.npy", *args, "-o", "bad.csv"]) == 0
+    assert "channel sums differ" in capsys.readouterr().err

@@ -104,6 +104,10 @@ def _demod_options(f):
                                       "interleaved vx1,vx2,vy1,vy2 frames (little-endian).")
 @click.option("--raw-scale", type=float, default=1.0, show_default=True,
               help="Live input: factor applied to every sample (e.g. volts per int16 count).")
+@click.option("--raw-order", default=None, metavar="ORDER",
+              help="Live input: the frame's four channels in their order when not vx1,vx2,vy1,vy2 (e.g. "
+                   "vx1,vy1,vx2,vy2). Whatever the order, the x and y channel sums are checked on the data "
+                   "(they are equal in the right order) and a disagreement is a warning.")
 @click.option("--gains", "gains_file", type=click.Path(dir_okay=False),
               help="Gains JSON from 'psdcal gains': channel gains (per carrier when it has them) replace the "
                    "calibration's, their covariance enters the sigmas.")
@@ -117,7 +121,7 @@ def _demod_options(f):
 def locate_command(recordings, calib, sensors, gains_file, rate_hz, carriers, emitters, distance_mm, window_s, tdm,
                    schedule, n_emitters, check_carriers, min_snr, channels, dataset, group, chunk_samples, progress,
                    output, track_path=None, track_q=None, raw_dtype="float64", raw_scale=1.0, output_format="csv",
-                   expect_sensor=None, allow_no_covariance=False):
+                   expect_sensor=None, allow_no_covariance=False, raw_order=None):
     """Demodulate RECORDING(s) and write angles of arrival and positions.
 
     \b
@@ -154,13 +158,19 @@ def locate_command(recordings, calib, sensors, gains_file, rate_hz, carriers, em
     if any(is_stream_source(str(r)) for r in recordings):  # live input: see `psdcal.cli.system_cmd.live_locate`
         from psdcal.cli.system_cmd import live_locate
 
+        if channels is not None:
+            raise InputError("a live stream's frames carry no channel names: give their order with --raw-order "
+                             "(e.g. vx1,vy1,vx2,vy2), not --channels", field="channels")
         if calib is not None:
             from psdcal.measure.sensor_model import SensorModel
 
             check_sensor(SensorModel.load(calib), expect_sensor, allow_no_covariance)
 
         return live_locate(recordings, calib, rate_hz, carriers, emitters, distance_mm, window_s, tdm, schedule,
-                           n_emitters, min_snr, output, raw_dtype, raw_scale, track_path, track_q)
+                           n_emitters, min_snr, output, raw_dtype, raw_scale, track_path, track_q, raw_order)
+    if raw_order is not None:
+        raise InputError("--raw-order is for live input ('-', tcp://, nidaqmx://); name a file's channels with "
+                         "--channels", field="raw_order")
     sched = load_schedule(schedule) if schedule else None
     config = LocateConfig(
         carriers_hz=tuple(carriers),

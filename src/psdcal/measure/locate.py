@@ -22,6 +22,7 @@ several sensors::
 from __future__ import annotations
 
 import csv
+import dataclasses
 import math
 from dataclasses import dataclass
 from typing import Callable
@@ -30,6 +31,7 @@ import numpy as np
 
 from psdcal._atomic import atomic_path
 from psdcal.measure.aoa import angles_from_amplitudes, angles_from_points, impact_from_amplitudes
+from psdcal.measure.channel_order import SumCheck
 from psdcal.errors import InputError, ZeroSignalError
 from psdcal.measure.positioning import plane_position, ray_inputs, triangulate
 from psdcal.signal.recording import DEFAULT_CHUNK, Recording
@@ -245,13 +247,18 @@ class _NpyRows:
             np.save(fh, out, allow_pickle=False)
 
 
-def _rows_single(t_s, names, a, var_a, model: SensorModel, distance_mm, min_snr):
-    """Columns for rows (t, emitter) of amplitudes a (n, 4); drops low-SNR rows."""
+def _rows_single(t_s, names, a, var_a, model: SensorModel, distance_mm, min_snr, sums=None):
+    """Columns for rows (t, emitter) of amplitudes a (n, 4); drops low-SNR rows.
+
+    ``sums``: a :class:`psdcal.measure.channel_order.SumCheck` that the kept rows are added to.
+    """
     total = a.sum(-1)
     sd = np.sqrt(var_a.sum(-1))
     keep = total > min_snr * sd
     keep &= np.all(np.isfinite(a), axis=-1)
     t_s, names, a, var_a = t_s[keep], names[keep], a[keep], var_a[keep]
+    if sums is not None:
+        sums.add(a, var_a)
     imp = impact_from_amplitudes(a, model, var_a, on_zero="nan")
     res = angles_from_points(imp.d_mm, model, imp.cov_d_mm2, imp.dd_dgains, derivatives=False)
     d = imp.d_mm
@@ -472,9 +479,17 @@ def locate_to_csv(recording: Recording, model: SensorModel, out_path, config: Lo
     LocateSummary
     """
 
+    # the x and y channel sums agree in the documented channel order (a wrong order or wrong gains show)
+    sums = {}
+
+    def sum_check(m):
+        if id(m) not in sums:
+            sums[id(m)] = SumCheck(m.gains, m.ly_mm, str(recording.path))
+        return sums[id(m)]
+
     def make_cols(t, nm, a, v):
         if not models:
-            return _rows_single(t, nm, a, v, model, config.distance_mm, config.min_snr)
+            return _rows_single(t, nm, a, v, model, config.distance_mm, config.min_snr, sum_check(model))
         parts, skipped = [], 0
         order = np.argsort(t, kind="stable")
         t, nm, a, v = t[order], nm[order], a[order], v[order]
@@ -483,16 +498,19 @@ def locate_to_csv(recording: Recording, model: SensorModel, out_path, config: Lo
             groups.setdefault(name, []).append(i)
         for name, idx in groups.items():
             idx = np.array(idx)
-            cols, sk = _rows_single(t[idx], nm[idx], a[idx], v[idx], models.get(name, model), config.distance_mm,
-                                    config.min_snr)
+            m = models.get(name, model)
+            cols, sk = _rows_single(t[idx], nm[idx], a[idx], v[idx], m, config.distance_mm, config.min_snr,
+                                    sum_check(m))
             parts.append(cols)
             skipped += sk
         merged = {c: np.concatenate([p[c] for p in parts]) for c in parts[0]}
         back = np.argsort(merged["t_s"], kind="stable")
         return {c: merged[c][back] for c in merged}, skipped
 
-    return _stream_single(recording, config, out_path, single_columns(config.distance_mm is not None), make_cols,
-                          progress)
+    summary = _stream_single(recording, config, out_path, single_columns(config.distance_mm is not None), make_cols,
+                             progress)
+    extra = tuple(w for w in (c.warning() for c in sums.values()) if w)
+    return dataclasses.replace(summary, warnings=summary.warnings + extra) if extra else summary
 
 
 AMPLITUDE_COLUMNS = ("t_s", "emitter", "vx1", "vx2", "vy1", "vy2",
