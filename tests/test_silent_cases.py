@@ -117,7 +117,7 @@ def test_live_channels_in_another_order_are_caught_and_reordered(tmp_path, monke
     err = capsys.readouterr().err
     assert "channel sums differ" in err and "--raw-order" in err and "Traceback" not in err
     rows = np.genfromtxt("bad.csv", delimiter=",", names=True, dtype=None, encoding="utf-8")
-    assert np.all(np.abs(rows["y_mm"]) < 1e-3)  # what it would have been: the impact point's y read as 0
+    assert np.all(np.abs(rows["y_mm"]) < 5e-3)  # (noise 5e-4 mm) what it would have been: the impact point's y read as 0
     # the order given: the same rows as the documented order, no warning
     assert _run_live(monkeypatch, swapped, "fixed.csv", ["--raw-order", "vx1,vy1,vx2,vy2"]) == 0
     assert "warning" not in capsys.readouterr().err
