@@ -150,3 +150,39 @@ def test_file_channels_in_another_order_are_caught(tmp_path, monkeypatch, capsys
     assert "warning" not in capsys.readouterr().err
     assert main(["locate", "bad.npy", *args, "-o", "bad.csv"]) == 0
     assert "channel sums differ" in capsys.readouterr().err
+
+
+# --------------------------------------------------------------------------- wrong --rate-hz on TDM
+@pytest.fixture(scope="module")
+def tdm_views(tmp_path_factory):
+    d = tmp_path_factory.mktemp("tdm")
+    assert main(["simulate-recording", "template", "--views", "4", "--snr-db", "60", "--seed", "3",
+                 "-o", str(d / "cal")]) == 0
+    return d / "cal"
+
+
+@pytest.mark.parametrize("rate_hz", [47_500.0, 52_500.0])
+def test_wrong_rate_on_a_tdm_recording_is_named(tdm_views, tmp_path, capsys, rate_hz):
+    """Issue 19: a rate 5 % off moved every slot of the schedule off its LED; the calibration then blamed the
+    LED order.  The on-times found are compared with the schedule and the rate is named (with the rate the
+    schedule fits); the right rate gives no warning."""
+    capsys.readouterr()
+    base = ["amplitudes", str(tdm_views / "view_00.npy"), "--carrier-hz", "1000", "--window-s", "0.005",
+            "--schedule", str(tdm_views / "schedule.csv"), "--no-check-carriers"]
+    assert main([*base, "--rate-hz", "50000", "-o", str(tmp_path / "ok.csv")]) == 0
+    assert "warning" not in capsys.readouterr().err
+    assert main([*base, "--rate-hz", str(rate_hz), "-o", str(tmp_path / "bad.csv")]) == 0
+    err = capsys.readouterr().err
+    m = re.search(r"--rate-hz \S+ is probably wrong, the schedule fits ([\d.]+) Hz", err)
+    assert m, err
+    assert abs(float(m.group(1)) - 50_000.0) < 0.005 * 50_000.0
+
+
+def test_wrong_rate_without_schedule_names_the_carrier_in_the_error(tdm_views, tmp_path, capsys):
+    """A rate 20 % off splits and merges the LEDs: the refusal (one line) carries the pre-scan's finding."""
+    capsys.readouterr()
+    rc = main(["amplitudes", str(tdm_views / "view_00.npy"), "--rate-hz", "60000", "--carrier-hz", "1000", "--tdm",
+               "--n-emitters", "14", "-o", str(tmp_path / "a.csv")])
+    line = _one_error_line(capsys.readouterr().err)
+    assert rc == 2 and "n_emitters" in line and re.search(r"measured at 1(199|200)", line) and "--rate-hz" in line
+    assert not (tmp_path / "a.csv").exists()

@@ -32,7 +32,7 @@ import numpy as np
 from psdcal._atomic import atomic_path
 from psdcal.measure.aoa import angles_from_amplitudes, angles_from_points, impact_from_amplitudes
 from psdcal.measure.channel_order import SumCheck
-from psdcal.errors import InputError, ZeroSignalError
+from psdcal.errors import InputError, PsdcalError, ZeroSignalError
 from psdcal.measure.positioning import plane_position, ray_inputs, triangulate
 from psdcal.signal.recording import DEFAULT_CHUNK, Recording
 from psdcal.measure.sensor_model import SensorModel
@@ -147,22 +147,26 @@ def prescan(recording: Recording, config: LocateConfig) -> tuple[float, list[str
     finder of :mod:`psdcal.signal.inspect`).  Only recordings in files
     (kinds npy, csv, hdf5, tdms) are scanned: a live stream is not read twice.
     """
-    from psdcal.signal.inspect import check_carrier, choose_tdm_window, measure_carrier, read_prefix, scan_tdm
+    from psdcal.signal.inspect import (check_carrier, choose_tdm_window, measure_carrier, read_prefix, scan_tdm,
+                                      schedule_timing)
 
     warnings: list[str] = []
     window_s = config.window_s
     # only files can be read twice (a live stream must not lose its first chunk to the scan)
     rereadable = getattr(recording, "kind", None) in ("npy", "csv", "hdf5", "tdms")
-    need_scan = rereadable and (config.check_carriers or (window_s is None and config.tdm))
+    need_scan = rereadable and (config.check_carriers or (config.tdm and (window_s is None or config.schedule)))
     # one chunk's worth (the memory the user allowed), at least 4096 samples
     n_scan = min(max(int(config.chunk_samples), 4096), 1 << 18)
     x = read_prefix(recording, n_scan) if need_scan else None
+    scan = None
+    if config.tdm and x is not None and x.shape[1] >= 64 and (window_s is None or config.schedule):
+        scan = scan_tdm(x, recording.rate_hz, config.carriers_hz[0], min_snr=config.min_snr)
     if window_s is None:
-        if config.tdm and x is not None and x.shape[1] >= 64:
-            window_s = choose_tdm_window(scan_tdm(x, recording.rate_hz, config.carriers_hz[0],
-                                                  min_snr=config.min_snr), config.carriers_hz[0])
-        else:
-            window_s = 0.01
+        window_s = choose_tdm_window(scan, config.carriers_hz[0]) if scan is not None else 0.01
+    if scan is not None and config.schedule:
+        msg = schedule_timing(scan, config.schedule, recording.rate_hz, x.shape[1] / recording.rate_hz)
+        if msg:
+            warnings.append(f"{recording.path}: {msg}")
     if config.check_carriers and x is not None and x.shape[1] >= 64:
         cache: dict = {}  # one spectrum for all the carriers
         for f in config.carriers_hz:
@@ -361,6 +365,22 @@ def _stream_single(recording: Recording, config: LocateConfig, out_path, order, 
     k = len(names)
     batch_rows = min(BATCH_ROWS, max(1, chunk // BATCH_SAMPLES_PER_ROW))
     names_arr = np.array(names, dtype=object)
+
+    if config.output_format not in ("csv", "npy"):
+        raise InputError(f"output format must be 'csv' or 'npy', got {config.output_format!r}", field="format")
+    try:
+        return _stream_rows(recording, config, out_path, order, make_cols, progress, names, window_s, warnings,
+                            lockin, seg, chunk, k, batch_rows, names_arr)
+    except PsdcalError as exc:
+        # what the pre-scan found (a carrier or a rate off) is usually the cause: said in the same line
+        if warnings:
+            exc.args = (f"{exc} (the pre-scan found: {'; '.join(warnings)})",) + exc.args[1:]
+        raise
+
+
+def _stream_rows(recording, config, out_path, order, make_cols, progress, names, window_s, warnings, lockin, seg,
+                 chunk, k, batch_rows, names_arr):
+    """The loop of :func:`_stream_single` (chunks -> rows), after its set-up."""
     n_samples = n_windows = n_rows = n_skipped = 0
 
     def segment_rows(segments):
@@ -372,8 +392,6 @@ def _stream_single(recording: Recording, config: LocateConfig, out_path, order, 
         v = np.stack([s.var_amplitude for s in segments])
         return make_cols(t, nm, a, v)
 
-    if config.output_format not in ("csv", "npy"):
-        raise InputError(f"output format must be 'csv' or 'npy', got {config.output_format!r}", field="format")
     npy = _NpyRows(order) if config.output_format == "npy" else None
     with atomic_path(out_path, suffix="." + config.output_format) as tmp:
         with open(tmp, "w", encoding="utf-8", newline="") as fh:

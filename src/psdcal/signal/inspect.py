@@ -547,3 +547,64 @@ def choose_tdm_window(scan: TdmScan, carrier_hz: float, *, max_window_s: float =
     w = min(on / 8.0, max_window_s)
     w = math.floor(w * carrier_hz) / carrier_hz
     return max(w, scan.window_s + 0.1 / carrier_hz)
+
+
+#: A schedule whose times the on-times found follow with a scale off by more than this (and 5 standard
+#: errors) names the sampling rate.
+MAX_TIME_SCALE_ERROR = 0.005
+
+
+def schedule_timing(scan: TdmScan, schedule, rate_hz: float, scanned_s: float) -> str | None:
+    """Whether the on-times found in the signal fall where the schedule puts them.
+
+    Times in a recording are sample numbers over ``--rate-hz``: with a wrong
+    rate every time found is scaled by ``true rate / given rate`` while the
+    schedule's times are not, so the slots drift off the LEDs (the windows of
+    one LED then hold the next one, or the dark, and the calibration sees a
+    permuted template).  The ``k``-th segment found is paired with the
+    ``k``-th schedule entry (segments ending within 2 scan windows of the end
+    of the scanned part are left out) and their centres fitted as
+    ``t_found = s t_schedule + t0``.
+
+    Parameters
+    ----------
+    scan : TdmScan
+    schedule : sequence of ScheduleEntry
+    rate_hz : float
+        The rate given.
+    scanned_s : float
+        Duration of the scanned part, s.
+
+    Returns
+    -------
+    str or None
+        A message naming the rate when ``|s - 1|`` exceeds
+        :data:`MAX_TIME_SCALE_ERROR` and 5 standard errors and the pairing is
+        consistent (residuals within a scan window); None otherwise (nothing
+        to say, or not enough segments to tell).
+    """
+    sched = sorted(schedule, key=lambda e: e.t_start_s)
+    w = scan.window_s
+    segs = [sg for sg in scan.segments if sg.t_end_s < scanned_s - 2 * w]
+    n = min(len(segs), len(sched))
+    if n < 3:
+        return None
+    c_found = np.array([0.5 * (sg.t_start_s + sg.t_end_s) for sg in segs[:n]])
+    c_sched = np.array([0.5 * (e.t_start_s + e.t_end_s) for e in sched[:n]])
+    dc = c_sched - c_sched.mean()
+    sxx = float(np.sum(dc * dc))
+    if sxx <= 0:
+        return None
+    slope = float(np.sum(dc * (c_found - c_found.mean())) / sxx)
+    res = c_found - c_found.mean() - slope * dc
+    if np.sqrt(np.mean(res ** 2)) > w:
+        return None  # LEDs missing or merged: the pairing by order does not hold
+    # a centre is known to about a window (edges found window by window)
+    se = w / math.sqrt(12.0) * math.sqrt(2.0) / math.sqrt(sxx)
+    if abs(slope - 1.0) <= max(MAX_TIME_SCALE_ERROR, 5 * se):
+        return None
+    shift_ms = float(np.max(np.abs(c_found - c_sched))) * 1e3
+    return (f"the {n} on-times found in the signal fall at {slope:.4g} x the schedule's times (the last one "
+            f"{shift_ms:.3g} ms off): --rate-hz {rate_hz:g} is probably wrong, the schedule fits "
+            f"{rate_hz * slope:.6g} Hz (a wrong rate moves every slot off its LED and the calibration then "
+            f"sees the LEDs out of order)")
