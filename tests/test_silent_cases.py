@@ -186,3 +186,43 @@ def test_wrong_rate_without_schedule_names_the_carrier_in_the_error(tdm_views, t
     line = _one_error_line(capsys.readouterr().err)
     assert rc == 2 and "n_emitters" in line and re.search(r"measured at 1(199|200)", line) and "--rate-hz" in line
     assert not (tmp_path / "a.csv").exists()
+
+
+# --------------------------------------------------------------------------- gains: positions checked
+def _bench_files(tmp_path, transform):
+    from psdcal.calibration.gains import calibration_spots
+    from psdcal.model.readout import photocurrents
+
+    rng = np.random.default_rng(4)
+    spots = calibration_spots()
+    a = photocurrents(spots, 1.0) * np.array([1.0, 1.04, 0.96, 1.02])
+    a = a + 1e-3 * rng.standard_normal(a.shape)
+    (tmp_path / "amp.csv").write_text("point_id,vx1,vx2,vy1,vy2\n" + "".join(
+        f"s{i}," + ",".join(repr(float(v)) for v in r) + "\n" for i, r in enumerate(a)))
+    p = transform(spots)
+    (tmp_path / "pos.csv").write_text("point_id,x_mm,y_mm\n" + "".join(
+        f"s{i},{float(x)!r},{float(y)!r}\n" for i, (x, y) in enumerate(p)))
+
+
+@pytest.mark.parametrize("transform, frag", [
+    (lambda s: s / 1000.0, "x the positions: another unit"),
+    (lambda s: s[:, ::-1], "x and y swapped"),
+    (lambda s: s * [-1.0, 1.0], "an axis mirrored"),
+    (lambda s: s * 3.0, "outside the 9 x 9 mm PSD"),
+])
+def test_gains_refuses_positions_that_do_not_match(tmp_path, capsys, transform, frag):
+    """Issue 19: positions in metres or x/y swapped gave a gains file that 'aoa --gains' then refused."""
+    _bench_files(tmp_path, transform)
+    out = tmp_path / "gains.json"
+    rc = main(["gains", str(tmp_path / "amp.csv"), "--positions", str(tmp_path / "pos.csv"), "-o", str(out)])
+    line = _one_error_line(capsys.readouterr().err)
+    assert rc == 2 and "pos.csv" in line and "field 'x_mm'" in line and frag in line, line
+    assert not out.exists()
+
+
+def test_gains_right_positions_still_fit(tmp_path, capsys):
+    _bench_files(tmp_path, lambda s: s)
+    out = tmp_path / "gains.json"
+    assert main(["gains", str(tmp_path / "amp.csv"), "--positions", str(tmp_path / "pos.csv"), "-o", str(out)]) == 0
+    g = json.loads(out.read_text())["gains"]
+    np.testing.assert_allclose(g, [1.0, 1.04, 0.96, 1.02], atol=5e-3)
