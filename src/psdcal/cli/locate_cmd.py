@@ -364,7 +364,10 @@ def aoa_command(points, calib, distance_mm, sigma_d_mm, gains_file, output, expe
 @click.option("--csv", "csv_path", type=click.Path(dir_okay=False), help="Also write the grid as CSV.")
 @click.option("-o", "--output", default="errormap.png", show_default=True, type=click.Path(dir_okay=False),
               help="Output PNG.")
-def errormap_command(calib, distance_mm, mode, grid, sigma_d_mm, csv_path, output):
+@click.option("--allow-no-covariance", is_flag=True, default=False,
+              help="Draw a calibration without covariance or standard errors (its error is then zero "
+                   "everywhere, only --sigma-d-mm is left); refused otherwise.")
+def errormap_command(calib, distance_mm, mode, grid, sigma_d_mm, csv_path, output, allow_no_covariance=False):
     """Draw the AoA and position error over the field of view (the paper's Figure 9).
 
     Example: psdcal errormap --calib calib.json --distance-mm 5000 -o errormap.png
@@ -376,6 +379,7 @@ def errormap_command(calib, distance_mm, mode, grid, sigma_d_mm, csv_path, outpu
     if grid < 3:
         raise InputError(f"--grid must be at least 3, got {grid}", field="grid")
     model = SensorModel.load(calib)
+    model.require_uncertainty(allow_no_covariance)  # else a map of zeros, as if the calibration were exact
     from psdcal._limits import check_bytes
 
     check_bytes(float(grid) ** 2 * 8 * (8 * max(len(model.names), 1) + 64), f"--grid {grid}", "--grid")

@@ -251,6 +251,16 @@ class _NpyRows:
             np.save(fh, out, allow_pickle=False)
 
 
+def _no_nan_sigmas(alpha_deg, sigma_deg, model: SensorModel) -> None:
+    """InputError when an angle is finite but its sigma is not (a calibration whose covariance or
+    distortion overflows): a NaN sigma is never written as if it were a measurement's."""
+    bad = np.all(np.isfinite(alpha_deg), axis=-1) & ~np.all(np.isfinite(sigma_deg), axis=-1)
+    if np.any(bad):
+        raise InputError(f"the calibration gives non-finite sigmas for {int(bad.sum())} finite angle(s) (its "
+                         "covariance or distortion overflows): refusing to write them", path=model.source,
+                         field="covariance")
+
+
 def _rows_single(t_s, names, a, var_a, model: SensorModel, distance_mm, min_snr, sums=None):
     """Columns for rows (t, emitter) of amplitudes a (n, 4); drops low-SNR rows.
 
@@ -269,6 +279,7 @@ def _rows_single(t_s, names, a, var_a, model: SensorModel, distance_mm, min_snr,
     res_d = np.sqrt(np.clip(np.diagonal(imp.cov_d_mm2, axis1=-2, axis2=-1), 0.0, None))
     alpha = res.alpha_rad * _DEG
     sa = res.sigma_alpha_rad * _DEG
+    _no_nan_sigmas(alpha, sa, model)
     cols = {
         "t_s": t_s,
         "emitter": names,
@@ -813,6 +824,7 @@ def _aoa_chunk(chunk, out, path, header, use, idx, sig_cols, sidx, keep_cols, ke
     res = angles_from_points(d, model, cov_d, dd_dg, derivatives=False)
     alpha = res.alpha_rad * _DEG
     sa = res.sigma_alpha_rad * _DEG
+    _no_nan_sigmas(alpha, sa, model)
     cols = {c: np.array([e[j] for e in extra], dtype=object) for j, c in enumerate(keep_cols)}
     cols.update({"x_mm": d[:, 0], "y_mm": d[:, 1], "alpha_x_deg": alpha[:, 0], "alpha_y_deg": alpha[:, 1]})
     if distance_mm is not None:
