@@ -226,3 +226,184 @@ def test_gains_right_positions_still_fit(tmp_path, capsys):
     assert main(["gains", str(tmp_path / "amp.csv"), "--positions", str(tmp_path / "pos.csv"), "-o", str(out)]) == 0
     g = json.loads(out.read_text())["gains"]
     np.testing.assert_allclose(g, [1.0, 1.04, 0.96, 1.02], atol=5e-3)
+
+
+# --------------------------------------------------------------------------- calibrations that cannot be used
+@pytest.fixture
+def calib_json(tmp_path):
+    from psdcal.study.recordings import calib_dict
+
+    def write(name="calib.json", **changes):
+        d = calib_dict()
+        for key, value in changes.items():
+            if isinstance(value, dict) and isinstance(d.get(key), dict):
+                d[key] = {**d[key], **value}
+            else:
+                d[key] = value
+        p = tmp_path / name
+        p.write_text(json.dumps(d))
+        return p
+
+    return write
+
+
+def test_errormap_without_covariance_is_refused(tmp_path, calib_json, capsys):
+    """Issue 19: a calibration without covariance drew zero error everywhere, exit 0."""
+    cal = calib_json(covariance=None, std={})
+    out = tmp_path / "e.png"
+    rc = main(["errormap", "--calib", str(cal), "--grid", "5", "-o", str(out)])
+    line = _one_error_line(capsys.readouterr().err)
+    assert rc == 2 and "calib.json" in line and "field 'covariance'" in line and "--allow-no-covariance" in line
+    assert not out.exists()
+    assert main(["errormap", "--calib", str(cal), "--grid", "5", "-o", str(out), "--allow-no-covariance"]) == 0
+    assert out.exists()
+
+
+def _npy_recording(tmp_path):
+    from psdcal.study.recordings import amplitudes, model, signals, spot_for_angles, write_recording
+
+    m = model()
+    x = signals(20_000.0, 4000, [(amplitudes(m, spot_for_angles(m, np.radians([2.0, 1.0]))), 1000.0, 0.3)],
+                noise=1e-3, rng=np.random.default_rng(1))
+    write_recording(tmp_path / "rec.npy", x, 20_000.0)
+    return tmp_path / "rec.npy"
+
+
+@pytest.mark.parametrize("changes, field", [
+    ({"distortion": {"k1": 1e300}}, "distortion.k1"),
+    ({"distortion": {"p2": -1e30}}, "distortion.p2"),
+])
+def test_locate_refuses_an_implausible_calibration(tmp_path, calib_json, capsys, changes, field):
+    """Issue 19: k1 = 1e300 wrote NaN sigmas, exit 0."""
+    cal = calib_json(**changes)
+    rec = _npy_recording(tmp_path)
+    out = tmp_path / "xyz.csv"
+    rc = main(["locate", str(rec), "--calib", str(cal), "--rate-hz", "20000", "--carrier-hz", "1000", "-o", str(out)])
+    line = _one_error_line(capsys.readouterr().err)
+    assert rc == 2 and "calib.json" in line and f"field '{field}'" in line and "implausible distortion" in line
+    assert not out.exists()
+
+
+def test_locate_never_writes_nan_sigmas():
+    """The last guard: a model whose covariance propagation is not finite (the loaders refuse such a file;
+    a SensorModel built in code is not loaded) raises instead of writing NaN sigmas beside finite angles."""
+    import dataclasses
+
+    from psdcal.errors import InputError
+    from psdcal.measure.locate import _rows_single
+    from psdcal.measure.sensor_model import SensorModel
+    from psdcal.study.recordings import amplitudes, calib_dict, model, spot_for_angles
+
+    m = SensorModel.from_dict(calib_dict(), source="calib.json")
+    bad = dataclasses.replace(m, covariance=np.full_like(m.covariance, np.inf))
+    a = amplitudes(model(), spot_for_angles(model(), np.radians([[2.0, 1.0], [-3.0, 4.0]])))
+    t, names, var = np.array([0.0, 0.01]), np.array(["e", "e"], dtype=object), np.full((2, 4), 1e-8)
+    cols, _ = _rows_single(t, names, a, var, m, None, 10.0)
+    assert np.all(np.isfinite(cols["sigma_alpha_x_deg"]))
+    with pytest.raises(InputError, match="non-finite sigmas") as exc:
+        _rows_single(t, names, a, var, bad, None, 10.0)
+    assert exc.value.path == "calib.json" and exc.value.field == "covariance"
+
+
+def test_compare_refuses_sensors_of_different_sizes(tmp_path, calib_json, capsys):
+    """Issue 19: two calibrations of 9 x 9 and 10 x 10 mm sensors were compared point for point."""
+    a = calib_json("a.json")
+    b = calib_json("b.json", sensor={"lx_mm": 10.0, "ly_mm": 10.0})
+    out = tmp_path / "diff.png"
+    rc = main(["compare", str(a), str(b), "-o", str(out), "--json", str(tmp_path / "c.json")])
+    line = _one_error_line(capsys.readouterr().err)
+    assert rc == 2 and "field 'sensor'" in line and "a.json: 9 x 9 mm" in line and "b.json: 10 x 10 mm" in line
+    assert not out.exists() and not (tmp_path / "c.json").exists()
+    assert main(["compare", str(a), str(a), "--json", str(tmp_path / "c.json")]) == 0  # the same size: compared
+
+
+# --------------------------------------------------------------------------- tracebacks -> one line
+def test_calibrate_directions_with_az_el_swapped_is_one_line(tmp_path, capsys):
+    """Issue 19: az and el swapped ended in numpy's 'All-NaN slice' traceback."""
+    from psdcal.calibration.directions import simulate_sweep, sweep_grid, write_directions
+    from psdcal.model.params import Distortion, Intrinsics
+
+    az, el = sweep_grid(20.165894394179496, 23.23741402459996, 6, 6)
+    d = simulate_sweep(Intrinsics(8.0, 0.5, -0.7), Distortion(k1=1e-2, k2=3e-5, p1=2e-4, p2=-1e-4),
+                       np.array([0.02, -0.03, 0.1]), az, el, noise_mm=0.002, rng=1)
+    write_directions(tmp_path / "sweep.csv", el, az, d)  # the columns swapped
+    out = tmp_path / "cal.json"
+    rc = main(["calibrate-directions", str(tmp_path / "sweep.csv"), "-o", str(out)])
+    line = _one_error_line(capsys.readouterr().err)
+    assert rc == 2 and ("swapped" in line or "not a camera" in line or "did not converge" in line), line
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("key, value, field", [
+    ("model", [], "model"),
+    ("model", {"radial": 7}, "model.radial"),
+    ("model", {"tangential": "yes"}, "model.tangential"),
+    ("residuals", {"rms_mm": "a"}, "residuals.rms_mm"),
+    ("residuals", {"per_image_rms_mm": "abc"}, "residuals.per_image_rms_mm"),
+    ("residuals", {"points": {"rows": [["a", "b", "c", "d"]]}}, "residuals.points.rows"),
+    ("iterations", "x", "iterations"),
+    ("stages", [], "stages"),
+    ("verdict", [], "verdict"),
+    ("checks", "x", "checks"),
+    ("std", {"f_mm": 10 ** 400}, "std.f_mm"),
+    ("intrinsics", {"f_mm": 10 ** 400, "cx_mm": 0.0, "cy_mm": 0.0}, "intrinsics.f_mm"),
+    ("sensor", {"lx_mm": 10 ** 400}, "sensor.lx_mm"),
+])
+def test_odd_calibration_json_is_one_line_everywhere(tmp_path, calib_json, capsys, key, value, field):
+    """Issue 19: 'report' on a JSON whose model is a list, load_calibration on odd JSON: raw AttributeError,
+    OverflowError (an integer too large for a float).  One validator serves every reader."""
+    from psdcal.errors import InputError
+    from psdcal.io import load_calibration
+    from psdcal.measure.sensor_model import SensorModel
+
+    d = json.loads(calib_json().read_text())
+    d[key] = value
+    p = tmp_path / "odd.json"
+    p.write_text(json.dumps(d))
+    for reader in (load_calibration, SensorModel.load):
+        with pytest.raises(InputError) as exc:
+            reader(p)
+        assert exc.value.field == field and exc.value.path == str(p)
+    out = tmp_path / "r.html"
+    rc = main(["report", str(p), "-o", str(out)])
+    line = _one_error_line(capsys.readouterr().err)
+    assert rc == 2 and f"field '{field}'" in line and not out.exists()
+
+
+@pytest.mark.parametrize("kw, field", [({"radial": 4}, "radial"), ({"psd_radial": 2.5}, "psd_radial"),
+                                       ({"radial": "2"}, "radial"), ({"tangential": "no"}, "tangential")])
+def test_calibrate_api_bad_model_is_an_input_error(kw, field):
+    """Issue 19: psdcal.calibrate(radial=4) raised a bare ValueError."""
+    import psdcal
+    from psdcal.errors import InputError
+    from psdcal.study.simulate import simulate_set
+
+    s = simulate_set("lens2", n_images=6, seed=1)
+    with pytest.raises(InputError) as exc:
+        psdcal.calibrate(s.template_mm, s.points_mm, **kw)
+    assert exc.value.field == field
+
+
+def test_amplitudes_on_a_corrupt_hdf5_is_one_line(tmp_path, capsys):
+    """Issue 19: a corrupt object header raised h5py's RuntimeError (a traceback)."""
+    h5py = pytest.importorskip("h5py")
+    with h5py.File(tmp_path / "good.h5", "w") as f:
+        f.create_dataset("signals", data=np.random.default_rng(0).standard_normal((20_000, 4)))
+        f.attrs["rate_hz"] = 20_000.0
+    raw = bytearray((tmp_path / "good.h5").read_bytes())
+    hits = 0
+    for off in range(0, 2048, 8):  # every place of the file's metadata, corrupted in turn
+        bad = bytearray(raw)
+        bad[off:off + 8] = b"\xff" * 8
+        (tmp_path / "bad.h5").write_bytes(bad)
+        out = tmp_path / "a.csv"
+        rc = main(["amplitudes", str(tmp_path / "bad.h5"), "--carrier-hz", "1000", "--no-check-carriers",
+                   "-o", str(out)])
+        err = capsys.readouterr().err
+        assert rc in (0, 2) and "Traceback" not in err
+        if rc == 2:
+            line = _one_error_line(err)
+            assert "bad.h5" in line and not out.exists()
+            hits += "not a readable HDF5 file" in line
+        out.unlink(missing_ok=True)
+    assert hits > 0
