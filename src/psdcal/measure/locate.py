@@ -31,6 +31,7 @@ import numpy as np
 
 from psdcal._atomic import atomic_path
 from psdcal.measure.aoa import angles_from_amplitudes, angles_from_points, impact_from_amplitudes
+from psdcal.measure._csvtext import _NpyRows, _rows_text, _write_rows  # noqa: F401  (live.py, tests)
 from psdcal.measure.channel_order import SumCheck
 from psdcal.errors import InputError, PsdcalError, ZeroSignalError
 from psdcal.measure.positioning import plane_position, ray_inputs, triangulate
@@ -190,65 +191,6 @@ def single_columns(with_plane: bool) -> tuple[str, ...]:
 
 
 MULTI_COLUMNS = ("t_s", "emitter", "X_mm", "Y_mm", "Z_mm", "sigma_X_mm", "sigma_Y_mm", "sigma_Z_mm", "n_sensors", "chi2")
-
-
-def _write_rows(fh, cols: dict, order) -> int:
-    """Write columns (equal-length arrays) as CSV rows; floats with 10 significant digits.
-
-    The text is formatted by the compiled writer (:func:`psdcal.measure._csvtext.rows_text`, the same
-    bytes as Python's ``"%.10g"``/``"%d"``/``"%s"``), or by :func:`_rows_text` without numba.
-    """
-    n = len(cols["t_s"])
-    if n == 0:
-        return 0
-    from psdcal import _jit
-
-    if _jit.enabled():
-        from psdcal.measure._csvtext import rows_text
-
-        fh.write(rows_text([cols[c] for c in order]))
-    else:
-        fh.write(_rows_text(cols, order))
-    return n
-
-
-def _rows_text(cols: dict, order) -> str:
-    """The CSV text of :func:`_write_rows` by Python's ``%`` formatting (the reference)."""
-    from psdcal.measure._csvtext import rows_text_reference
-
-    return rows_text_reference([cols[c] for c in order])
-
-
-class _NpyRows:
-    """Collects output columns and writes them as one NumPy structured array (``--format npy``)."""
-
-    def __init__(self, order):
-        self.order = tuple(order)
-        self.parts = {c: [] for c in self.order}
-
-    def write(self, cols: dict) -> int:
-        n = len(cols["t_s"])
-        for c in self.order:
-            self.parts[c].append(np.asarray(cols[c]))
-        return n
-
-    def save(self, path) -> None:
-        fields, data = [], []
-        for c in self.order:
-            a = np.concatenate(self.parts[c]) if self.parts[c] else np.zeros(0)
-            if a.dtype.kind in "OUS":
-                a = a.astype(str)
-                if a.size == 0:
-                    a = a.astype("U1")
-            elif a.dtype.kind not in "iub":
-                a = a.astype(np.float64)
-            fields.append((c, a.dtype))
-            data.append(a)
-        out = np.empty(len(data[0]) if data else 0, dtype=fields)
-        for (c, _), a in zip(fields, data):
-            out[c] = a
-        with open(path, "wb") as fh:
-            np.save(fh, out, allow_pickle=False)
 
 
 def _no_nan_sigmas(alpha_deg, sigma_deg, model: SensorModel) -> None:
