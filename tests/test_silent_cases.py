@@ -407,3 +407,42 @@ def test_amplitudes_on_a_corrupt_hdf5_is_one_line(tmp_path, capsys):
             hits += "not a readable HDF5 file" in line
         out.unlink(missing_ok=True)
     assert hits > 0
+
+
+def _corner_currents(xy_mm, l_mm=9.0):
+    """The four anode currents of a spot, written from docs/model.md's split I (1 -+ a -+ b) / 4."""
+    a, b = 2 * xy_mm[:, 0] / l_mm, 2 * xy_mm[:, 1] / l_mm
+    return 0.25 * np.stack([1 - a - b, 1 + a + b, 1 + a - b, 1 - a + b], axis=-1)
+
+
+def test_channel_sums_check_false_alarms_and_detection():
+    """False alarms of the sums check in 400 runs of 50 rows (SNR 30-80 dB per channel, calibrated gains
+    known to 0.05-0.5 % with that covariance): the chi2 is at a 1e-3 false-alarm rate and needs 1 sigma of
+    effect besides, so at most 2 (0.4 expected at 1e-3; benchmarks/study_channel_sums.py: 0 of 3000).
+    Detection of frames wired vx1,vy1,vx2,vy2: every run whose spots' y error reaches 3 row sigmas is caught."""
+    from psdcal.measure.channel_order import SumCheck
+
+    rng = np.random.default_rng(7)
+    alarms, missed, relevant = 0, 0, 0
+    for _ in range(400):
+        g_std = rng.uniform(5e-4, 5e-3)
+        cov = np.eye(3) * g_std ** 2
+        g_cal = np.r_[1.0, 1 + rng.uniform(-0.05, 0.05, 3)]
+        g_true = g_cal.copy()
+        g_true[1:] += g_std * rng.standard_normal(3)
+        xy = rng.uniform(-3.5, 3.5, (50, 2))
+        sigma = 0.25 * 10 ** (-rng.uniform(30, 80) / 20)
+        a = _corner_currents(xy) * g_true + sigma * rng.standard_normal((50, 4))
+        var = np.full_like(a, sigma ** 2)
+        ok = SumCheck(g_cal, 9.0, "r", cov)
+        ok.add(a, var)
+        alarms += ok.warning() is not None
+        bad = SumCheck(g_cal, 9.0, "r", cov)
+        bad.add(a[:, [0, 2, 1, 3]], var)
+        # the y error of that wiring, in sigmas of a row's y (sigma_y ~ 4.5 mm * sigma / (1/4 * 2))
+        err_sigma = np.abs(xy[:, 1]).max() / (9.0 / 2 * sigma * math.sqrt(2) / 0.5)
+        if err_sigma > 3 and g_std * 9.0 < np.abs(xy[:, 1]).max():
+            relevant += 1
+            missed += bad.warning() is None
+    assert alarms <= 2
+    assert relevant > 300 and missed == 0

@@ -76,7 +76,7 @@ def locate_stream(stream, model, out_path, config: LocateConfig) -> LiveSummary:
     order = single_columns(config.distance_mm is not None)
     k = len(names)
 
-    sums = SumCheck(model.gains, model.ly_mm, str(stream.path))
+    sums = SumCheck.for_model(model, str(stream.path))
     warned: list[str] = []
 
     def make_cols(t, nm, a, v):

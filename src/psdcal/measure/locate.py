@@ -455,7 +455,7 @@ def locate_to_csv(recording: Recording, model: SensorModel, out_path, config: Lo
 
     def sum_check(m):
         if id(m) not in sums:
-            sums[id(m)] = SumCheck(m.gains, m.ly_mm, str(recording.path))
+            sums[id(m)] = SumCheck.for_model(m, str(recording.path))
         return sums[id(m)]
 
     def make_cols(t, nm, a, v):
