@@ -39,6 +39,8 @@ def inspect_command(recording, rate_hz, channels, dataset, group, carriers, wind
       psdcal inspect rec.npy --rate-hz 100000 --carrier-hz 1000
     Exit status 0 when every asked carrier is where it was asked, 1 otherwise.
     """
+    import math
+
     import numpy as np
 
     from psdcal.cli.locate_cmd import _channels
@@ -78,8 +80,7 @@ def inspect_command(recording, rate_hz, channels, dataset, group, carriers, wind
     bad = 0
     for f in carriers:
         chk = check_carrier(f, measure_carrier(x, rec.rate_hz, f, tdm=tdm, min_snr=min_snr), window_s, tdm=tdm)
-        how = " in the bursts" if tdm and chk.measured is not None and chk.measured.precision_hz == \
-            chk.measured.precision_hz else ""
+        how = " in the bursts" if chk.measured is not None and math.isfinite(chk.measured.precision_hz) else ""
         if chk.ok:
             click.echo(f"check {f:g} Hz: ok (measured{how} {chk.measured.freq_hz:.7g} Hz, "
                        f"sigma x{chk.sigma_inflation:.3g})")
