@@ -446,3 +446,17 @@ def test_channel_sums_check_false_alarms_and_detection():
             missed += bad.warning() is None
     assert alarms <= 2
     assert relevant > 300 and missed == 0
+
+
+def test_every_reader_of_a_sensor_calibration_refuses_an_implausible_distortion():
+    """The sibling readers: a sensors file's entries are built by SensorModel.from_dict, not load()."""
+    from psdcal.errors import InputError
+    from psdcal.measure.sensor_model import SensorModel
+    from psdcal.study.recordings import calib_dict
+
+    d = calib_dict()
+    SensorModel.from_dict(d)  # a plausible one is read
+    d["distortion"]["k2"] = -1e200
+    with pytest.raises(InputError, match="implausible distortion") as exc:
+        SensorModel.from_dict(d, source="sensors.json")
+    assert exc.value.field == "distortion.k2" and exc.value.path == "sensors.json"

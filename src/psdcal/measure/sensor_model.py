@@ -264,6 +264,11 @@ class SensorModel:
             cov = np.diag(var) if var else np.zeros((0, 0))
         if "fy_mm" in names and intr.fy_mm is None:
             raise bad("the covariance names 'fy_mm' but 'intrinsics' has no 'fy_mm'", "covariance.names")
+        # every reader of a sensor's calibration (a calibration file, a sensors file's entries) refuses a
+        # distortion no lens has (k1 = 1e300: every sigma overflows)
+        from psdcal.io import check_plausible_distortion
+
+        check_plausible_distortion(intr.to_dict(), dist.to_dict(), {"lx_mm": lx, "ly_mm": ly}, src)
         return cls(
             intrinsics=intr,
             distortion=dist,
