@@ -411,7 +411,7 @@ class CalibrationResult:
                 created=str(d.get("created", "")),
                 verdict={"verdict": d["verdict"], "checks": list(d.get("checks", []))} if "verdict" in d else None,
             )
-        except (KeyError, TypeError, ValueError) as exc:
+        except (KeyError, TypeError, ValueError, AttributeError, OverflowError) as exc:
             raise InputError(f"not a psdcal calibration ({type(exc).__name__}: {exc})", path=source) from None
 
 
