@@ -202,8 +202,6 @@ def single_columns(with_plane: bool) -> tuple[str, ...]:
     return tuple(cols)
 
 
-
-
 def _no_nan_sigmas(alpha_deg, sigma_deg, model: SensorModel) -> None:
     """InputError when an angle is finite but its sigma is not (a calibration whose covariance or
     distortion overflows): a NaN sigma is never written as if it were a measurement's."""
