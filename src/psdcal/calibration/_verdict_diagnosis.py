@@ -44,32 +44,40 @@ def _diagnose(result, checks, lin, points_kind, bad_view):
     m = result.model
     mt = by.get("model_terms")
     cause = None
-    det = by.get("determination")
+    extra_checks = []
+    det = by.get("held_values")
+    if by.get("scale") is not None and by["scale"].passed is False and by["scale"].severe:
+        det = by["scale"]  # points in metres: every other symptom follows from the units
+    statistical = ("structure", "model_terms", "views", "leds")
     if det is None or det.passed is not False:
-        det = by.get("held_values")
+        det = by.get("determination")
+        if any(by[n].p_value is not None and by[n].p_value < by[n].false_alarm for n in statistical if n in by):
+            det = None  # a bad view or LED also leaves f undetermined: look for it first
     if det is not None and det.passed is False:
         # the views do not determine the camera, or a held value is wrong: every other symptom follows from that
         cause = det.advice
         for name, c in by.items():
-            if c.passed is False and name != "determination":
+            if c.passed is False and name != det.name:
                 by[name] = replace(c, advice=f"probably a consequence of the cause found: {cause}")
         return [by[c.name] for c in checks]
     # a fit that collapsed (f no lens has) or is not a camera: a bad view or a template permutation first
-    broken = (by["converged"].passed is False) or (by["focal_length"].passed is False and by["scale"].passed is not False)
+    broken = (by["converged"].passed is False) or (by["focal_length"].passed is False and by["scale"].passed is not False) \
+        or (by.get("determination") is not None and by["determination"].passed is False and by["determination"].severe)
     if broken and len(result.image_ids) >= 4:
-        cause = _view_advice(result, lin)
+        cause = _view_advice(result)  # the linearisation of a collapsed fit says little: refit each view out
     if broken and cause is None:
         perm = _homography_hint(result) or _permutation_advice(result, lin, base)
         if perm:
             cause = perm
-            if leds is not None and leds.passed is False:
-                by["leds"] = replace(leds, advice=perm)
+            if leds is not None:  # verified by the refit: the result is wrong
+                by["leds"] = replace(leds, passed=False, severe=True, advice=perm)
     if cause is None and ((st is not None and st.passed is False) or by["optical_centre"].passed is False
                           or (mt is not None and mt.passed is False)):
         again = _refit(result)
         if better(again, 1.01):
             cause = ("the fit stopped in a local minimum: re-run psdcal calibrate (it starts from several optical "
                      "centres) or give the lens' nominal focal length with --f-guess")
+            extra_checks.append(_minimum_check(result, again, base, cause))
         if cause is None and not m.fit_gains and points_kind != "points":
             # the first-order effect of unequal channel gains on the readout (three ratios), off the model's columns
             from psdcal.model.readout import gain_map
@@ -108,13 +116,14 @@ def _diagnose(result, checks, lin, points_kind, bad_view):
         perm = _permutation_advice(result, lin, base)
         if perm:
             cause = perm
-            if leds is not None and leds.passed is False:
-                by["leds"] = replace(leds, advice=perm)
+            if leds is not None:  # verified by the refit: the result is wrong
+                by["leds"] = replace(leds, passed=False, severe=True, advice=perm)
     verified = cause is not None
     if cause is None and bad_view is not None and by["views"].severe:
         cause = f"view {result.image_ids[bad_view]} disagrees with the others: check its labels or leave it out"
-    if cause is not None and cause.startswith("view ") and views_failed:
-        by["views"] = replace(by["views"], advice=cause)
+    if cause is not None and cause.startswith("view ") and by.get("views") is not None:
+        # a refit without the view verified it (implied noise down 3x): the result with it is wrong
+        by["views"] = replace(by["views"], advice=cause, passed=False, severe=verified or by["views"].severe)
     if cause is not None and collapsed:
         by["focal_length"] = replace(by["focal_length"], advice=cause)
     if unconverged and cause is not None:
@@ -141,7 +150,25 @@ def _diagnose(result, checks, lin, points_kind, bad_view):
             by[name] = replace(c, advice=f"probably a consequence of the cause found: {cause}")
         elif name == "leds" and not cause.startswith("a template permutation"):
             by[name] = replace(c, advice=f"probably a consequence of the cause found: {cause}")
-    return [by[c.name] for c in checks]
+    if cause is not None and by.get("determination") is not None and by["determination"].passed is False:
+        by["determination"] = replace(by["determination"], advice=f"probably a consequence of the cause found: {cause}")
+    return [by[c.name] for c in checks] + extra_checks
+
+
+def _minimum_check(result, again, base, cause):
+    """The ``global_minimum`` check: a re-run reached a lower cost; how far it moves f and C in their sigmas."""
+    from psdcal._consistency import Check
+
+    moves = []
+    for n in ("f_mm", "cx_mm", "cy_mm"):
+        sd = result.std.get(n)
+        if sd:
+            moves.append((abs(again.parameter(n) - result.parameter(n)) / sd, n))
+    E, name = max(moves) if moves else (float("inf"), "f_mm")
+    return Check("global_minimum", base / max(_ssr(again), 1e-300), 1.01, None, 0.0, False,
+                 f"a re-run reaches a cost {base / max(_ssr(again), 1e-300):.3g}x lower (f = {again.intrinsics.f_mm:.4g} mm "
+                 f"instead of {result.intrinsics.f_mm:.4g}): this is not the least-squares solution; it moves {name} by "
+                 f"{E:.3g} sigma", cause, severe=True, effect_sigma=float(E))
 
 
 def _homography_hint(result) -> str | None:

@@ -442,11 +442,15 @@ class Effect:
         worst = max(key, key=key.get) if key else None
         parts = []
         if worst is not None:
-            parts.append(f"{worst} by {key[worst]:.2g} sigma")
+            parts.append(f"{worst} by {_sig(key[worst])}")
         a = self.angle_rad
-        size = f"{a * 1e3:.3g} mrad" if a >= 1e-3 else f"{a * 1e6:.3g} urad"
-        parts.append(f"the angles by at most {self.angle_sigma:.2g} sigma ({size})")
+        size = (f"{a * 1e3:.3g} mrad" if a < 1.0 else "more than 1 rad") if a >= 1e-3 else f"{a * 1e6:.3g} urad"
+        parts.append(f"the angles by at most {_sig(self.angle_sigma)} ({size})")
         return "moves " + ", ".join(parts)
+
+
+def _sig(x: float) -> str:
+    return f"{x:.2g} sigma" if x < 1e3 else "more than 1000 sigma"
 
 
 def effect(cons: Consequences, dtheta, *, dextra=None, field_at_grid=None) -> Effect:

@@ -23,9 +23,9 @@ C_FRACTION = 0.5
 #: Points spanning less than these fractions of the sensor: suspect / wrong.
 SPAN_SUSPECT, SPAN_WRONG = 0.1, 0.01
 #: f determined worse than these relative standard errors: suspect / wrong (f undetermined).
-F_REL_SUSPECT, F_REL_WRONG = 0.02, 0.2
+F_REL_SUSPECT, F_REL_WRONG = 0.1, 0.3
 #: The optical centre determined worse than this fraction of the sensor's half-size: suspect.
-C_STD_SUSPECT = 0.1
+C_STD_SUSPECT = 0.25
 
 
 def _length(mm: float) -> str:
@@ -87,7 +87,44 @@ def plausibility(result, lin, sensor, half) -> list:
         severe=not mono,
     ))
 
+    side = template_side(result)
+    if side is not None:
+        checks.append(side)
     return checks
+
+
+def template_side(result) -> Check | None:
+    """Whether every view sees the template from the same side (None when no pose is finite).
+
+    The LEDs face the sensor, so the template's normal points away from it
+    in every view. A view seen from the other side fits exactly as well: its
+    labels are mirrored left-right (a row listed in reverse, the x axis of that
+    view's points flipped); the intrinsics do not change, its pose is a mirror
+    image. All views from behind: the template's handedness is flipped (x or y
+    negated, or X and Y swapped).
+    """
+    from psdcal.model.projection import R_from_r
+
+    rv = np.asarray(result.rvecs, dtype=float)
+    tv = np.asarray(result.tvecs_mm, dtype=float)
+    if len(rv) < 1 or not np.all(np.isfinite(rv)) or not np.all(np.isfinite(tv)):
+        return None
+    side = np.array([float(R_from_r(r)[:, 2] @ -t) for r, t in zip(rv, tv)])
+    behind = np.nonzero(side > 0)[0]
+    ids = ", ".join(str(result.image_ids[i]) for i in behind)
+    if len(behind) == 0:
+        return Check("template_side", 0.0, None, None, 0.0, True, "every view sees the template from the front")
+    if len(behind) == len(side):
+        return Check("template_side", float(len(behind)), None, None, 0.0, False,
+                     "every view sees the template from behind: the template's handedness is flipped (x or y negated, "
+                     "or X and Y swapped); the intrinsics are unaffected, the poses are mirror images",
+                     "check the template's axes: X to the right and Y down the LED rows as the sensor sees them",
+                     effect_sigma=0.0)
+    return Check("template_side", float(len(behind)), None, None, 0.0, False,
+                 f"view(s) {ids} see the template from behind while the others see its front: their labels are "
+                 "mirrored left-right; the intrinsics are unaffected, their poses are mirror images",
+                 f"check the labels of view(s) {ids} (a row listed in reverse?)", effect_sigma=0.0)
+
 
 def _monotonic(result, n_dir: int = 16, n_r: int = 60) -> bool:
     """Whether the undistorted radius grows along rays from C out to the sensor's farthest corner."""

@@ -44,8 +44,8 @@ standard errors makes the verdict *suspect*, beyond it *wrong*.
 ``held_values``
     A fixed value or a prior that the data contradict, named in sigmas.
 ``determination``
-    f known worse than 2 % (suspect) or 20 % (wrong: undetermined), C worse
-    than a tenth of the sensor's half-size.
+    f known worse than 10 % (suspect) or 30 % (wrong: undetermined), C worse
+    than a quarter of the sensor's half-size (suspect).
 ``scale``, ``focal_length``, ``optical_centre``, ``converged``, ``distortion_monotonic``
     Physical plausibility (:mod:`psdcal.calibration._verdict_rules`).
 
