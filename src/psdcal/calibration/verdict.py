@@ -110,7 +110,7 @@ _group_f = group_f
 
 __all__ = ["ALPHA", "Check", "EFFECT_SUSPECT", "EFFECT_WRONG", "FIELD_DEGREE", "F_RANGE_MM", "C_FRACTION",
            "SPAN_SUSPECT", "SPAN_WRONG", "VERDICTS", "Verdict", "VerdictError", "assess", "assess_fit",
-           "structure_test", "terms_test", "with_check", "covariance_inflation"]
+           "structure_judged", "structure_test", "terms_test", "with_check", "covariance_inflation"]
 
 
 class VerdictError(PsdcalError, ValueError):
@@ -219,20 +219,20 @@ def _uninflated_cov(result, lin: Linear):
     return lin.s2 * lin.ninv
 
 
-def _judge(name, stat, thr, p, dof, eff, found, size, advice, *, ok_words, lead=""):
+def _judge(name, stat, thr, p, dof, eff, found, size, advice, *, ok_words, lead="", alpha: float = ALPHA):
     """A statistical check judged by its consequence ``eff`` (:class:`~psdcal.calibration._verdict_linear.Effect`)."""
-    if p >= ALPHA:
-        return Check(name, stat, thr, p, ALPHA, True, ok_words, dof=dof, effect_sigma=None, inflation=1.0)
+    if p >= alpha:
+        return Check(name, stat, thr, p, alpha, True, ok_words, dof=dof, effect_sigma=None, inflation=1.0)
     E = float(eff.sigma) if eff is not None and math.isfinite(eff.sigma) else math.inf
     moves = lead + eff.words() if eff is not None else "its effect on the result could not be computed"
     found = f"{found}; {size}" if size else found
     if E < EFFECT_SUSPECT:
         infl = 1.0 + E * E
-        return Check(name, stat, thr, p, ALPHA, True,
+        return Check(name, stat, thr, p, alpha, True,
                      f"{found}; {moves}: within the uncertainty, covariance inflated x{infl:.3g}",
                      dof=dof, effect_sigma=E, inflation=infl)
     infl = 1.0 + E * E if math.isfinite(E) else 1.0
-    return Check(name, stat, thr, p, ALPHA, False,
+    return Check(name, stat, thr, p, alpha, False,
                  f"{found}; {moves}: beyond the uncertainty", advice,
                  severe=E >= EFFECT_WRONG, dof=dof, effect_sigma=E, inflation=infl)
 
@@ -356,7 +356,7 @@ def _noise_check(ssr: float, dof: int, noise_mm) -> Check:
                  "no noise level given (--noise-um): the residual RMS is judged by the other checks only")
 
 
-def _structure_check(result, lin: Linear, ssr: float, dof: int, cons, n_pts):
+def _structure_check(result, lin: Linear, ssr: float, dof: int, cons, n_pts, alpha: float = ALPHA):
     """F-test of a smooth field over the sensor fitted to the residuals, judged by what removing the field moves
     (None when no field is testable)."""
     B = structure_fields(lin, result)
@@ -364,18 +364,30 @@ def _structure_check(result, lin: Linear, ssr: float, dof: int, cons, n_pts):
     if p_dim == 0:
         return None
     frac = expl / ssr if ssr > 0 else 0.0
-    thr = float(_stats.f_isf(ALPHA, p_dim, dof - p_dim))
+    thr = float(_stats.f_isf(alpha, p_dim, dof - p_dim))
     found = (f"a smooth field over the sensor explains {100 * frac:.3g} % of the residuals (F = {F:.3g} on {p_dim} "
              f"and {dof - p_dim} dof, p = {p:.2g})")
     eff = size = None
-    if p < ALPHA and cons is not None:
+    if p < alpha and cons is not None:
         c, dth = field_shift(lin, B, min_visible=FIELD_VISIBLE)
         gb = field_basis(cons.grid, result.intrinsics.c, np.asarray(result.sensor_mm, float) / 2)
         eff = effect(cons, dth, field_at_grid=(gb @ c).reshape(-1, 2))
         size = f"unmodelled {_um(math.sqrt(expl / max(n_pts, 1)))} RMS of {_um(math.sqrt(ssr / max(n_pts, 1)))}"
     ch = _judge("structure", F, thr, p, float(p_dim), eff, found, size,
                 "a systematic misfit over the sensor: see the advice of the other checks", lead="removing it ",
-                ok_words=found)
+                ok_words=found, alpha=alpha)
+    return ch
+
+
+def structure_judged(result, *, exclude=None, alpha: float = ALPHA) -> Check | None:
+    """The ``structure`` check of :func:`assess` (test and effect) on ``result`` with the observations ``exclude``
+    (n_images, M) bool left out (None when no field is testable)."""
+    lin = linearise(result, exclude)
+    if not lin.names:
+        return None
+    cov = _uninflated_cov(result, lin)
+    cons = consequences(lin, result, cov)
+    ch = _structure_check(result, lin, float(lin.e @ lin.e), lin.dof, cons, lin.e.size // 2, alpha=alpha)
     return ch
 
 
