@@ -26,6 +26,8 @@ SPAN_SUSPECT, SPAN_WRONG = 0.1, 0.01
 F_REL_SUSPECT, F_REL_WRONG = 0.1, 0.3
 #: The optical centre determined worse than this fraction of the sensor's half-size: suspect.
 C_STD_SUSPECT = 0.25
+#: Views whose template normals all lie within this angle (deg) of each other are alike: suspect.
+VIEWS_ALIKE_DEG = 3.0
 
 
 def _length(mm: float) -> str:
@@ -167,8 +169,13 @@ def determination(result, cov, names, half) -> Check:
     if "cx_mm" in sd or "cy_mm" in sd:
         parts.append(f"C to +- {_length(csd)}")
         worst = max(worst, csd / (C_STD_SUSPECT * float(np.min(half))))
-    ok = bool(worst <= 1.0)
+    spread = _tilt_spread_deg(result)
+    alike = spread is not None and spread < VIEWS_ALIKE_DEG
+    ok = bool(worst <= 1.0) and not alike
     msg = ("the data determine " + ", ".join(parts)) if parts else "f and C are held (fixed or by priors)"
+    if alike:
+        msg += (f"; the views are all alike (their template normals within {spread:.2g} deg of each other): f and C "
+                "rest on the distortion alone")
     if not ok:
         msg += (f": worse than {100 * F_REL_SUSPECT:g} % in f or {C_STD_SUSPECT:g} of the sensor's half-size in C"
                 + ("; f is undetermined" if severe else ""))
@@ -179,6 +186,19 @@ def determination(result, cov, names, half) -> Check:
                       "--fix / --prior from the lens' data sheet",
         severe=severe,
     )
+
+
+def _tilt_spread_deg(result) -> float | None:
+    """The largest angle (deg) between two views' template normals (None with fewer than two finite poses)."""
+    from psdcal.model.projection import R_from_r
+
+    rv = np.asarray(result.rvecs, dtype=float)
+    rv = rv[np.all(np.isfinite(rv), axis=1)]
+    if len(rv) < 2:
+        return None
+    n = np.array([R_from_r(r)[:, 2] for r in rv])
+    cosang = np.clip(n @ n.T, -1.0, 1.0)
+    return float(np.degrees(np.arccos(np.min(cosang))))
 
 
 def held_values(result, lin, alpha: float) -> Check | None:
