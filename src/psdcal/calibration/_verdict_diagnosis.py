@@ -103,7 +103,8 @@ def _diagnose(result, checks, lin, points_kind, bad_view):
                     extra.append((_ssr(r), flag))
             if extra:
                 extra.sort()
-                cause = f"the model lacks terms the data need: add {extra[0][1]} (or try --model auto)"
+                cause = f"the model lacks terms the data need: add {extra[0][1]}" + (
+                    "" if extra[0][1] == "--aspect" else " (or try --model auto)")
     unconverged = by.get("converged") is not None and by["converged"].passed is False
     collapsed = by["focal_length"].passed is False and by["scale"].passed is not False
     views_failed = by.get("views") is not None and by["views"].passed is False

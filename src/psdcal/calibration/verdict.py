@@ -268,7 +268,8 @@ def _assess(result, *, noise_mm, points_kind, diagnose) -> Verdict:
             "model_terms", F, None, p, float(p_dim),
             eff, f"the terms the model leaves out ({', '.join(lin.extra_names)}) explain the residuals beyond noise "
                  f"(F = {F:.3g}, p = {p:.2g})", size,
-            f"the data need {best}: add {_flag(best)} (or try --model auto)", lead="adding them ",
+            f"the data need {best}: add {_flag(best)}" + ("" if best == "fy_mm" else " (or try --model auto)"),
+            lead="adding them ",
             ok_words=f"the terms the model leaves out ({', '.join(lin.extra_names)}) explain no more than noise "
                      f"(F = {F:.3g}, p = {p:.2g})"))
 
