@@ -246,7 +246,7 @@ def _assess(result, *, noise_mm, points_kind, diagnose) -> Verdict:
     dof = m - lin.n
     ssr = float(lin.e @ lin.e)
     cov = _uninflated_cov(result, lin)
-    cons = consequences(lin, result, cov) if lin.names else None
+    cons = _LazyConsequences(lin, result, cov)  # computed by the first check that finds something
     n_pts = m // 2
 
     checks.append(_noise_check(ssr, dof, noise_mm))
@@ -259,7 +259,7 @@ def _assess(result, *, noise_mm, points_kind, diagnose) -> Verdict:
     if t is not None:
         F, p, p_dim, best = t
         eff = size = None
-        if p < ALPHA and cons is not None:
+        if p < ALPHA and cons:
             c, dth = field_shift(lin, lin.extra)
             eff = effect(cons, dth, dextra=c)
             vis = lin.perp(lin.extra @ c[:, None])[:, 0]
@@ -284,7 +284,7 @@ def _assess(result, *, noise_mm, points_kind, diagnose) -> Verdict:
         others = np.delete(per, worst)
         vid = result.image_ids[worst]
         eff = None
-        if p < ALPHA and cons is not None:
+        if p < ALPHA and cons:
             eff = effect(cons, group_shift(lin, np.repeat(lin.img == worst, 2)))
         ch = _judge(
             "views", float(F[worst]), None, p, None, eff,
@@ -304,7 +304,7 @@ def _assess(result, *, noise_mm, points_kind, diagnose) -> Verdict:
     p = float(min(1.0, pv[worst] * M))
     pid = result.point_ids[worst]
     eff = None
-    if p < ALPHA and cons is not None:
+    if p < ALPHA and cons:
         eff = effect(cons, group_shift(lin, np.repeat(lin.led == worst, 2)))
     q = lin.e.reshape(-1, 2)
     sel = lin.led == worst
@@ -328,6 +328,25 @@ def _assess(result, *, noise_mm, points_kind, diagnose) -> Verdict:
 
         checks = _diagnose(result, checks, lin, points_kind, bad_view)
     return Verdict(_word(checks), tuple(checks))
+
+
+class _LazyConsequences:
+    """:func:`~psdcal.calibration._verdict_linear.consequences`, computed on first use (most correct fits never
+    need it); false when there are no free global parameters."""
+
+    def __init__(self, lin, result, cov):
+        self._args = (lin, result, cov)
+        self._c = None
+
+    def __bool__(self) -> bool:
+        return bool(self._args[0].names)
+
+    def __getattr__(self, name):
+        if name.startswith("_"):
+            raise AttributeError(name)
+        if self._c is None:
+            self._c = consequences(*self._args)
+        return getattr(self._c, name)
 
 
 def _word(checks) -> str:
@@ -369,7 +388,7 @@ def _structure_check(result, lin: Linear, ssr: float, dof: int, cons, n_pts, alp
     found = (f"a smooth field over the sensor explains {100 * frac:.3g} % of the residuals (F = {F:.3g} on {p_dim} "
              f"and {dof - p_dim} dof, p = {p:.2g})")
     eff = size = None
-    if p < alpha and cons is not None:
+    if p < alpha and cons:
         c, dth = field_shift(lin, B, min_visible=FIELD_VISIBLE)
         gb = field_basis(cons.grid, result.intrinsics.c, np.asarray(result.sensor_mm, float) / 2)
         eff = effect(cons, dth, field_at_grid=(gb @ c).reshape(-1, 2))
