@@ -139,8 +139,11 @@ def _diagnose(result, checks, lin, points_kind, bad_view):
             continue
         if cause is None:
             if name == "structure":
+                vw = by.get("views")
                 if mt is not None and mt.passed is False:
                     by[name] = replace(c, advice=f"probably the terms the model leaves out: {mt.advice}")
+                elif vw is not None and vw.passed is False:
+                    by[name] = replace(c, advice=f"perhaps the view that disagrees: {vw.advice}")
                 else:
                     by[name] = replace(c, advice="a systematic misfit that no richer model, gain fit or re-start "
                                                  "removes: check the template coordinates, the point ids and the units")
