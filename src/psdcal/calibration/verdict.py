@@ -162,6 +162,11 @@ class Verdict:
         for c in self.checks:
             if c.passed is None:
                 out.append(f"  {c.name}: {c.message}")
+        f = self.inflation
+        if f > 1.0:
+            why = ", ".join(c.name for c in self.checks if (c.inflation or 1.0) == f)
+            out.append(f"  covariance inflated x{f:.3g} (standard errors x{math.sqrt(f):.3g}) to cover the effect "
+                       f"found by {why}")
         return out
 
 
