@@ -137,7 +137,7 @@ def real(name: str) -> dict:
         t0 = time.perf_counter()
         r = calibrate(txy, pf.points_mm, image_ids=pf.image_ids, point_ids=tids, verdict=False)
         t1 = time.perf_counter()
-        v = assess(r, diagnose=False)
+        assess(r, diagnose=False)
         t_fit.append(t1 - t0)
         t_ver.append(time.perf_counter() - t1)
     res = with_verdict(r, points_kind="points")
@@ -148,7 +148,7 @@ def real(name: str) -> dict:
            "notes": [c.name for c in vv.notes], "effect": eff, "inflation": vv.inflation,
            "t_fit": min(t_fit), "t_verdict": min(t_ver), "f_mm": r.intrinsics.f_mm, "faults": {}}
     for fault in REAL_FAULTS:
-        T, X, kw, what = plant_fault(txy, pf.points_mm, fault, f_mm=r.intrinsics.f_mm)
+        T, X, kw, _ = plant_fault(txy, pf.points_mm, fault, f_mm=r.intrinsics.f_mm)
         try:
             rf = calibrate(T, X, image_ids=pf.image_ids, point_ids=tids, verdict=False, **kw)
         except Exception as exc:  # noqa: BLE001

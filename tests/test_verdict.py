@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from psdcal.calibration.core import F_GRID_MM, calibrate, focal_from_homographies, with_verdict
-from psdcal.calibration.verdict import ALPHA, Verdict, assess, structure_test
+from psdcal.calibration.verdict import Verdict, assess, structure_test
 from psdcal.errors import DegenerateViewsError
 from psdcal.model.params import Distortion, Intrinsics
 from psdcal.model.projection import homography_from_pose

@@ -127,3 +127,32 @@ def test_reject_works_on_opencv_samples(name, tmp_path, capsys):
     assert res["verdict"] != "wrong"
     # without the badly localised corners of view 02 psdcal lands next to Bouguet's published f (README: 533.0 px)
     assert abs(res["intrinsics"]["f_mm"] / PITCH_MM - 533.0) < 3 * res["std"]["f_mm"] / PITCH_MM + 1.0
+
+
+@pytest.mark.parametrize("name,change,term", [("zhang1998", {"radial": 3}, "k3"),
+                                              ("boofcv_bumblebee2_left", {"aspect": True}, "fy_mm")])
+def test_the_verdicts_effects_are_what_refits_give(name, change, term):
+    """The verdict's consequences come from the Jacobian (no refit): the shift of f and C when a view is left out,
+    and when a left-out term is added, agree with real refits to a tenth of a standard error (the oracle here is
+    the full nonlinear refit with the view dropped / the term freed)."""
+    from psdcal.calibration._verdict_linear import field_shift, group_shift, linearise
+    from psdcal.calibration.core import _calibrate_record
+
+    res = calibrate(*_inputs(name), verdict=False)
+    lin = linearise(res)
+    sd = {n: res.std[n] for n in ("f_mm", "cx_mm", "cy_mm")}
+    for i in range(min(4, len(res.image_ids))):
+        shift = group_shift(lin, np.repeat(lin.img == i, 2))
+        ref = _calibrate_record(res, drop_image=i)
+        for n, s in sd.items():
+            assert abs(shift[lin.names.index(n)] - (ref.parameter(n) - res.parameter(n))) < 0.1 * s, (i, n)
+    j = lin.extra_names.index(term)
+    _, shift = field_shift(lin, lin.extra[:, [j]])
+    ref = _calibrate_record(res, **change)
+    for n, s in sd.items():
+        assert abs(shift[lin.names.index(n)] - (ref.parameter(n) - res.parameter(n))) < 0.15 * s, (term, n)
+
+
+def _inputs(name):
+    _, txy, pf, _ = _load(name)
+    return txy, pf.points_mm

@@ -108,9 +108,27 @@ _explained = explained
 _field_basis = field_basis
 _group_f = group_f
 
-__all__ = ["ALPHA", "Check", "EFFECT_SUSPECT", "EFFECT_WRONG", "FIELD_DEGREE", "F_RANGE_MM", "C_FRACTION",
-           "SPAN_SUSPECT", "SPAN_WRONG", "VERDICTS", "Verdict", "VerdictError", "assess", "assess_fit",
-           "structure_judged", "structure_test", "terms_test", "with_check", "covariance_inflation"]
+__all__ = [
+    "ALPHA",
+    "C_FRACTION",
+    "EFFECT_SUSPECT",
+    "EFFECT_WRONG",
+    "FIELD_DEGREE",
+    "F_RANGE_MM",
+    "SPAN_SUSPECT",
+    "SPAN_WRONG",
+    "VERDICTS",
+    "Check",
+    "Verdict",
+    "VerdictError",
+    "assess",
+    "assess_fit",
+    "covariance_inflation",
+    "structure_judged",
+    "structure_test",
+    "terms_test",
+    "with_check",
+]
 
 
 class VerdictError(PsdcalError, ValueError):
@@ -146,7 +164,7 @@ class Verdict:
         return {"verdict": self.verdict, "checks": [c.to_dict() for c in self.checks]}
 
     @classmethod
-    def from_dict(cls, d: dict) -> "Verdict":
+    def from_dict(cls, d: dict) -> Verdict:
         return cls(str(d["verdict"]), tuple(Check.from_dict(c) for c in d.get("checks", [])))
 
     def lines(self) -> list[str]:
