@@ -25,6 +25,7 @@ standard errors. Both come from the Jacobian at the solution:
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from functools import cached_property
 
 import numpy as np
 
@@ -52,10 +53,19 @@ class Linear:
     extra_names: tuple = ()  # terms the model leaves out
     extra: np.ndarray | None = None  # (m, len(extra_names)) their Jacobian columns at the solution
     names: tuple = ()  # the free global parameters of Gt
-    gt: np.ndarray | None = None  # (m, ng) profiled global Jacobian (natural units)
-    ninv: np.ndarray | None = None  # (ng, ng) (Gt^T Gt)^-1
+    g: np.ndarray | None = None  # (m, ng) global Jacobian (natural units)
     perp_pose: object = None  # B -> B projected off each view's pose columns
     held: dict | None = None  # fixed / prior-held parameters: name -> (data-only shift from the fit's value, its std)
+
+    @cached_property
+    def gt(self) -> np.ndarray | None:
+        """(m, ng) the profiled global Jacobian (each view's pose columns projected out), natural units."""
+        return None if self.g is None else self.perp_pose(self.g)
+
+    @cached_property
+    def ninv(self) -> np.ndarray | None:
+        """(ng, ng) ``(Gt^T Gt)^-1``."""
+        return None if self.g is None else _pinv_sym(self.gt.T @ self.gt)
 
     @property
     def dof(self) -> int:
@@ -111,13 +121,12 @@ def linearise(result, exclude=None) -> Linear:
     e_raw = -r
     perp, h, rank, perp_pose = projector(G, Jpose, np.repeat(img, 2), X.shape[0])
     e = perp(e_raw[:, None])[:, 0]  # the solver stops within its tolerance of the stationary point
-    gt = perp_pose(G)
-    ninv = _pinv_sym(gt.T @ gt)
-    held = _held(free, fixed, prior_names, G, Gh, gt, perp_pose, e_raw, e, rank) if (fixed or prior_names) else None
+    held = _held(free, fixed, prior_names, G, Gh, perp_pose(G), perp_pose, e_raw, e, rank) if (fixed or prior_names) \
+        else None
     # the modelled points (noise-free up to the fitted parameters): fields evaluated at the measured ones would carry
     # the noise's own gradient into the test and correlate with it
     return Linear(e, perp, h, d_meas + r.reshape(-1, 2), img, led, rank, tuple(extra_names), extra,
-                  tuple(free), gt, ninv, perp_pose, held)
+                  tuple(free), G, perp_pose, held)
 
 
 def _pinv_sym(N) -> np.ndarray:
@@ -242,10 +251,9 @@ def _basis(lin: Linear, B):
     U, s, Vt = U[:, keep], s[keep], Vt[keep]
     W = np.zeros((B.shape[1], U.shape[1]))
     W[use] = (Vt.T / s) / scale[use, None]
-    # re-orthogonalise against the Jacobian (round-off of the projection); U = Bp V S^-1 stays the map's basis
-    Uo = lin.perp(U)
-    Q, R = np.linalg.qr(Uo)
-    return Q, W @ R.T  # U^T e = R^T Q^T e
+    # U spans (I - P) B: orthogonal to the Jacobian up to the projector's round-off, which meets the residuals
+    # (themselves projected) only at round-off
+    return U, W
 
 
 def explained(lin: Linear, B) -> tuple[float, int]:

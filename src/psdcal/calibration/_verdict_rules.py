@@ -105,13 +105,11 @@ def template_side(result) -> Check | None:
     image. All views from behind: the template's handedness is flipped (x or y
     negated, or X and Y swapped).
     """
-    from psdcal.model.projection import R_from_r
-
     rv = np.asarray(result.rvecs, dtype=float)
     tv = np.asarray(result.tvecs_mm, dtype=float)
     if len(rv) < 1 or not np.all(np.isfinite(rv)) or not np.all(np.isfinite(tv)):
         return None
-    side = np.array([float(R_from_r(r)[:, 2] @ -t) for r, t in zip(rv, tv)])
+    side = -np.einsum("ij,ij->i", _normals(rv), tv)
     behind = np.nonzero(side > 0)[0]
     ids = ", ".join(str(result.image_ids[i]) for i in behind)
     if len(behind) == 0:
@@ -188,15 +186,23 @@ def determination(result, cov, names, half) -> Check:
     )
 
 
+def _normals(rvecs) -> np.ndarray:
+    """(n, 3) the template's normal (its z axis) in the sensor frame of each view: ``R(rvec) e_z`` (Rodrigues)."""
+    r = np.asarray(rvecs, dtype=float).reshape(-1, 3)
+    th = np.linalg.norm(r, axis=1)
+    k = r / np.where(th > 0, th, 1.0)[:, None]
+    ez = np.array([0.0, 0.0, 1.0])
+    c, s = np.cos(th)[:, None], np.sin(th)[:, None]
+    return ez * c + np.cross(k, ez) * s + k * k[:, 2:3] * (1.0 - c)
+
+
 def _tilt_spread_deg(result) -> float | None:
     """The largest angle (deg) between two views' template normals (None with fewer than two finite poses)."""
-    from psdcal.model.projection import R_from_r
-
     rv = np.asarray(result.rvecs, dtype=float)
     rv = rv[np.all(np.isfinite(rv), axis=1)]
     if len(rv) < 2:
         return None
-    n = np.array([R_from_r(r)[:, 2] for r in rv])
+    n = _normals(rv)
     cosang = np.clip(n @ n.T, -1.0, 1.0)
     return float(np.degrees(np.arccos(np.min(cosang))))
 
