@@ -89,9 +89,6 @@ def plausibility(result, lin, sensor, half) -> list:
         severe=not mono,
     ))
 
-    side = template_side(result)
-    if side is not None:
-        checks.append(side)
     return checks
 
 

@@ -87,6 +87,7 @@ from psdcal.calibration._verdict_rules import (
     determination,
     held_values,
     plausibility,
+    template_side,
 )
 from psdcal.errors import PsdcalError
 
@@ -345,6 +346,9 @@ def _assess(result, *, noise_mm, points_kind, diagnose) -> Verdict:
         checks.append(hv)
     checks.append(determination(result, cov, lin.names, half))
     checks += plausibility(result, lin, sensor, half)
+    side = template_side(result)
+    if side is not None:
+        checks.append(side)
 
     if diagnose and any(c.passed is False for c in checks):
         from psdcal.calibration._verdict_diagnosis import _diagnose
