@@ -88,6 +88,30 @@ def build_base(d, main) -> None:
             fh.write("".join(f"{0.01 * w:.2f},{e},{shift + 0.8 * (i % 2) - 0.4:.4f},{0.8 * (i // 2) - 0.4:.4f},"
                              "0.001,0.001\n" for w in range(3) for i, e in enumerate(("a1", "a2", "a3", "a4"))))
 
+    # selfcal / tag-pose: a 4-emitter tag seen by s1 and s2 of sensors.json (psdcal's alpha convention)
+    from scipy.spatial.transform import Rotation
+
+    tag = np.array([[-60.0, -30.0, 0.0], [60.0, -30.0, 0.0], [60.0, 30.0, 10.0], [-60.0, 30.0, 0.0]])
+    with open(f"{d}/tag.csv", "w") as fh:
+        fh.write("emitter,X_mm,Y_mm,Z_mm\n" + "".join(f"t{i},{x},{y},{z}\n" for i, (x, y, z) in enumerate(tag)))
+    cams = [(Rotation.from_rotvec(s["rvec"]).as_matrix(), np.array(s["tvec_mm"], float)) for s in sensors["sensors"]]
+    lines = []
+    for k in range(24):
+        Rt = Rotation.from_rotvec([0.2 * np.sin(0.3 * k), 0.15 * np.cos(0.2 * k), 0.1 * k]).as_matrix()
+        Pw = tag @ Rt.T + [300 * np.sin(0.25 * k) - 250, 200 * np.cos(0.25 * k), 2000 + 100 * np.sin(0.1 * k)]
+        for name, (Rc, tc) in zip(("s1", "s2"), cams):
+            Pc = Pw @ Rc.T + tc
+            for i, q in enumerate(Pc):
+                ax, ay = np.degrees(np.arctan(q[:2] / q[2]))
+                lines.append(f"{0.05 * k:.2f},{name},t{i},{ax:.6f},{ay:.6f},0.002,0.002")
+    with open(f"{d}/angles.csv", "w") as fh:
+        fh.write("t_s,sensor,emitter,alpha_x_deg,alpha_y_deg,sigma_alpha_x_deg,sigma_alpha_y_deg\n")
+        fh.write("\n".join(lines) + "\n")
+    # dashboard: multi-sensor locate rows
+    with open(f"{d}/xyz.csv", "w") as fh:
+        fh.write("t_s,emitter,X_mm,Y_mm,Z_mm,sigma_X_mm,sigma_Y_mm,sigma_Z_mm,n_sensors,chi2\n")
+        fh.write("".join(f"{0.05 * k:.2f},tag,{10.0 * k:.1f},{-5.0 * k:.1f},2000,2,2,3,2,0.8\n" for k in range(20)))
+
 
 # ------------------------------------------------------------------ broken text files
 def _long_field():
@@ -156,6 +180,15 @@ TEXT_SLOTS = [
     ("next-view-calib", ["next-view", "{X}"], ".json"),
     ("next-view-points", ["next-view", "{X}", "-t", "{b}/sim/template.csv"], ".csv"),
     ("next-view-template", ["next-view", "{b}/sim/points.csv", "-t", "{X}"], ".csv"),
+    ("selfcal-angles", ["selfcal", "{X}", "--tag", "{b}/tag.csv", "-o", "{b}/out.json"], ".csv"),
+    ("selfcal-tag", ["selfcal", "{b}/angles.csv", "--tag", "{X}", "-o", "{b}/out.json"], ".csv"),
+    ("tag-pose-angles", ["tag-pose", "{X}", "--tag", "{b}/tag.csv", "--sensors", "{b}/sensors.json",
+                         "-o", "{b}/out.csv"], ".csv"),
+    ("tag-pose-sensors", ["tag-pose", "{b}/angles.csv", "--tag", "{b}/tag.csv", "--sensors", "{X}",
+                          "-o", "{b}/out.csv"], ".json"),
+    ("locate-angles", ["locate", "--angles", "{X}", "--sensors", "{b}/sensors.json", "-o", "{b}/out.csv"], ".csv"),
+    ("dashboard-rows", ["dashboard", "{X}", "--export", "{b}/out.html"], ".csv"),
+    ("dashboard-sensors", ["dashboard", "{b}/xyz.csv", "--sensors", "{X}", "--export", "{b}/out.html"], ".json"),
 ]
 
 # ------------------------------------------------------------------ calibration JSON with wrong types/ranges
@@ -386,6 +419,20 @@ OPTION_CASES = [
     ["next-view", "{b}/calib.json", "--max-tilt-deg", "95"],
     ["next-view", "{b}/sim/points.csv"],
     ["demo", "--cost", "magic"], ["demo", "--bogus"],
+    ["selfcal", "{b}/angles.csv", "-o", "{b}/o.json"],
+    ["selfcal", "{b}/angles.csv", "--tag", "{b}/tag.csv", "--convention", "polar", "-o", "{b}/o.json"],
+    ["selfcal", "{b}/angles.csv", "--tag", "{b}/tag.csv", "--reference", "s9", "-o", "{b}/o.json"],
+    ["selfcal", "{b}/angles.csv", "--tag", "{b}/tag.csv", "--sigma-rad", "0", "-o", "{b}/o.json"],
+    ["tag-pose", "{b}/angles.csv", "--tag", "{b}/tag.csv", "-o", "{b}/o.csv"],
+    ["tag-pose", "{b}/angles.csv", "--tag", "{b}/tag.csv", "--sensors", "{b}/sensors.json", "--convention", "x",
+     "-o", "{b}/o.csv"],
+    ["locate", "--angles", "{b}/angles.csv", "-o", "{b}/o.csv"],
+    ["locate", "--angles", "{b}/angles.csv", "--sensors", "{b}/sensors.json", "--convention", "polar",
+     "-o", "{b}/o.csv"],
+    ["dashboard", "{b}/xyz.csv", "--speed", "0", "--export", "{b}/o.html"],
+    ["dashboard", "{b}/xyz.csv", "--host", "0.0.0.0", "--port", "0"],
+    ["dashboard", "{b}/xyz.csv", "--host", "0.0.0.0", "--allow-remote", "--token", "short", "--port", "0"],
+    ["dashboard", "{b}/no-such.csv", "--replay", "--export", "{b}/o.html"],
     ["no-such-command"], ["--no-such-flag"],
 ]
 
@@ -433,6 +480,14 @@ WRITERS = [
     ("gains", ["gains", "{b}/bench.csv", "--positions", "{b}/spots.csv", "-o", "{O}"], ".json", "{b}/bench.csv"),
     ("module", ["module", "{b}/module.txt", "-o", "{O}"], ".csv", "{b}/module.txt"),
     ("next-view", ["next-view", "{b}/calib.json", "--json", "{O}"], ".json", "{b}/calib.json"),
+    ("selfcal", ["selfcal", "{b}/angles.csv", "--tag", "{b}/tag.csv", "-o", "{O}"], ".json", "{b}/angles.csv"),
+    ("selfcal-poses", ["selfcal", "{b}/angles.csv", "--tag", "{b}/tag.csv", "-o", "{b}/o.json", "--tag-poses", "{O}"],
+     ".csv", "{b}/tag.csv"),
+    ("tag-pose", ["tag-pose", "{b}/angles.csv", "--tag", "{b}/tag.csv", "--sensors", "{b}/sensors.json", "-o", "{O}"],
+     ".csv", "{b}/angles.csv"),
+    ("locate-angles", ["locate", "--angles", "{b}/angles.csv", "--sensors", "{b}/sensors.json", "-o", "{O}"], ".csv",
+     "{b}/angles.csv"),
+    ("dashboard", ["dashboard", "{b}/xyz.csv", "--export", "{O}"], ".html", "{b}/xyz.csv"),
 ]
 #: Commands whose output is replaced on every run (psdcal.cli.REPLACING_COMMANDS).
 REPLACING = {"demo"}
