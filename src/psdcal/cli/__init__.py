@@ -170,6 +170,7 @@ _COMMANDS = (
     "export_cmd",
     "capture_cmd",
     "selfcal_cmd",
+    "live_cmd",
 )
 
 
