@@ -42,7 +42,7 @@ def live_locate_multi(recordings, sensors_path, rate_hz, carriers, emitters, win
     """`psdcal locate --sensors` on live sources (one per sensor) or on a recorded session (``--replay``)."""
     from psdcal.cli.locate_cmd import check_sensor
     from psdcal.errors import InputError
-    from psdcal.measure.live_multi import locate_live_multi
+    from psdcal.measure.live_multi import locate_live_multi, warm_up
     from psdcal.measure.locate import LocateConfig
     from psdcal.measure.positioning import load_sensors
     from psdcal.signal.session import (
@@ -100,6 +100,7 @@ def live_locate_multi(recordings, sensors_path, rate_hz, carriers, emitters, win
         if rate_hz is None:
             raise InputError("live streams need --rate-hz", field="rate_hz")
         rate = float(rate_hz)
+        warm_up(poses, rate, config)  # before connecting: the kernels' start-up is not the first rows' latency
         streams = [open_source(s, rate, dtype=raw_dtype, scale=raw_scale) for s in srcs]
         events = LiveSources(streams).events()
         infos = [SourceInfo(n, s, rate, raw_dtype, raw_scale) for n, s in zip(names, srcs)]

@@ -65,6 +65,8 @@ class MultiLiveSummary:
     first_row_s: float
     startup_s: float
     t_start_s: float = 0.0
+    #: Per window: the :func:`time.perf_counter` value when its row was flushed, s.
+    written_s: np.ndarray = None
 
     def latency_ms(self, with_startup: bool = True) -> tuple[float, float, int]:
         """``(median, p99, n)`` of the per-window latency in ms, with or without the first ``startup_s`` of signal."""
@@ -216,7 +218,7 @@ def locate_live_multi(events, sensors, rate_hz: float, out_path, config: LocateC
     recv = [0] * n_s
     ended = [False] * n_s
     lag_n = max_lag_s * rate_hz
-    lat, wt = [], []
+    lat, wt, wrote = [], [], []
     n_windows = n_rows = n_skipped = 0
     first_arrival = first_row = None
     _warm_up(rate_hz, config, window_s, sensors, names_arr, R, t_mm)
@@ -257,6 +259,7 @@ def locate_live_multi(events, sensors, rate_hz: float, out_path, config: LocateC
                 n_skipped += skipped
                 n_windows += ready
                 lat.append(now - np.max([x[3] for x in taken], axis=0))
+                wrote.append(np.full(ready, now))
                 wt.append(taken[0][2])
             _check_lag(fed, recv, ended, lag_n, rate_hz, sensors, at - first_arrival if check_rate else 0.0)
     finally:
@@ -269,15 +272,23 @@ def locate_live_multi(events, sensors, rate_hz: float, out_path, config: LocateC
                               f"--min-snr {config.min_snr:g}")
     cat = lambda a: np.concatenate(a) if a else np.zeros(0)  # noqa: E731
     return MultiLiveSummary(min(fed), n_windows, n_rows, n_skipped, cat(lat), cat(wt),
-                            (first_row or 0.0) - (first_arrival or 0.0), startup_s, t_start)
+                            (first_row or 0.0) - (first_arrival or 0.0), startup_s, t_start, cat(wrote))
+
+
+def warm_up(sensors, rate_hz: float, config: LocateConfig) -> None:
+    """Demodulate and triangulate one window of a made-up signal (call it before connecting to the sources).
+
+    The first call of the numerical kernels loads (or compiles) them: done
+    before the data flow, that start-up is not added to the first rows' latency
+    (:func:`locate_live_multi` calls it too; a second call is quick).
+    """
+    window_s = 0.01 if config.window_s is None else config.window_s
+    R = np.stack([s.R for s in sensors])
+    t_mm = np.stack([np.asarray(s.tvec_mm, dtype=float) for s in sensors])
+    _warm_up(rate_hz, config, window_s, sensors, np.array(config.emitter_names(), dtype=object), R, t_mm)
 
 
 def _warm_up(rate_hz, config, window_s, sensors, names_arr, R, t_mm) -> None:
-    """Demodulate and triangulate one window of a made-up signal before the sources are read.
-
-    The first call of the numerical kernels loads (or compiles) them: done here,
-    that start-up is not added to the first rows' latency.
-    """
     lk = MultiCarrierLockin(rate_hz, config.carriers_hz, window_s)
     n = lk.n_window
     tt = np.arange(n) / rate_hz
