@@ -79,7 +79,7 @@ def main():
     if a.sensors > 1:
         import bench_live_multi
 
-        return bench_live_multi.main(rest + (["--markdown"] if a.markdown else []))
+        return bench_live_multi.main(rest + ["--seconds", str(a.seconds)] + (["--markdown"] if a.markdown else []))
     run(a.seconds, a.rate_hz, markdown=a.markdown)
 
 
