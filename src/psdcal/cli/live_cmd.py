@@ -158,7 +158,9 @@ def record_command(sources, rate_hz, names, sensors_path, raw_dtype, raw_scale, 
     import time
 
     from psdcal.errors import InputError
-    from psdcal.signal.session import ENDED, LiveSources, SessionWriter, SourceInfo, open_source
+    import numpy as np
+
+    from psdcal.signal.session import ENDED, LiveSources, SessionWriter, SourceInfo, open_source, parts
 
     srcs = [str(s) for s in sources]
     if names:
@@ -180,13 +182,15 @@ def record_command(sources, rate_hz, names, sensors_path, raw_dtype, raw_scale, 
     first = None
     try:
         for i, block, at in LiveSources(streams).events():
+            last = float(at if np.ndim(at) == 0 else at[-1, 1])
             if first is None:
-                first = at
-                writer.start(at)
+                first = float(at if np.ndim(at) == 0 else at[0, 1])
+                writer.start(first)
             if block is ENDED:
-                writer.end(i, at)
+                writer.end(i, last)
             else:
-                writer.write(i, block, at)
+                for b, t_at in parts(block, at):
+                    writer.write(i, b, t_at)
             if duration_s is not None and time.perf_counter() - first >= duration_s:
                 break
     except KeyboardInterrupt:

@@ -33,7 +33,7 @@ from psdcal.errors import InputError, ZeroSignalError
 from psdcal.measure.aoa import angles_from_amplitudes
 from psdcal.measure.locate import MULTI_COLUMNS, LocateConfig, _write_rows
 from psdcal.measure.positioning import ray_inputs, triangulate
-from psdcal.signal.session import ENDED
+from psdcal.signal.session import ENDED, parts
 from psdcal.signal.stream import MultiCarrierLockin
 
 
@@ -142,9 +142,9 @@ class _Pending:
         self.parts: list = []
         self.count = 0
 
-    def add(self, wb, arrival_s: float) -> None:
+    def add(self, wb, arrival_s: np.ndarray) -> None:
         if len(wb):
-            self.parts.append((wb.amplitude, wb.var_amplitude, wb.t_s, np.full(len(wb), arrival_s)))
+            self.parts.append((wb.amplitude, wb.var_amplitude, wb.t_s, arrival_s))
             self.count += len(wb)
 
     def take(self, n: int):
@@ -161,8 +161,10 @@ def locate_live_multi(events, sensors, rate_hz: float, out_path, config: LocateC
 
     Parameters
     ----------
-    events : iterable of (int, ndarray or ENDED, float)
-        ``(sensor index, block (4, m), arrival s)`` in arrival order
+    events : iterable of (int, ndarray or ENDED, float or ndarray)
+        ``(sensor index, block (4, m), arrival s)`` in arrival order (or, for
+        blocks joined by :meth:`LiveSources.events`, a ``(k, 2)`` array of the
+        parts' ends and arrivals)
         (:meth:`psdcal.signal.session.LiveSources.events` or
         :func:`psdcal.signal.session.replay_events`).
     sensors : sequence of SensorPose
@@ -227,24 +229,33 @@ def locate_live_multi(events, sensors, rate_hz: float, out_path, config: LocateC
         fh.write(",".join(MULTI_COLUMNS) + "\n")
         fh.flush()
         for i, block, at in events:
+            # at: the arrival, s, or (k, 2) [frames from the block's start to the end of each joined part, arrival]
+            stamps = np.array([[block.shape[1] if block is not ENDED else 0, at]]) if np.ndim(at) == 0 else at
             if first_arrival is None:
-                first_arrival = at
+                first_arrival = float(stamps[0, 1])
+            last_at = float(stamps[-1, 1])
             if block is ENDED:
                 if recorder is not None:
-                    recorder.end(i, at)
+                    recorder.end(i, last_at)
                 ended[i] = True
             else:
                 if recorder is not None:
-                    recorder.write(i, block, at)
+                    for b, t_at in parts(block, at):
+                        recorder.write(i, b, t_at)
                 m = block.shape[1]
                 recv[i] += m
+                drop = 0
                 if skip[i]:
                     drop = min(skip[i], m)
                     skip[i] -= drop
                     block = block[:, drop:]
                     m -= drop
                 if m:
-                    pend[i].add(lockins[i].process(t_start + fed[i] / rate_hz, block), at)
+                    wb = lockins[i].process(t_start + fed[i] / rate_hz, block)
+                    if len(wb):  # each window: the arrival of the part holding its last sample
+                        pos = (wb.index + 1) * lockins[i].n_window - 1 - fed[i] + drop
+                        k = np.minimum(np.searchsorted(stamps[:, 0], pos, side="right"), len(stamps) - 1)
+                        pend[i].add(wb, stamps[k, 1])
                     fed[i] += m
             ready = min(p.count for p in pend)
             if ready:
@@ -261,7 +272,7 @@ def locate_live_multi(events, sensors, rate_hz: float, out_path, config: LocateC
                 lat.append(now - np.max([x[3] for x in taken], axis=0))
                 wrote.append(np.full(ready, now))
                 wt.append(taken[0][2])
-            _check_lag(fed, recv, ended, lag_n, rate_hz, sensors, at - first_arrival if check_rate else 0.0)
+            _check_lag(fed, recv, ended, lag_n, rate_hz, sensors, last_at - first_arrival if check_rate else 0.0)
     finally:
         if fh is not sys.stdout:
             fh.close()

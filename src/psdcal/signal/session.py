@@ -125,8 +125,16 @@ class LiveSources:
         except Exception as exc:  # noqa: BLE001 - reported in the main thread, one line
             self._q.put((i, InputError(f"the source failed: {exc}", path=stream.path), time.perf_counter()))
 
-    def events(self, stall_s: float = 10.0) -> Iterator[tuple[int, object, float]]:
-        """The blocks in arrival order; :class:`InputError` when nothing at all comes for ``stall_s`` seconds."""
+    def events(self, stall_s: float = 10.0, coalesce: bool = True) -> Iterator[tuple[int, object, object]]:
+        """The blocks in arrival order; :class:`InputError` when nothing at all comes for ``stall_s`` seconds.
+
+        With ``coalesce``, the blocks already waiting when the consumer asks
+        are joined per source (the consumer catches up in fewer, larger steps
+        when it falls behind); the arrival is then a ``(k, 2)`` array of each
+        joined block's end (frames from the start of the joined block) and
+        arrival time, so that every window keeps the arrival of its own last
+        sample.
+        """
         if not self._started:
             for t in self._threads:
                 t.start()
@@ -134,14 +142,49 @@ class LiveSources:
         open_ = len(self.streams)
         while open_:
             try:
-                i, block, at = self._q.get(timeout=stall_s)
+                items = [self._q.get(timeout=stall_s)]
             except queue.Empty:
                 raise InputError(f"no data from any source for {stall_s:g} s") from None
-            if isinstance(block, InputError):
-                raise block
-            if block is ENDED:
-                open_ -= 1
-            yield i, block, at
+            if coalesce:
+                while True:
+                    try:
+                        items.append(self._q.get_nowait())
+                    except queue.Empty:
+                        break
+            for i, block, at in _joined(items) if coalesce else items:
+                if isinstance(block, InputError):
+                    raise block
+                if block is ENDED:
+                    open_ -= 1
+                yield i, block, at
+
+
+def parts(block: np.ndarray, at) -> list:
+    """``[(sub-block, arrival s), ...]``: a joined event (:meth:`LiveSources.events`) split back into its blocks."""
+    if np.ndim(at) == 0:
+        return [(block, float(at))]
+    starts = np.concatenate([[0], at[:-1, 0]]).astype(int)
+    return [(block[:, a:int(b)], float(t)) for a, (b, t) in zip(starts, at)]
+
+
+def _joined(items):
+    """Consecutive data blocks of each source joined, in the order of their first arrival; ends and errors after."""
+    parts: dict = {}
+    tail = []
+    for i, block, at in items:
+        if isinstance(block, np.ndarray) and not any(t[0] == i for t in tail):
+            parts.setdefault(i, []).append((block, at))
+        else:
+            tail.append((i, block, at))
+    out = []
+    for i, lst in parts.items():
+        if len(lst) == 1:
+            out.append((i, lst[0][0], lst[0][1]))
+            continue
+        ends = np.cumsum([b.shape[1] for b, _ in lst])
+        stamps = np.column_stack([ends, [at for _, at in lst]]).astype(float)
+        out.append((i, np.concatenate([b for b, _ in lst], axis=1), stamps))
+    return out + tail
 
 
 # --------------------------------------------------------------------------- session files
