@@ -271,3 +271,36 @@ def test_help_texts():
     r = CliRunner().invoke(cli, ["locate", "--help"])
     for w in ("--offset-s", "NAME=SECONDS", "--replay", "--speed", "--record", "Several sensors live"):
         assert w in r.output, w
+
+
+def test_each_window_keeps_the_arrival_of_its_last_sample(room, tmp_path):
+    """Blocks of 150 samples (windows of 200), some joined as LiveSources joins them: a window's latency is
+    counted from the arrival of the block holding its last sample, latest over the sensors."""
+    from psdcal.measure.live_multi import locate_live_multi
+    from psdcal.measure.locate import LocateConfig
+    from psdcal.measure.positioning import load_sensors
+
+    d, data = room
+    poses = load_sensors(d / "room" / "sensors.json")
+    n = 150
+
+    def arrival(i, start):
+        return 1000.0 + start / RATE + 0.001 * i  # sensor i's block starting at `start`
+
+    def events():
+        for j in range(0, 30000, 2 * n):
+            for i in range(3):
+                a, b = data[i][j:j + n].T, data[i][j + n:j + 2 * n].T
+                if i == 1:  # two blocks joined: (ends, arrivals)
+                    stamps = np.array([[a.shape[1], arrival(i, j)], [a.shape[1] + b.shape[1], arrival(i, j + n)]])
+                    yield i, np.concatenate([a, b], axis=1), stamps
+                else:
+                    yield i, a, arrival(i, j)
+                    yield i, b, arrival(i, j + n)
+
+    s = locate_live_multi(events(), poses, RATE, tmp_path / "a.csv",
+                          LocateConfig(carriers_hz=(1000.0, 1150.0), window_s=0.01))
+    last = (np.arange(s.n_windows) + 1) * 200 - 1
+    expected = np.max([[arrival(i, (q // n) * n) for q in last] for i in range(3)], axis=0)
+    np.testing.assert_allclose(s.written_s - s.latency_s, expected, rtol=0, atol=1e-9)
+    _same(tmp_path / "a.csv", d / "file.csv")

@@ -217,6 +217,9 @@ def locate_live_multi(events, sensors, rate_hz: float, out_path, config: LocateC
     t_mm = np.stack([np.asarray(s.tvec_mm, dtype=float) for s in sensors])
     pend = [_Pending() for _ in sensors]
     fed = [0] * n_s
+    done = [0] * n_s  # samples given to the demodulation
+    hold = [[] for _ in sensors]
+    marks = [np.zeros((0, 2)) for _ in sensors]
     recv = [0] * n_s
     ended = [False] * n_s
     lag_n = max_lag_s * rate_hz
@@ -251,12 +254,23 @@ def locate_live_multi(events, sensors, rate_hz: float, out_path, config: LocateC
                     block = block[:, drop:]
                     m -= drop
                 if m:
-                    wb = lockins[i].process(t_start + fed[i] / rate_hz, block)
-                    if len(wb):  # each window: the arrival of the part holding its last sample
-                        pos = (wb.index + 1) * lockins[i].n_window - 1 - fed[i] + drop
-                        k = np.minimum(np.searchsorted(stamps[:, 0], pos, side="right"), len(stamps) - 1)
-                        pend[i].add(wb, stamps[k, 1])
+                    # held until a window completes (one demodulation call per window, not per block);
+                    # marks: (end of each part in samples since the aligned start, its arrival)
+                    hold[i].append(block)
+                    ends = fed[i] + np.maximum(stamps[:, 0] - drop, 0)
+                    marks[i] = np.concatenate([marks[i], np.column_stack([ends, stamps[:, 1]])])
                     fed[i] += m
+                    n_win = lockins[i].n_window
+                    if fed[i] - done[i] + lockins[i].pending_samples >= n_win:
+                        x = hold[i][0] if len(hold[i]) == 1 else np.concatenate(hold[i], axis=1)
+                        wb = lockins[i].process(t_start + done[i] / rate_hz, x)
+                        done[i] = fed[i]
+                        hold[i] = []
+                        # each window: the arrival of the part holding its last sample
+                        last = (wb.index + 1) * n_win - 1
+                        k = np.minimum(np.searchsorted(marks[i][:, 0], last, side="right"), len(marks[i]) - 1)
+                        pend[i].add(wb, marks[i][k, 1])
+                        marks[i] = marks[i][marks[i][:, 0] > fed[i] - lockins[i].pending_samples]
             ready = min(p.count for p in pend)
             if ready:
                 taken = [p.take(ready) for p in pend]
