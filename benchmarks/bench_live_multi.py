@@ -32,7 +32,6 @@ import os
 import subprocess
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 import numpy as np
@@ -151,7 +150,7 @@ def run(seconds: float = 10.0, rate_hz: float = 20_000.0, block_ms: float = 5.0,
             (tmp / "live.csv").unlink()
     head = ("run | rows live/file | equal (bytes, or max rel. diff) | windows | arrival->row median/p99/max ms (all) | (after start-up) | "
             "send->row median/p99/max ms (all) | (after start-up) | first rows ms | load 1-min before/after")
-    f3 = lambda t: "/".join(f"{v:.3g}" for v in t)  # noqa: E731
+    f3 = lambda t: "/".join(f"{v:.3g}" for v in t)
     body = [f"{r} | {nr}/{nf} | {eq} | {nw} | {f3(a)} | {f3(b)} | {f3(c)} | {f3(dd)} | "
             f"{fr:.4g} | {l0:.2f}/{l1:.2f}" for r, nr, nf, eq, nw, a, b, c, dd, fr, l0, l1 in lines]
     title = (f"four sensors live at {rate_hz:g} S/s each over TCP ({seconds:g} s, blocks of {block_ms:g} ms, "

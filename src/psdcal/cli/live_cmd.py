@@ -113,6 +113,11 @@ def live_locate_multi(recordings, sensors_path, rate_hz, carriers, emitters, win
             recorder.close()
     click.echo(_summary(summary, output, rate, "replayed signal" if replay else "live signal"),
                err=str(output) == "-")
+    got = summary.samples_per_source
+    if got and max(got) - min(got) > config.window_s * rate:
+        per = ", ".join(f"{n} {k / rate:.6g} s" for n, k in zip(names, got))
+        click.echo(f"psdcal: warning: the sources ended at different times ({per}): rows up to the shortest",
+                   err=True)
     if track_path:
         from psdcal._atomic import staged
         from psdcal.measure.tracking import summary_line, track_csv
@@ -157,10 +162,17 @@ def record_command(sources, rate_hz, names, sensors_path, raw_dtype, raw_scale, 
     """
     import time
 
-    from psdcal.errors import InputError
     import numpy as np
 
-    from psdcal.signal.session import ENDED, LiveSources, SessionWriter, SourceInfo, open_source, parts
+    from psdcal.errors import InputError
+    from psdcal.signal.session import (
+        ENDED,
+        LiveSources,
+        SessionWriter,
+        SourceInfo,
+        open_source,
+        parts,
+    )
 
     srcs = [str(s) for s in sources]
     if names:

@@ -23,6 +23,7 @@ row written and flushed.
 """
 from __future__ import annotations
 
+import inspect
 import sys
 import time
 from dataclasses import dataclass
@@ -35,6 +36,9 @@ from psdcal.measure.locate import MULTI_COLUMNS, LocateConfig, _write_rows
 from psdcal.measure.positioning import ray_inputs, triangulate
 from psdcal.signal.session import ENDED, parts
 from psdcal.signal.stream import MultiCarrierLockin
+
+#: Whether :func:`triangulate` checks and inflates per call (then turned off: rows as the file path's).
+_TRI_INFLATES = "inflate" in inspect.signature(triangulate).parameters
 
 
 @dataclass(frozen=True)
@@ -67,6 +71,8 @@ class MultiLiveSummary:
     t_start_s: float = 0.0
     #: Per window: the :func:`time.perf_counter` value when its row was flushed, s.
     written_s: np.ndarray = None
+    #: Samples received from each source (before alignment).
+    samples_per_source: tuple = ()
 
     def latency_ms(self, with_startup: bool = True) -> tuple[float, float, int]:
         """``(median, p99, n)`` of the per-window latency in ms, with or without the first ``startup_s`` of signal."""
@@ -76,7 +82,7 @@ class MultiLiveSummary:
         if not len(lat):
             return float("nan"), float("nan"), 0
         ms = lat * 1e3
-        return float(np.median(ms)), float(np.percentile(ms, 99)), int(len(ms))
+        return float(np.median(ms)), float(np.percentile(ms, 99)), len(ms)
 
     def latency_text(self) -> str:
         if not len(self.latency_s):
@@ -117,6 +123,8 @@ def window_columns(amps, vars_, t_s, sensors, names_arr, min_snr: float, R, t_mm
         results.append(angles_from_amplitudes(a_safe, sp.model, v, on_zero="nan"))
         seens.append(seen)
     ns, covs, kw = ray_inputs(results, sensors, seens)
+    if _TRI_INFLATES:  # rows as the file path writes them: no per-call inflation (the file's rule is not live)
+        kw["inflate"] = False
     tri = triangulate(ns, covs, R, t_mm, **kw)
     ok = tri.n_sensors >= 2
     sig = tri.sigma_p_mm
@@ -132,6 +140,13 @@ def window_columns(amps, vars_, t_s, sensors, names_arr, min_snr: float, R, t_mm
         "n_sensors": tri.n_sensors[ok],
         "chi2": tri.chi2[ok],
     }
+    if "dof" in MULTI_COLUMNS or "flagged" in MULTI_COLUMNS:  # the per-row test, where the file path has it
+        from psdcal._stats import chi2_isf
+
+        dof = 2 * cols["n_sensors"].astype(int) - 3
+        cols["dof"] = dof
+        thr = {d: chi2_isf(1e-3, float(d)) for d in np.unique(dof) if d > 0}
+        cols["flagged"] = np.array([int(d > 0 and c > thr[d]) for d, c in zip(dof, cols["chi2"])], dtype=int)
     return cols, int((~ok).sum())
 
 
@@ -295,9 +310,10 @@ def locate_live_multi(events, sensors, rate_hz: float, out_path, config: LocateC
     if n_rows == 0:
         raise ZeroSignalError(f"no window has a carrier of {list(config.carriers_hz)} Hz seen by two sensors above "
                               f"--min-snr {config.min_snr:g}")
-    cat = lambda a: np.concatenate(a) if a else np.zeros(0)  # noqa: E731
+    cat = lambda a: np.concatenate(a) if a else np.zeros(0)
     return MultiLiveSummary(min(fed), n_windows, n_rows, n_skipped, cat(lat), cat(wt),
-                            (first_row or 0.0) - (first_arrival or 0.0), startup_s, t_start, cat(wrote))
+                            (first_row or 0.0) - (first_arrival or 0.0), startup_s, t_start, cat(wrote),
+                            tuple(recv))
 
 
 def warm_up(sensors, rate_hz: float, config: LocateConfig) -> None:
