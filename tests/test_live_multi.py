@@ -221,7 +221,7 @@ def test_unequal_rates_and_lagging_source(room, tmp_path, capsys):
 @pytest.mark.parametrize("extra,words", [
     (["--offset-s", "s9=0.1"], ["NAME=SECONDS", "s9=0.1"]),
     (["--offset-s", "s2=abc"], ["not a number of seconds"]),
-    (["--tdm"], ["time multiplexing"]),
+    (["--tdm"], ["time multiplexing with several sensors needs --schedule"]),
 ])
 def test_bad_options_one_line(room, tmp_path, capsys, extra, words):
     d, data = room
@@ -318,3 +318,30 @@ def test_sources_ending_apart_warn(room, tmp_path, capsys):
     assert "ended at different times (s1 1.5 s, s2 1.1 s, s3 1.5 s)" in err
     _, rows = _rows(tmp_path / "live.csv")
     assert len(rows) == 2 * 110
+
+
+def test_tdm_with_schedule_across_sensors(tmp_path):
+    """Three sensors, three emitters taking turns (20 ms each): one row per schedule entry, at the truth
+    within 5 of its sigmas on every axis; a recorded session replays to the same rows."""
+    d = tmp_path
+    assert main(["simulate-recording", "room", "--sensors", "3", "--anchors", "3", "--moving", "none", "--mux", "tdm",
+                 "--duration-s", "1", "--rate-hz", str(RATE), "-o", str(d / "tdm")]) == 0
+    truth = {e["name"]: np.array(e["p0_mm"]) for e in json.loads((d / "tdm" / "truth.json").read_text())["emitters"]}
+    urls = [_server(np.load(d / "tdm" / f"s{i}.npy"))[0] for i in (1, 2, 3)]
+    a = ["locate", *urls, "--sensors", str(d / "tdm" / "sensors.json"), "--rate-hz", str(RATE), ALLOW,
+         "--carrier-hz", "1000", "--schedule", str(d / "tdm" / "schedule.csv"), "-o", str(d / "live.csv"),
+         "--record", str(d / "tdm.psdsession")]
+    assert main(a) == 0
+    sched = (d / "tdm" / "schedule.csv").read_text().splitlines()[1:]
+    head, rows = _rows(d / "live.csv")
+    assert len(rows) == len(sched) == 50
+    for r, e in zip(rows, sched):
+        name, t0, t1 = e.split(",")
+        assert r[1] == name and abs(float(r[0]) - 0.5 * (float(t0) + float(t1))) < 1e-9
+        err = (np.array([float(v) for v in r[2:5]]) - truth[name]) / np.array([float(v) for v in r[5:8]])
+        assert np.all(np.abs(err) < 5), (r, err)
+    a = ["locate", "--sensors", str(d / "tdm" / "sensors.json"), ALLOW, "--carrier-hz", "1000", "--schedule",
+         str(d / "tdm" / "schedule.csv"), "--replay", str(d / "tdm.psdsession"), "--speed", "0", "-o",
+         str(d / "rep.csv")]
+    assert main(a) == 0
+    _same(d / "rep.csv", d / "live.csv")

@@ -59,10 +59,15 @@ def live_locate_multi(recordings, sensors_path, rate_hz, carriers, emitters, win
     for p in poses:
         check_sensor(p.model, None, allow_no_covariance)
     names = [p.name for p in poses]
-    if tdm or schedule:
-        raise InputError("time multiplexing is supported with one sensor only", field="tdm")
+    from psdcal.signal.stream import load_schedule
+
+    sched = load_schedule(schedule) if schedule else None
     config = LocateConfig(carriers_hz=tuple(carriers), window_s=0.01 if window_s is None else window_s,
-                          emitters=tuple(emitters) or None, min_snr=min_snr, n_emitters=n_emitters)
+                          emitters=tuple(emitters) or None, min_snr=min_snr, n_emitters=n_emitters,
+                          tdm=bool(tdm or sched is not None), schedule=sched)
+    if config.tdm and sched is None:  # (checked again by locate_live_multi; here before connecting)
+        raise InputError("time multiplexing with several sensors needs --schedule (the emitters' on-times, the "
+                         "same for every sensor)", field="schedule")
     offs = parse_offsets(offsets, names)
     if replay is not None:
         if recordings:

@@ -95,7 +95,7 @@ class MultiLiveSummary:
                 "the first data")
 
 
-def window_columns(amps, vars_, t_s, sensors, names_arr, min_snr: float, R, t_mm):
+def window_columns(amps, vars_, t_s, sensors, names_arr, min_snr: float, R, t_mm, *, names_rows=None):
     """Triangulated columns of ``nw`` windows seen by every sensor (the rows of ``locate --sensors``).
 
     Parameters
@@ -107,6 +107,8 @@ def window_columns(amps, vars_, t_s, sensors, names_arr, min_snr: float, R, t_mm
     names_arr : (n_carriers,) object ndarray
     min_snr : float
     R, t_mm : (k, 3, 3), (k, 3)
+    names_rows : (nw,) object ndarray, optional
+        TDM: each row's emitter (one carrier), instead of ``names_arr`` repeated.
 
     Returns
     -------
@@ -130,7 +132,7 @@ def window_columns(amps, vars_, t_s, sensors, names_arr, min_snr: float, R, t_mm
     sig = tri.sigma_p_mm
     cols = {
         "t_s": np.repeat(t_s, k)[ok],
-        "emitter": np.tile(names_arr, nw)[ok],
+        "emitter": (np.tile(names_arr, nw) if names_rows is None else np.asarray(names_rows, dtype=object))[ok],
         "X_mm": tri.p_w_mm[ok, 0],
         "Y_mm": tri.p_w_mm[ok, 1],
         "Z_mm": tri.p_w_mm[ok, 2],
@@ -151,22 +153,31 @@ def window_columns(amps, vars_, t_s, sensors, names_arr, min_snr: float, R, t_mm
 
 
 class _Pending:
-    """One sensor's demodulated windows waiting for the other sensors'."""
+    """One sensor's demodulated windows (or TDM segments) waiting for the other sensors'."""
 
     def __init__(self):
         self.parts: list = []
         self.count = 0
 
-    def add(self, wb, arrival_s: np.ndarray) -> None:
-        if len(wb):
-            self.parts.append((wb.amplitude, wb.var_amplitude, wb.t_s, arrival_s))
-            self.count += len(wb)
+    def add(self, amplitude, var_amplitude, t_s, arrival_s, names=None) -> None:
+        n = len(t_s)
+        if n:
+            nm = np.full(n, None, dtype=object) if names is None else np.asarray(names, dtype=object)
+            self.parts.append((amplitude, var_amplitude, np.asarray(t_s, dtype=float),
+                               np.broadcast_to(arrival_s, (n,)).astype(float), nm))
+            self.count += n
 
     def take(self, n: int):
-        amp, var, t, at = (np.concatenate([p[j] for p in self.parts]) for j in range(4))
-        self.parts = [(amp[n:], var[n:], t[n:], at[n:])] if n < len(t) else []
+        cols = [np.concatenate([p[j] for p in self.parts]) for j in range(5)]
+        self.parts = [tuple(c[n:] for c in cols)] if n < len(cols[2]) else []
         self.count -= n
-        return amp[:n], var[:n], t[:n], at[:n]
+        return tuple(c[:n] for c in cols)
+
+
+def _segments(segs):
+    """TDM segments -> (amplitude (n, 1, 4), variance, t_s, emitter names)."""
+    return (np.stack([g.amplitude for g in segs])[:, None, :], np.stack([g.var_amplitude for g in segs])[:, None, :],
+            np.array([g.t_s for g in segs]), np.array([g.emitter for g in segs], dtype=object))
 
 
 def locate_live_multi(events, sensors, rate_hz: float, out_path, config: LocateConfig, *, offsets_s=None,
@@ -218,8 +229,11 @@ def locate_live_multi(events, sensors, rate_hz: float, out_path, config: LocateC
     n_s = len(sensors)
     if n_s < 2:
         raise InputError("give at least two sensors", field="sensors")
-    if config.tdm:
-        raise InputError("time multiplexing is supported with one sensor only", field="tdm")
+    if config.tdm and config.schedule is None:
+        raise InputError("time multiplexing with several sensors needs --schedule (the emitters' on-times, the "
+                         "same for every sensor)", field="schedule")
+    if config.tdm and len(config.carriers_hz) != 1:
+        raise InputError("time multiplexing uses a single carrier", field="carrier_hz")
     if config.output_format != "csv":
         raise InputError("--format npy is not available with --sensors (several sensors): write CSV", field="format")
     offsets = np.zeros(n_s) if offsets_s is None else np.asarray(offsets_s, dtype=float)
@@ -231,6 +245,12 @@ def locate_live_multi(events, sensors, rate_hz: float, out_path, config: LocateC
     R = np.stack([s.R for s in sensors])
     t_mm = np.stack([np.asarray(s.tvec_mm, dtype=float) for s in sensors])
     pend = [_Pending() for _ in sensors]
+    segmenters = None
+    if config.tdm:
+        from psdcal.signal.stream import TdmSegmenter
+
+        # one row per schedule entry; schedule times are on the first sensor's clock (t_start = 0 without offsets)
+        segmenters = [TdmSegmenter(lk.window_s, min_snr=config.min_snr, schedule=config.schedule) for lk in lockins]
     fed = [0] * n_s
     done = [0] * n_s  # samples given to the demodulation
     hold = [[] for _ in sensors]
@@ -256,6 +276,11 @@ def locate_live_multi(events, sensors, rate_hz: float, out_path, config: LocateC
                 if recorder is not None:
                     recorder.end(i, last_at)
                 ended[i] = True
+                if segmenters is not None:
+                    segs = segmenters[i].finish()
+                    if segs:
+                        amp, var, t_seg, nm = _segments(segs)
+                        pend[i].add(amp, var, t_seg, last_at, nm)
             else:
                 if recorder is not None:
                     for b, t_at in parts(block, at):
@@ -284,13 +309,21 @@ def locate_live_multi(events, sensors, rate_hz: float, out_path, config: LocateC
                         # each window: the arrival of the part holding its last sample
                         last = (wb.index + 1) * n_win - 1
                         k = np.minimum(np.searchsorted(marks[i][:, 0], last, side="right"), len(marks[i]) - 1)
-                        pend[i].add(wb, marks[i][k, 1])
+                        if segmenters is None:
+                            pend[i].add(wb.amplitude, wb.var_amplitude, wb.t_s, marks[i][k, 1])
+                        else:  # TDM: a segment is complete when a window past its schedule entry arrives
+                            segs = segmenters[i].feed(wb)
+                            if segs:
+                                pend[i].add(*_segments(segs)[:3], marks[i][k[-1], 1], _segments(segs)[3])
                         marks[i] = marks[i][marks[i][:, 0] > fed[i] - lockins[i].pending_samples]
             ready = min(p.count for p in pend)
             if ready:
                 taken = [p.take(ready) for p in pend]
+                if segmenters is not None:
+                    _check_segments(taken, sensors)
                 cols, skipped = window_columns([x[0] for x in taken], [x[1] for x in taken], taken[0][2], sensors,
-                                               names_arr, config.min_snr, R, t_mm)
+                                               names_arr, config.min_snr, R, t_mm,
+                                               names_rows=None if segmenters is None else taken[0][4])
                 n_rows += _write_rows(fh, cols, MULTI_COLUMNS)
                 fh.flush()
                 now = time.perf_counter()
@@ -327,6 +360,14 @@ def warm_up(sensors, rate_hz: float, config: LocateConfig) -> None:
     R = np.stack([s.R for s in sensors])
     t_mm = np.stack([np.asarray(s.tvec_mm, dtype=float) for s in sensors])
     _warm_up(rate_hz, config, window_s, sensors, np.array(config.emitter_names(), dtype=object), R, t_mm)
+
+
+def _check_segments(taken, sensors) -> None:
+    """The sensors' TDM segments pair up (same schedule entries, in order)."""
+    for x, sp in zip(taken[1:], sensors[1:]):
+        if not (np.array_equal(x[4], taken[0][4]) and np.allclose(x[2], taken[0][2], atol=1e-9)):
+            raise InputError(f"the TDM segments of sensor {sp.name} do not pair with the first sensor's (same "
+                             "--schedule, aligned streams expected)", field="schedule")
 
 
 def _warm_up(rate_hz, config, window_s, sensors, names_arr, R, t_mm) -> None:
