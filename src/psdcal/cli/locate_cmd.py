@@ -154,8 +154,9 @@ def locate_command(recordings, calib, sensors, gains_file, rate_hz, carriers, em
     \b
     Several sensors live: --sensors with one live source per sensor, in its order (also
     file:PATH, raw frames from a file or named pipe); --offset-s NAME=SECONDS aligns a sensor
-    that started later; --record SESSION keeps the session; --replay SESSION --speed X plays
-    one back through the same path (see `psdcal record --help`).
+    that started later; --schedule for time multiplexing (one row per entry); --record SESSION
+    keeps the session; --replay SESSION --speed X plays one back through the same path (see
+    `psdcal record --help`).
     """
     from psdcal.errors import InputError
     from psdcal.measure.locate import LocateConfig, locate_multi_to_csv, locate_to_csv
