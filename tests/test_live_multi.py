@@ -345,3 +345,16 @@ def test_tdm_with_schedule_across_sensors(tmp_path):
          str(d / "rep.csv")]
     assert main(a) == 0
     _same(d / "rep.csv", d / "live.csv")
+
+
+def test_an_existing_session_is_not_replaced(room, tmp_path, capsys):
+    d, data = room
+    (tmp_path / "s.psdsession").write_bytes(b"keep")
+    urls = [_server(x)[0] for x in data]
+    assert main(_loc(d / "room" / "sensors.json", tmp_path / "live.csv", *urls,
+                     extra=["--record", str(tmp_path / "s.psdsession")])) == 2
+    _one_line_error(capsys, "--record")
+    assert (tmp_path / "s.psdsession").read_bytes() == b"keep"
+    assert main(["record", *urls, "--rate-hz", str(RATE), "-o", str(tmp_path / "s.psdsession")]) == 2
+    _one_line_error(capsys, "--output")
+    assert (tmp_path / "s.psdsession").read_bytes() == b"keep"
