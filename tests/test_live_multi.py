@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import socket
 import threading
 import time
@@ -358,3 +359,55 @@ def test_an_existing_session_is_not_replaced(room, tmp_path, capsys):
     assert main(["record", *urls, "--rate-hz", str(RATE), "-o", str(tmp_path / "s.psdsession")]) == 2
     _one_line_error(capsys, "--output")
     assert (tmp_path / "s.psdsession").read_bytes() == b"keep"
+
+
+def test_offsets_estimated_from_arrival_times(room, tmp_path, capsys):
+    """Senders at the real rate (20 ms blocks sent once sampled); sensor s2 started 0.3 s after the others:
+    --offset-s auto finds 0.3 s (to 5 ms) and s3 0 s, and the rows are those of the aligned recordings."""
+    d, data = room
+    late_s, blk = 0.3, 400
+    k = int(late_s * RATE)
+    streams = [data[0], data[1][k:], data[2]]
+    starts = [0.0, late_s, 0.0]
+    barrier = threading.Barrier(3)
+    urls = []
+    for x, st in zip(streams, starts):
+        srv = socket.socket()
+        srv.bind(("127.0.0.1", 0))
+        srv.listen(1)
+        urls.append(f"tcp://127.0.0.1:{srv.getsockname()[1]}")
+
+        def serve(srv=srv, x=x, st=st):
+            conn, _ = srv.accept()
+            barrier.wait()
+            t0 = time.perf_counter() + st
+            payload = np.ascontiguousarray(x, dtype="<f8")
+            for j in range(0, len(payload), blk):
+                wait = t0 + (j + blk) / RATE - time.perf_counter()
+                if wait > 0:
+                    time.sleep(wait)
+                conn.sendall(payload[j:j + blk].tobytes())
+            conn.close()
+            srv.close()
+
+        threading.Thread(target=serve, daemon=True).start()
+    assert main(_loc(d / "room" / "sensors.json", tmp_path / "live.csv", *urls, extra=["--offset-s", "auto"])) == 0
+    err = capsys.readouterr().err
+    line = [ln for ln in err.splitlines() if "offsets estimated" in ln][0]
+    est = {n: float(v) for n, v in re.findall(r"(s\d) ([+-][\d.]+) s", line)}
+    assert est["s1"] == 0.0 and abs(est["s2"] - late_s) < 0.005 and abs(est["s3"]) < 0.005, line
+    # the aligned recordings through the file path: the same emitters and windows
+    for i, x in enumerate([data[0][k:], data[1][k:], data[2][k:]], start=1):
+        np.save(tmp_path / f"a{i}.npy", x)
+    assert main(_loc(d / "room" / "sensors.json", tmp_path / "file_a.csv",
+                     *[tmp_path / f"a{i}.npy" for i in (1, 2, 3)])) == 0
+    _, rl = _rows(tmp_path / "live.csv")
+    _, rf = _rows(tmp_path / "file_a.csv")
+    assert abs(len(rl) - len(rf)) <= 4 and [r[1] for r in rl[:200]] == [r[1] for r in rf[:200]]
+    xl = np.array([[float(v) for j, v in enumerate(r[:5]) if j != 1] for r in rl[:200]])
+    xf = np.array([[float(v) for j, v in enumerate(r[:5]) if j != 1] for r in rf[:200]])
+    sig = np.array([[float(v) for v in r[5:8]] for r in rf[:200]])
+    # stamped on s1's clock: the aligned file's times + the estimated start; the windows hold nearly the same
+    # samples (a few misaligned of 200): positions within a fraction of their sigma
+    assert np.abs(xl[:, 0] - xf[:, 0] - est["s2"]).max() < 1e-4  # (est is printed to 0.1 ms)
+    assert np.abs((xl[:, 1:] - xf[:, 1:]) / sig).max() < 1.5

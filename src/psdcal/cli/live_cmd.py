@@ -68,7 +68,10 @@ def live_locate_multi(recordings, sensors_path, rate_hz, carriers, emitters, win
     if config.tdm and sched is None:  # (checked again by locate_live_multi; here before connecting)
         raise InputError("time multiplexing with several sensors needs --schedule (the emitters' on-times, the "
                          "same for every sensor)", field="schedule")
-    offs = parse_offsets(offsets, names)
+    auto = [o for o in offsets or () if str(o).strip() == "auto"]
+    if auto and len(offsets) > 1:
+        raise InputError("--offset-s auto estimates every sensor's offset: give it alone", field="offset_s")
+    offs = parse_offsets([] if auto else offsets, names)
     if replay is not None:
         if recordings:
             raise InputError("give either live sources or --replay SESSION, not both", field="replay")
@@ -109,6 +112,13 @@ def live_locate_multi(recordings, sensors_path, rate_hz, carriers, emitters, win
         streams = [open_source(s, rate, dtype=raw_dtype, scale=raw_scale) for s in srcs]
         events = LiveSources(streams).events()
         infos = [SourceInfo(n, s, rate, raw_dtype, raw_scale) for n, s in zip(names, srcs)]
+    if auto:
+        from psdcal.signal.session import estimate_offsets
+
+        est, events = estimate_offsets(events, len(poses), rate)
+        offs = [float(v) for v in est]
+        click.echo("offsets estimated from the arrival times: "
+                   + ", ".join(f"{n} {v:+.4f} s" for n, v in zip(names, offs)), err=True)
     recorder = SessionWriter(record_path, infos) if record_path else None
     try:
         summary = locate_live_multi(events, poses, rate, output, config, offsets_s=offs, recorder=recorder,

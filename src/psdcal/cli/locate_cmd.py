@@ -115,7 +115,8 @@ def _demod_options(f):
                    "of every sigma); refused otherwise.")
 @click.option("--offset-s", "offsets", multiple=True, metavar="NAME=SECONDS",
               help="Several sensors live: sensor NAME's first sample was taken SECONDS after the first sensor's "
-                   "(repeat per sensor; the streams are aligned to the whole sample).")
+                   "(repeat per sensor; the streams are aligned to the whole sample); 'auto': estimated for "
+                   "every sensor from the arrival times of the first 0.5 s (sources sending at the real rate).")
 @click.option("--replay", type=click.Path(dir_okay=False),
               help="With --sensors: play a session from `psdcal record` through the live path (no RECORDING).")
 @click.option("--speed", type=click.FloatRange(0.0), default=1.0, show_default=True,

@@ -325,3 +325,46 @@ def _warn_truncated(path) -> None:
 def check_dtype(dtype: str) -> None:
     if dtype not in DTYPES:
         raise InputError(f"unknown sample type {dtype!r}; use one of {sorted(DTYPES)}", field="raw_dtype")
+
+
+def estimate_offsets(events, n_sources: int, rate_hz: float, learn_s: float = 0.5):
+    """Each source's start relative to the first source's, from the arrival times of its first blocks.
+
+    Sample ``n - 1`` of a source exists before the block ending with it arrives,
+    so its first sample was taken at or before ``arrival - (n - 1) / rate_hz``;
+    the smallest such bound over the blocks of the first ``learn_s`` seconds of
+    signal (the block that came fastest) estimates the start.  The offsets are
+    the differences of those starts from the first source's.  It holds for
+    sources that deliver as they sample (a DAQ, a sender at the real rate),
+    with equal transport delays; the error is the spread of the fastest
+    deliveries (about a millisecond on a loaded machine, tests/test_live_multi.py),
+    not a sample.
+
+    Returns
+    -------
+    (offsets_s (n_sources,) ndarray, events)
+        ``events``: the same events, the ones read for the estimate first.
+    """
+    import itertools
+
+    it = iter(events)
+    buf = []
+    recv = [0] * n_sources
+    best = np.full(n_sources, np.inf)
+    ended = [False] * n_sources
+    need = learn_s * rate_hz
+    for ev in it:
+        buf.append(ev)
+        i, block, at = ev
+        if block is ENDED:
+            ended[i] = True
+        else:
+            for b, t in parts(block, at):
+                recv[i] += b.shape[1]
+                if b.shape[1]:
+                    best[i] = min(best[i], t - (recv[i] - 1) / rate_hz)
+        if all(r >= need or e for r, e in zip(recv, ended)):
+            break
+    if not np.all(np.isfinite(best)):
+        raise InputError("cannot estimate the offsets: a source sent no data", field="offset_s")
+    return best - best[0], itertools.chain(buf, it)
