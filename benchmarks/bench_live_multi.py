@@ -93,7 +93,11 @@ def run_once(tmp: Path, rate_hz: float, block_ms: float, startup_s: float, nodel
     load0 = os.getloadavg()
     streams = [open_source(f"tcp://127.0.0.1:{p}", rate_hz) for p in ports]
     out = tmp / "live.csv"
+    import time
+
+    cpu0 = time.process_time()
     s = locate_live_multi(LiveSources(streams).events(), poses, rate_hz, out, config, startup_s=startup_s)
+    cpu_per_s = (time.process_time() - cpu0) / (s.n_samples / rate_hz)
     feeder.wait(timeout=60)
     load1 = os.getloadavg()
     send = np.load(log)
@@ -107,7 +111,7 @@ def run_once(tmp: Path, rate_hz: float, block_ms: float, startup_s: float, nodel
         t_send = np.maximum(t_send, rows[k, 3])
     ext = s.written_s - t_send
     same = _compare(tmp / "file.csv", out)
-    return s, ext, same, load0, load1
+    return s, ext, same, load0, load1, cpu_per_s
 
 
 def _compare(a, b) -> str:
@@ -141,18 +145,19 @@ def run(seconds: float = 10.0, rate_hz: float = 20_000.0, block_ms: float = 5.0,
         n_file = len((tmp / "file.csv").read_text().splitlines()) - 1
         lines = []
         for r in range(repeat):
-            s, ext, same, l0, l1 = run_once(tmp, rate_hz, block_ms, startup_s)
+            s, ext, same, l0, l1, cpu = run_once(tmp, rate_hz, block_ms, startup_s)
             keep = s.window_t_s - s.t_start_s >= startup_s
             a_all, a_run = _stats(s.latency_s * 1e3), _stats(s.latency_s[keep] * 1e3)
             e_all, e_run = _stats(ext * 1e3), _stats(ext[keep] * 1e3)
             lines.append((r + 1, s.n_rows, n_file, same, s.n_windows, a_all, a_run, e_all, e_run,
-                          s.first_row_s * 1e3, l0[0], l1[0]))
+                          s.first_row_s * 1e3, l0[0], l1[0], cpu))
             (tmp / "live.csv").unlink()
     head = ("run | rows live/file | equal (bytes, or max rel. diff) | windows | arrival->row median/p99/max ms (all) | (after start-up) | "
-            "send->row median/p99/max ms (all) | (after start-up) | first rows ms | load 1-min before/after")
+            "send->row median/p99/max ms (all) | (after start-up) | first rows ms | load 1-min before/after | "
+            "CPU s per s of signal")
     f3 = lambda t: "/".join(f"{v:.3g}" for v in t)
     body = [f"{r} | {nr}/{nf} | {eq} | {nw} | {f3(a)} | {f3(b)} | {f3(c)} | {f3(dd)} | "
-            f"{fr:.4g} | {l0:.2f}/{l1:.2f}" for r, nr, nf, eq, nw, a, b, c, dd, fr, l0, l1 in lines]
+            f"{fr:.4g} | {l0:.2f}/{l1:.2f} | {cpu:.2f}" for r, nr, nf, eq, nw, a, b, c, dd, fr, l0, l1, cpu in lines]
     title = (f"four sensors live at {rate_hz:g} S/s each over TCP ({seconds:g} s, blocks of {block_ms:g} ms, "
              f"10 ms windows, start-up = first {startup_s:g} s), {os.cpu_count()} CPUs")
     if markdown:
