@@ -411,3 +411,23 @@ def test_offsets_estimated_from_arrival_times(room, tmp_path, capsys):
     # samples (a few misaligned of 200): positions within a fraction of their sigma
     assert np.abs(xl[:, 0] - xf[:, 0] - est["s2"]).max() < 1e-4  # (est is printed to 0.1 ms)
     assert np.abs((xl[:, 1:] - xf[:, 1:]) / sig).max() < 1.5
+
+
+def test_format_npy_refused_and_a_silent_source_stalls(room, tmp_path, capsys):
+    from psdcal.errors import InputError
+    from psdcal.signal.session import LiveSources, open_source
+
+    d, _ = room
+    assert main(_loc(d / "room" / "sensors.json", tmp_path / "x.npy", "-", "-", "-", extra=["--format", "npy"])) == 2
+    _one_line_error(capsys, "--format npy")
+    srv = socket.socket()
+    srv.bind(("127.0.0.1", 0))
+    srv.listen(1)
+    src = open_source(f"tcp://127.0.0.1:{srv.getsockname()[1]}", RATE)
+    conn, _ = srv.accept()  # connected, but nothing is sent
+    t0 = time.perf_counter()
+    with pytest.raises(InputError, match="no data from any source for 0.3 s"):
+        list(LiveSources([src]).events(stall_s=0.3))
+    assert 0.25 < time.perf_counter() - t0 < 5
+    conn.close()
+    srv.close()

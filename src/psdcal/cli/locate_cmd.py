@@ -172,6 +172,9 @@ def locate_command(recordings, calib, sensors, gains_file, rate_hz, carriers, em
     if sensors is not None and (replay is not None or any(is_live_source(str(r)) for r in recordings)):
         from psdcal.cli.live_cmd import live_locate_multi  # several sensors live, or a replayed session
 
+        if output_format != "csv":
+            raise InputError("--format npy is not available with --sensors (several sensors): write CSV",
+                             field="format")
         return live_locate_multi(recordings, sensors, rate_hz, carriers, emitters, window_s, tdm, schedule,
                                  n_emitters, min_snr, output, raw_dtype, raw_scale, track_path, track_q, offsets,
                                  replay, speed, record_path, allow_no_covariance)
