@@ -14,7 +14,8 @@ import click
 from psdcal.errors import PsdcalError
 
 #: Parameters (by their Python name) that name files or folders a command writes.
-OUTPUT_PARAMS = frozenset({"output", "out", "out_dir", "csv_path", "json_out", "points_out", "track_path", "into"})
+OUTPUT_PARAMS = frozenset({"output", "out", "out_dir", "csv_path", "json_out", "points_out", "track_path", "into",
+                           "record_path"})
 #: Outputs updated in place (merged into): they may exist without --force.
 MERGE_PARAMS = frozenset({"into"})
 #: Files a command writes into its output folder, keyed by command name (an existing one needs --force).
@@ -179,6 +180,7 @@ _COMMANDS = (
     "export_cmd",
     "capture_cmd",
     "selfcal_cmd",
+    "live_cmd",
 )
 
 
