@@ -107,6 +107,8 @@ def build_base(d, main) -> None:
     with open(f"{d}/angles.csv", "w") as fh:
         fh.write("t_s,sensor,emitter,alpha_x_deg,alpha_y_deg,sigma_alpha_x_deg,sigma_alpha_y_deg\n")
         fh.write("\n".join(lines) + "\n")
+    # record: a raw float64 stream of frames (vx1, vx2, vy1, vy2) read as a live source 'file:PATH'
+    rec[:400].astype("<f8").tofile(f"{d}/raw.bin")
     # dashboard: multi-sensor locate rows
     with open(f"{d}/xyz.csv", "w") as fh:
         fh.write("t_s,emitter,X_mm,Y_mm,Z_mm,sigma_X_mm,sigma_Y_mm,sigma_Z_mm,n_sensors,chi2\n")
@@ -433,6 +435,11 @@ OPTION_CASES = [
     ["dashboard", "{b}/xyz.csv", "--host", "0.0.0.0", "--port", "0"],
     ["dashboard", "{b}/xyz.csv", "--host", "0.0.0.0", "--allow-remote", "--token", "short", "--port", "0"],
     ["dashboard", "{b}/no-such.csv", "--replay", "--export", "{b}/o.html"],
+    ["record", "--rate-hz", "20000", "-o", "{b}/o.psdsession"],
+    ["record", "file:{b}/raw.bin", "--rate-hz", "nan", "-o", "{b}/o.psdsession"],
+    ["record", "file:{b}/raw.bin", "--rate-hz", "20000", "--raw-scale", "nan", "-o", "{b}/o.psdsession"],
+    ["record", "file:{b}/no-such.bin", "--rate-hz", "20000", "-o", "{b}/o.psdsession"],
+    ["record", "file:{b}/raw.bin", "file:{b}/raw.bin", "--rate-hz", "20000", "--names", "a", "-o", "{b}/o.psdsession"],
     ["no-such-command"], ["--no-such-flag"],
 ]
 
@@ -488,6 +495,7 @@ WRITERS = [
     ("locate-angles", ["locate", "--angles", "{b}/angles.csv", "--sensors", "{b}/sensors.json", "-o", "{O}"], ".csv",
      "{b}/angles.csv"),
     ("dashboard", ["dashboard", "{b}/xyz.csv", "--export", "{O}"], ".html", "{b}/xyz.csv"),
+    ("record", ["record", "file:{b}/raw.bin", "--rate-hz", "20000", "-o", "{O}"], ".psdsession", "{b}/raw.bin"),
 ]
 #: Commands whose output is replaced on every run (psdcal.cli.REPLACING_COMMANDS).
 REPLACING = {"demo"}

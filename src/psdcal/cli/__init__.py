@@ -77,6 +77,11 @@ class PolicyCommand(click.Command):
 
         ins, outs, dirs = [], [], []
         for p in self.params:
+            if isinstance(p, click.Option | click.Argument) and not isinstance(p.type, click.Path):
+                # live sources given as text: 'file:PATH' reads a file (or a named pipe), an input like any other
+                for v in _paths(ctx.params.get(p.name)):
+                    if isinstance(v, str) and v.startswith("file:") and len(v) > 5:
+                        ins.append((p.human_readable_name, Path(v[5:])))
             if not isinstance(p, click.Option | click.Argument) or not isinstance(p.type, click.Path):
                 continue
             opt = p.opts[-1] if isinstance(p, click.Option) else p.human_readable_name
