@@ -106,7 +106,7 @@ def random_case(seed: int, *, fault: str = "none", lens: str | None = None, n_im
     bad = None
     amps = None
     if fault == "gains":
-        from psdcal.calibration.gains import simulate_amplitudes
+        from psdcal.study.gain_sim import simulate_amplitudes
         from psdcal.model.readout import impact_point
 
         snr = float(rng.uniform(40.0, 60.0))
