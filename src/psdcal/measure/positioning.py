@@ -303,7 +303,13 @@ def triangulate(n, cov_n, R, t_mm, *, iterations: int = 8, cov_pose=None, calib=
     alpha : float
         False-alarm rate of the per-point flags and of the pooled test.
 
-    Consistency rule (docs/guide/positioning.md#sigmas-that-cover-the-error):
+    Returns
+    -------
+    Triangulation
+
+    Notes
+    -----
+    The consistency rule (docs/guide/positioning.md#sigmas-that-cover-the-error):
     each point's ``chi2`` is tested against ``chi2(2 k - 3)`` at ``alpha``
     (``flagged``); all the points of the call are tested together
     (``check``: ``sum chi2`` against ``sum dof``).  When that pooled test
@@ -313,10 +319,6 @@ def triangulate(n, cov_n, R, t_mm, *, iterations: int = 8, cov_pose=None, calib=
     covariance becomes the sandwich covariance of the same estimate under that
     noise; ``check.message`` gives its size.  One noisy point does not
     inflate the others unless the whole call disagrees with the noise.
-
-    Returns
-    -------
-    Triangulation
     """
     n = np.asarray(n, dtype=float)
     cov_n = np.asarray(cov_n, dtype=float)
