@@ -31,6 +31,8 @@ from psdcal.measure.angles_table import AnglesTable
 #: (:data:`psdcal.measure.locate.MULTI_COLUMNS`), so that ``track`` and the dashboard read them alike.
 ANGLES_LOCATE_COLUMNS = ("t_s", "emitter", "X_mm", "Y_mm", "Z_mm", "sigma_X_mm", "sigma_Y_mm", "sigma_Z_mm",
                          "n_sensors", "chi2")
+#: Appended: the sensor left out as a reflection and the flag (:mod:`psdcal.measure.reflections`), as ``locate``.
+ANGLES_LOCATE_COLUMNS = ANGLES_LOCATE_COLUMNS + ("left_out", "reflection")
 #: Time steps triangulated at once (bounds memory on long tables).
 CHUNK_STEPS = 65536
 
@@ -112,6 +114,9 @@ class AnglePositions:
     n_sensors: np.ndarray
     n_skipped: int
     check: Check
+    left_out: np.ndarray | None = None
+    reflection: np.ndarray | None = None
+    warnings: tuple = ()
 
     def __len__(self) -> int:
         return len(self.t_s)
@@ -125,7 +130,9 @@ class AnglePositions:
         s = self.sigma_p_mm
         return {"t_s": self.t_s, "emitter": self.emitter, "X_mm": self.p_w_mm[:, 0], "Y_mm": self.p_w_mm[:, 1],
                 "Z_mm": self.p_w_mm[:, 2], "sigma_X_mm": s[:, 0], "sigma_Y_mm": s[:, 1], "sigma_Z_mm": s[:, 2],
-                "n_sensors": self.n_sensors, "chi2": self.chi2}
+                "n_sensors": self.n_sensors, "chi2": self.chi2,
+                "left_out": np.full(len(self), "", dtype=object) if self.left_out is None else self.left_out,
+                "reflection": np.full(len(self), "", dtype=object) if self.reflection is None else self.reflection}
 
 
 def triangulate_table(table: AnglesTable, sensors, *, sensors_path=None, chunk_steps: int = CHUNK_STEPS,
@@ -147,10 +154,12 @@ def triangulate_table(table: AnglesTable, sensors, *, sensors_path=None, chunk_s
         Sorted by time, then emitter name.
     """
     from psdcal.measure.positioning import triangulate
+    from psdcal.measure.reflections import left_out_names, reflection_warnings, screen_rays
 
     check_sensors_known(table, sensors, sensors_path)
     used = [s for s in sensors if s.name in set(table.sensors)]
     k = len(used)
+    names = [s.name for s in used]
     sidx = {s.name: j for j, s in enumerate(used)}
     si = np.array([sidx[s] for s in table.sensor.tolist()], dtype=int)
     tu, ti = np.unique(table.t_s, return_inverse=True)
@@ -173,11 +182,15 @@ def triangulate_table(table: AnglesTable, sensors, *, sensors_path=None, chunk_s
         n[si[rows], gi[rows] - a] = table.n[rows]
         cov[si[rows], gi[rows] - a] = table.cov_n[rows]
         tri = triangulate(n, cov, R, t, cov_pose=cp)
-        parts.append((tri.p_w_mm, tri.cov_p_mm2, tri.chi2, tri.n_sensors))
+        scr = screen_rays(n, cov, R, t, tri, cov_pose=cp, **({} if alpha is None else {"alpha": alpha}))
+        tri = scr.tri  # a sensor whose ray disagrees with the others left out
+        parts.append((tri.p_w_mm, tri.cov_p_mm2, tri.chi2, tri.n_sensors, left_out_names(scr, names), scr.flag))
     p = np.concatenate([x[0] for x in parts])
     C = np.concatenate([x[1] for x in parts])
     chi2 = np.concatenate([x[2] for x in parts])
     ns = np.concatenate([x[3] for x in parts])
+    lo = np.concatenate([x[4] for x in parts])
+    fl = np.concatenate([x[5] for x in parts])
     ok = ns >= 2
     g = groups[ok]
     tt = tu[g // len(eu)]
@@ -188,7 +201,8 @@ def triangulate_table(table: AnglesTable, sensors, *, sensors_path=None, chunk_s
                        what=f"the rays of {int(ok.sum())} triangulated points",
                        advice="the stated angle sigmas are too small, the sensors' poses are off, the sensors do "
                               "not sample together (--align-to, --time-offset), or a ray is a reflection", **kw)
-    return AnglePositions(tt, ee, p[ok], C[ok], chi2[ok], ns[ok].astype(int), int((~ok).sum()), check)
+    return AnglePositions(tt, ee, p[ok], C[ok], chi2[ok], ns[ok].astype(int), int((~ok).sum()), check,
+                          lo[ok], fl[ok], tuple(reflection_warnings(lo[ok], fl[ok], **kw)))
 
 
 def write_positions_csv(path, res: AnglePositions) -> int:

@@ -32,6 +32,7 @@ from psdcal._atomic import atomic_path
 from psdcal.measure.aoa import angles_from_amplitudes, angles_from_points, impact_from_amplitudes
 from psdcal.errors import InputError, ZeroSignalError
 from psdcal.measure.positioning import plane_position, ray_inputs, triangulate
+from psdcal.measure.reflections import left_out_names, reflection_warnings, screen_rays
 from psdcal.signal.recording import DEFAULT_CHUNK, Recording
 from psdcal.measure.sensor_model import SensorModel
 from psdcal.signal.stream import MultiCarrierLockin, TdmSegmenter
@@ -183,6 +184,9 @@ def single_columns(with_plane: bool) -> tuple[str, ...]:
 
 
 MULTI_COLUMNS = ("t_s", "emitter", "X_mm", "Y_mm", "Z_mm", "sigma_X_mm", "sigma_Y_mm", "sigma_Z_mm", "n_sensors", "chi2")
+#: Appended to :data:`MULTI_COLUMNS` rows: the sensor left out as a reflection and the flag
+#: (:mod:`psdcal.measure.reflections`).
+MULTI_COLUMNS = MULTI_COLUMNS + ("left_out", "reflection")
 
 
 def _write_rows(fh, cols: dict, order) -> int:
@@ -574,6 +578,8 @@ def locate_multi_to_csv(recordings, sensors, out_path, config: LocateConfig,
     t = np.stack([np.asarray(s.tvec_mm, dtype=float) for s in sensors])
     names_arr = np.array(names, dtype=object)
     n_samples = n_windows = n_rows = n_skipped = 0
+    left_all: list = []
+    flag_all: list = []
     with atomic_path(out_path, suffix=".csv") as tmp:
         with open(tmp, "w", encoding="utf-8", newline="") as fh:
             fh.write(",".join(MULTI_COLUMNS) + "\n")
@@ -599,6 +605,8 @@ def locate_multi_to_csv(recordings, sensors, out_path, config: LocateConfig,
                     # the rays with their covariance; poses from `psdcal pose` add theirs (ray_inputs)
                     ns, covs, kw = ray_inputs(results, sensors, seens)
                     tri = triangulate(ns, covs, R, t, **kw)
+                    scr = screen_rays(ns, covs, R, t, tri, **kw)  # a disagreeing sensor left out
+                    tri = scr.tri
                     ok = tri.n_sensors >= 2
                     n_skipped += int((~ok).sum())
                     sig = tri.sigma_p_mm
@@ -613,7 +621,11 @@ def locate_multi_to_csv(recordings, sensors, out_path, config: LocateConfig,
                         "sigma_Z_mm": sig[ok, 2],
                         "n_sensors": tri.n_sensors[ok],
                         "chi2": tri.chi2[ok],
+                        "left_out": left_out_names(scr, [sp.name for sp in sensors])[ok],
+                        "reflection": scr.flag[ok],
                     }
+                    left_all.append(cols["left_out"])
+                    flag_all.append(cols["reflection"])
                     n_rows += _write_rows(fh, cols, MULTI_COLUMNS)
                 if progress is not None:
                     progress(n_samples)
@@ -624,6 +636,8 @@ def locate_multi_to_csv(recordings, sensors, out_path, config: LocateConfig,
                 f"no window has a carrier of {list(config.carriers_hz)} Hz seen by two sensors above "
                 f"--min-snr {config.min_snr:g}"
             )
+    if left_all:
+        warnings += reflection_warnings(np.concatenate(left_all), np.concatenate(flag_all))
     return LocateSummary(n_samples, n_windows, n_rows, n_skipped, n_samples / rate, MULTI_COLUMNS,
                          warnings=tuple(warnings), window_s=window_s)
 
