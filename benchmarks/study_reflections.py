@@ -3,7 +3,7 @@
 
 Each room: a box of 4-8 x 3-6 x 2.5-3.5 m, 2-6 sensors (``psdcal.study.recordings.room_sensors``,
 Lens 2), ``--points`` emitter positions at random in the room's lower half, one mirror (the floor,
-or a wall) with a power attenuation of 0.05-0.5 applied to ONE sensor (a specular path seen from
+or a wall) with a power attenuation drawn log-uniform in 0.05-0.5 (``--att-min/--att-max``) applied to ONE sensor (a specular path seen from
 one place). Rays are simulated at the ray level: the direct ray, plus for the reflected sensor the
 image source's ray, combined as a PSD does (the power-weighted centroid, ``--mode centroid``) or
 reported outright (a ghost, ``--mode ghost``); Gaussian noise ``--sigma-n`` on every ray.
@@ -16,7 +16,7 @@ the reflected ray in its own sigmas.
 
 Usage::
 
-    .venv/bin/python benchmarks/study_reflections.py [--rooms 400] [--points 30] [--mode centroid]
+    .venv/bin/python benchmarks/study_reflections.py [--rooms 400] [--points 30] [--mode centroid] [--att-min 0.05 --att-max 0.5]
 """
 from __future__ import annotations
 
@@ -33,7 +33,7 @@ import time  # noqa: E402
 import numpy as np  # noqa: E402
 
 
-def one_room(seed: int, points: int, sigma_n: float, mode: str, alpha: float):
+def one_room(seed: int, points: int, sigma_n: float, mode: str, alpha: float, att=(0.05, 0.5)):
     from psdcal.measure._geometry import project_world
     from psdcal.measure.positioning import triangulate
     from psdcal.measure.reflections import screen_rays
@@ -57,7 +57,7 @@ def one_room(seed: int, points: int, sigma_n: float, mode: str, alpha: float):
     point = np.zeros(3)
     point[ax] = v
     j_ref = int(rng.integers(0, k))
-    mirror = Reflector(tuple(point), tuple(normal), float(rng.uniform(0.05, 0.5)), (sensors[j_ref].name,))
+    mirror = Reflector(tuple(point), tuple(normal), float(math.exp(rng.uniform(math.log(att[0]), math.log(att[1])))), (sensors[j_ref].name,))
     P = np.stack([rng.uniform(0.1, 0.9, points) * room[0], rng.uniform(0.1, 0.9, points) * room[1],
                   rng.uniform(0.1, 0.5, points) * room[2]], -1)
     R = np.stack([R_from_r(s.rvec) for s in sensors])
@@ -108,10 +108,12 @@ def main():
     ap.add_argument("--mode", choices=("centroid", "ghost"), default="centroid")
     ap.add_argument("--alpha", type=float, default=1e-3)
     ap.add_argument("--seed0", type=int, default=0)
+    ap.add_argument("--att-min", type=float, default=0.05, help="attenuation drawn log-uniform in [min, max]")
+    ap.add_argument("--att-max", type=float, default=0.5)
     ap.add_argument("--json", default=None, help="write the rates here")
     a = ap.parse_args()
     t0 = time.time()
-    rows = [one_room(a.seed0 + i, a.points, a.sigma_n, a.mode, a.alpha) for i in range(a.rooms)]
+    rows = [one_room(a.seed0 + i, a.points, a.sigma_n, a.mode, a.alpha, (a.att_min, a.att_max)) for i in range(a.rooms)]
     cat = {key: np.concatenate([np.atleast_1d(r[key]) if np.ndim(r[key]) else np.full(len(r["m"]), r[key])
                                 for r in rows]) for key in rows[0]}
     m, c = cat["m"], cat["counts"]
@@ -140,6 +142,12 @@ def main():
         "k>=3, left out: median position error mm (screened / every ray kept)":
             [float(np.median(cat["err"][c & (m >= 3) & found])), float(np.median(cat["err_kept"][c & (m >= 3) & found]))]
             if np.any(c & (m >= 3) & found) else None,
+        "k>=3: reflected sensor left out, by bias (sigma) bins": {
+            f"[{lo:g}, {hi:g})": rate(found[c & (m >= 3) & (cat["bias"] >= lo) & (cat["bias"] < hi)])
+            for lo, hi in ((0, 3), (3, 5), (5, 10), (10, 30), (30, math.inf))},
+        "k==2: flagged ambiguous, by bias (sigma) bins": {
+            f"[{lo:g}, {hi:g})": rate((cat["flag"] == "ambiguous")[c & (m == 2) & (cat["bias"] >= lo) & (cat["bias"] < hi)])
+            for lo, hi in ((0, 3), (3, 5), (5, 10), (10, 30), (30, math.inf))},
         "seconds": round(time.time() - t0, 1),
     }
     print(json.dumps(out, indent=1))
