@@ -231,3 +231,15 @@ def test_cli_bad_reflection_is_exit_2(tmp_path, capsys):
     assert main(["simulate-recording", "room", "--reflection", "floor", "-o", str(tmp_path / "x")]) == 2
     assert "reflection" in capsys.readouterr().err
     assert not (tmp_path / "x").exists()
+
+
+def test_pose_and_calibration_terms_pass_through_to_the_refits():
+    """Zero pose covariance and zero calibration dependence (as ray_inputs builds them) change nothing."""
+    n, cov, R, t, _, _, _ = draw(4, 200, seed=30)
+    plain = screen_rays(n, cov, R, t)
+    D = np.zeros((4, 200, 2, 3))
+    kw = {"cov_pose": np.zeros((4, 6, 6)), "calib": (D, np.stack([np.eye(3)] * 4), np.zeros((4, 6, 3)))}
+    full = screen_rays(n, cov, R, t, **kw)
+    assert (plain.flag != "").sum() > 150
+    np.testing.assert_array_equal(full.left_out, plain.left_out)
+    np.testing.assert_allclose(full.tri.p_w_mm, plain.tri.p_w_mm, rtol=1e-9, atol=1e-9)

@@ -62,7 +62,9 @@ class RayScreen:
     chi2_all : (...) ndarray
         chi2 of the triangulation with every ray.
     drop : (...) ndarray
-        The largest chi2 drop ``D_j`` over the sensors (NaN below three sensors).
+        The largest chi2 drop ``D_j`` over the sensors where it was computed
+        (rows of three sensors or more whose ``chi2_all`` exceeds the drop
+        threshold; a drop never exceeds ``chi2_all``), NaN elsewhere.
     alpha : float
         Design false-alarm rate of a row's flag on consistent rays.
     """
@@ -120,41 +122,54 @@ def screen_rays(n, cov_n, R, t_mm, tri: Triangulation | None = None, *, alpha: f
     best = np.full(batch, np.nan)
     with np.errstate(invalid="ignore"):
         flag[(m == 2) & (chi2_all > thr_pair)] = "ambiguous"
-    many = m >= 3
+    md = np.minimum(m, len(thr_drop) - 1)
+    with np.errstate(invalid="ignore"):
+        # a drop never exceeds chi2_all: only rows whose chi2_all passes the drop threshold are refitted
+        many = (m >= 3) & (chi2_all > thr_drop[md])
     if k >= 3 and np.any(many):
-        tris, drops = [], np.full((k,) + batch, -np.inf)
-        suspect = np.zeros((k,) + batch, dtype=bool)
-        md = np.minimum(m, len(thr_drop) - 1)
+        sub = many  # the refitted rows, flattened: (k, S, ...)
+        ns_, cov_ = n[:, sub], cov_n[:, sub]
+        kw_ = dict(kw)
+        if kw_.get("calib") is not None:
+            D, Sc, Ap = kw_["calib"]
+            kw_["calib"] = (np.asarray(D)[:, sub], Sc, Ap)
+        v_, md_, c_all = valid[:, sub], md[sub], chi2_all[sub]
+        S = int(sub.sum())
+        tris, drops = [], np.full((k, S), -np.inf)
+        suspect = np.zeros((k, S), dtype=bool)
         for j in range(k):
-            todo = valid[j] & many
-            if not np.any(todo):
+            if not np.any(v_[j]):
                 tris.append(None)
                 continue
-            nj = n.copy()
+            nj = ns_.copy()
             nj[j] = np.nan
-            tj = triangulate(nj, cov_n, R, t_mm, **kw)
+            tj = triangulate(nj, cov_, R, t_mm, **kw_)
             tris.append(tj)
             with np.errstate(invalid="ignore"):
-                d = np.where(todo, chi2_all - tj.chi2, -np.inf)
+                d = np.where(v_[j], c_all - tj.chi2, -np.inf)
                 drops[j] = d
-                suspect[j] = todo & (d > thr_drop[md]) & (tj.chi2 <= thr_rest[md])
-        with np.errstate(invalid="ignore"):
-            dmax = drops.max(0)
-            best = np.where(many, dmax, np.nan)
-            trig = many & (dmax > thr_drop[md])
+                suspect[j] = v_[j] & (d > thr_drop[md_]) & (tj.chi2 <= thr_rest[md_])
+        dmax = drops.max(0)
+        best[sub] = dmax
+        trig = dmax > thr_drop[md_]
         ns = suspect.sum(0)
         one = trig & (ns == 1)
-        flag[trig & (ns >= 2)] = "ambiguous"
-        flag[trig & (ns == 0)] = "unresolved"
-        flag[one] = "left_out"
-        left = np.where(one, np.argmax(suspect, axis=0), -1)
+        f_ = np.full(S, "", dtype=object)
+        f_[trig & (ns >= 2)] = "ambiguous"
+        f_[trig & (ns == 0)] = "unresolved"
+        f_[one] = "left_out"
+        l_ = np.where(one, np.argmax(suspect, axis=0), -1)
+        flag[sub] = f_
+        left[sub] = l_
         p, C, c2, nn = (np.array(tri.p_w_mm, copy=True), np.array(tri.cov_p_mm2, copy=True),
                         np.array(tri.chi2, copy=True), np.array(tri.n_sensors, copy=True))
+        ps, Cs, c2s, nns = p[sub], C[sub], c2[sub], nn[sub]
         for j, tj in enumerate(tris):
-            sel = left == j
+            sel = l_ == j
             if tj is None or not np.any(sel):
                 continue
-            p[sel], C[sel], c2[sel], nn[sel] = tj.p_w_mm[sel], tj.cov_p_mm2[sel], tj.chi2[sel], tj.n_sensors[sel]
+            ps[sel], Cs[sel], c2s[sel], nns[sel] = tj.p_w_mm[sel], tj.cov_p_mm2[sel], tj.chi2[sel], tj.n_sensors[sel]
+        p[sub], C[sub], c2[sub], nn[sub] = ps, Cs, c2s, nns
         tri = Triangulation(p_w_mm=p, cov_p_mm2=C, chi2=c2, n_sensors=nn)
     return RayScreen(tri=tri, left_out=left, flag=flag, chi2_all=chi2_all, drop=best, alpha=float(alpha))
 
