@@ -243,3 +243,56 @@ def test_pose_and_calibration_terms_pass_through_to_the_refits():
     assert (plain.flag != "").sum() > 150
     np.testing.assert_array_equal(full.left_out, plain.left_out)
     np.testing.assert_allclose(full.tri.p_w_mm, plain.tri.p_w_mm, rtol=1e-9, atol=1e-9)
+
+
+def _angles_table(path, n, names, t_s, sigma):
+    """An angles table (psdcal convention: alpha = atan of the normalised coordinate) of rays n (k, N, 2)."""
+    lines = ["# convention: psdcal", "t_s,sensor,emitter,alpha_x_deg,alpha_y_deg,sigma_alpha_x_deg,sigma_alpha_y_deg"]
+    s = math.degrees(sigma)
+    for j, nm in enumerate(names):
+        for i in range(n.shape[1]):
+            if np.all(np.isfinite(n[j, i])):
+                ax, ay = np.degrees(np.arctan(n[j, i]))
+                lines.append(f"{t_s[i]:.6f},{nm},tag,{ax:.12g},{ay:.12g},{s:.6g},{s:.6g}")
+    path.write_text("\n".join(lines) + "\n")
+
+
+def _sensors_file(path, R, t, names):
+    from scipy.spatial.transform import Rotation
+
+    ents = [{"name": nm, "rvec": Rotation.from_matrix(Rj).as_rotvec().tolist(), "tvec_mm": tj.tolist()}
+            for nm, Rj, tj in zip(names, R, t)]
+    path.write_text(json.dumps({"sensors": ents}))
+
+
+@pytest.mark.parametrize("k", [2, 4])
+def test_cli_angles_locate_and_track_say_what_they_found(tmp_path, capsys, k):
+    """locate --angles and track --sensors on a table with one reflected sensor per step: with four sensors
+    that sensor is named in 'left_out'; with two, the rows say 'ambiguous' and no sensor is left out."""
+    n, _, R, t, _, refl, _ = draw(k, 60, seed=40 + k)
+    names = [f"c{j}" for j in range(k)]
+    keep = (np.all(np.isfinite(n), -1).sum(0) == k) & (refl >= 0)
+    t_s = np.arange(60) * 0.01
+    _angles_table(tmp_path / "a.csv", n[:, keep], names, t_s[keep], SIGMA)
+    _sensors_file(tmp_path / "s.json", R, t, names)
+    assert main(["locate", "--angles", str(tmp_path / "a.csv"), "--sensors", str(tmp_path / "s.json"),
+                 "-o", str(tmp_path / "xyz.csv")]) == 0
+    err = capsys.readouterr().err
+    rows = [ln.split(",") for ln in (tmp_path / "xyz.csv").read_text().splitlines()]
+    assert rows[0][-2:] == ["left_out", "reflection"]
+    body = rows[1:]
+    assert len(body) == keep.sum() > 20
+    if k == 4:
+        want = [names[j] for j in refl[keep]]
+        hit = np.mean([r[-2] == w for r, w in zip(body, want)])
+        assert hit >= 0.9
+        assert all(r[-2] in ("", w) for r, w in zip(body, want))  # never another sensor
+        assert "left out of" in err
+    else:
+        assert all(r[-2] == "" for r in body)
+        assert np.mean([r[-1] == "ambiguous" for r in body]) >= 0.8
+        assert "cannot tell which" in err
+    assert main(["track", str(tmp_path / "a.csv"), "--sensors", str(tmp_path / "s.json"),
+                 "-o", str(tmp_path / "track.csv")]) == 0
+    err = capsys.readouterr().err
+    assert ("left out of" in err) if k == 4 else ("cannot tell which" in err)
