@@ -146,6 +146,33 @@ def test_locate_from_each_convention_matches_the_truth(tmp_path, capsys):
     assert "convention tangent" in out and "convention azel" in out
 
 
+def test_locate_widens_the_sigmas_when_the_angles_are_noisier_than_stated(tmp_path, capsys):
+    """Rays 4x noisier than the table states: the file's check fails, says so, and the widened sigmas
+    cover the error again (diagonal NEES of 3 +- 4 standard errors; about 16 without the rule)."""
+    rng = np.random.default_rng(7)
+    sensors = make_room(rng)
+    sensors_json(tmp_path / "s.json", sensors)
+    t_s, P = moving_points(rng, 120, 3)
+    emitters = ["led1", "led2", "tag"]
+    rows = observe(rng, sensors, P, t_s, emitters, "tangent", 4e-4)
+    write_table(tmp_path / "a.csv", rows, "tangent", 1e-4)
+    out = tmp_path / "xyz.csv"
+    assert main(["locate", "--angles", str(tmp_path / "a.csv"), "--sensors", str(tmp_path / "s.json"),
+                 "-o", str(out)]) == 0
+    err = capsys.readouterr().err
+    assert "warning" in err and "locate_angles_chi2" in err and "extra ray noise" in err
+    nees = []
+    for r in read_csv(out):
+        i = round(float(r["t_s"]) / 0.05)
+        d = np.array([float(r[k]) for k in ("X_mm", "Y_mm", "Z_mm")]) - P[i, emitters.index(r["emitter"])]
+        s = np.array([float(r[k]) for k in ("sigma_X_mm", "sigma_Y_mm", "sigma_Z_mm")])
+        nees.append(np.sum((d / s) ** 2))
+    nees = np.array(nees)
+    se = nees.std(ddof=1) / math.sqrt(len(nees))
+    assert len(nees) > 300
+    assert abs(nees.mean() - 3.0) < 4 * se, (nees.mean(), se)
+
+
 def test_locate_equals_the_python_path_and_calls_triangulate(tmp_path):
     from psdcal.measure.angles_locate import load_angle_sensors, triangulate_table
     from psdcal.measure.angles_table import read_angles
@@ -182,7 +209,9 @@ def test_locate_equals_the_python_path_and_calls_triangulate(tmp_path):
     from psdcal.measure.angles_locate import ANGLES_LOCATE_COLUMNS
     from psdcal.measure.locate import MULTI_COLUMNS
 
-    assert tuple(MULTI_COLUMNS[: len(ANGLES_LOCATE_COLUMNS)]) == ANGLES_LOCATE_COLUMNS
+    assert tuple(MULTI_COLUMNS[:10]) == tuple(ANGLES_LOCATE_COLUMNS[:10])
+    # both end with the reflection columns (docs/guide/positioning.md#reflections)
+    assert MULTI_COLUMNS[-2:] == ANGLES_LOCATE_COLUMNS[-2:] == ("left_out", "reflection")
 
 
 def test_locate_aligns_sensors_that_do_not_sample_together_and_tracks(tmp_path, capsys):

@@ -145,3 +145,36 @@ def test_known_gains_held_fixed_give_the_truth(cost):
                                [intr.f_mm, intr.cx_mm, intr.cy_mm], atol=1e-8)
     np.testing.assert_allclose(res.gains, rel, rtol=1e-12)
     assert res.rms_mm < 1e-9
+
+
+def test_stated_noise_checked_and_covariance_covers():
+    """With the readout noise stated: 400 benches at the stated noise leave the covariance at noise^2 (J^T J)^-1
+    (false alarms at the 1e-3 rate); benches 3x noisier fail the check and their inflated covariance covers the
+    gains' error (NEES mean of 3 dof within 3 Monte Carlo standard errors).  Noise drawn with numpy here."""
+    import math
+
+    from psdcal.calibration.gains import calibrate_gains, calibration_spots
+    from psdcal.model.readout import gain_map
+
+    g_true = np.array([1.0, 1.03, 0.98, 1.01])
+    spots = calibration_spots(7, 3.5)
+    clean = gain_map(spots, g_true)
+    rng = np.random.default_rng(21)
+    sigma = 2e-3
+    for factor in (1.0, 3.0):
+        nees, fails = [], 0
+        for _ in range(400):
+            gc = calibrate_gains(spots, clean + factor * sigma * rng.standard_normal(clean.shape), noise_mm=sigma)
+            fails += gc.check.passed is False
+            e = gc.gains[1:] - g_true[1:]
+            nees.append(e @ np.linalg.solve(gc.covariance, e))
+        nees = np.array(nees)
+        se = nees.std(ddof=1) / math.sqrt(len(nees))
+        assert abs(nees.mean() - 3) < 3 * se, (factor, nees.mean(), se)
+        if factor == 1.0:
+            assert fails <= 3  # 1e-3 rate: P(> 3 of 400) < 1e-3
+        else:
+            assert fails == 400
+    gc = calibrate_gains(spots, clean + 3 * sigma * rng.standard_normal(clean.shape), noise_mm=sigma)
+    assert "covariance inflated" in gc.check.message and gc.to_dict()["checks"][0]["passed"] is False
+    assert calibrate_gains(spots, clean, noise_mm=None).check.passed is None

@@ -69,8 +69,8 @@ def test_locate_tdm_from_csv(tmp_path, calib):
     np.testing.assert_allclose(r["alpha_x_deg"], [4.0, -9.0], atol=0.05)
 
 
-def test_locate_several_sensors(tmp_path):
-    p_true = np.array([150.0, -80.0, 4500.0])
+def _two_sensors(tmp_path, p_true, offset_mm=0.0):
+    """Two sensors' recordings of one emitter; the second sensor's stated centre moved by ``offset_mm`` in y."""
     sensors = []
     for i, (r, c) in enumerate([([0, 0.2, 0], [-900.0, 0, 0]), ([0, -0.2, 0.01], [900.0, 30.0, 0])]):
         cal = calib_dict(seed=i)
@@ -82,17 +82,46 @@ def test_locate_several_sensors(tmp_path):
         dd = spot_for_angles(m, np.arctan(pc[:2] / pc[2]))
         x = signals(RATE, 25_000, [(amplitudes(m, dd), 1000.0, 0.4)], noise=1e-3, rng=np.random.default_rng(i))
         np.save(tmp_path / f"r{i}.npy", x.T)
-        sensors.append({"name": f"s{i}", "calib": f"c{i}.json", "rvec": r, "tvec_mm": tvec.tolist(),
+        stated = tvec - R @ np.array([0.0, offset_mm * i, 0.0])
+        sensors.append({"name": f"s{i}", "calib": f"c{i}.json", "rvec": r, "tvec_mm": stated.tolist(),
                         "recording": f"r{i}.npy"})
     (tmp_path / "sensors.json").write_text(json.dumps(sensors))
+    return tmp_path / "sensors.json"
+
+
+def test_locate_several_sensors(tmp_path, capsys):
+    p_true = np.array([150.0, -80.0, 4500.0])
+    sensors = _two_sensors(tmp_path, p_true)
     out = tmp_path / "xyz.csv"
-    assert main(["locate", "--sensors", str(tmp_path / "sensors.json"), "--rate-hz", "125000",
+    assert main(["locate", "--sensors", str(sensors), "--rate-hz", "125000",
                  "--carrier-hz", "1000", "-o", str(out)]) == 0
     assert out.read_text().splitlines()[0] == ",".join(MULTI_COLUMNS)
     r = read(out)
     assert len(r) == 20
     for k, col in enumerate(("X_mm", "Y_mm", "Z_mm")):
         assert np.all(np.abs(r[col] - p_true[k]) < 3 * r["sigma_" + col])
+    assert np.all(r["dof"] == 1)
+    assert "triangulation_chi2" not in capsys.readouterr().err
+
+
+def test_locate_several_sensors_with_a_pose_off_warns_and_covers(tmp_path, capsys):
+    """A sensor's stated centre 40 mm off: the rays miss each other; the file's rows are flagged, one warning
+    gives the extra ray noise, and the inflated sigmas cover the (now real) error where the stated ones did not."""
+    p_true = np.array([150.0, -80.0, 4500.0])
+    sensors = _two_sensors(tmp_path, p_true, offset_mm=40.0)
+    out = tmp_path / "xyz.csv"
+    assert main(["locate", "--sensors", str(sensors), "--rate-hz", "125000",
+                 "--carrier-hz", "1000", "-o", str(out)]) == 0
+    captured = capsys.readouterr()
+    warn = [ln for ln in captured.err.splitlines() if "triangulation_chi2" in ln]
+    assert len(warn) == 1 and "extra ray noise" in warn[0] and "sigmas grown" in warn[0], captured.err
+    assert "20 flagged by their chi2" in captured.out
+    r = read(out)
+    assert np.all(r["flagged"] == 1)
+    err = np.sqrt(sum((r[c] - p_true[k]) ** 2 for k, c in enumerate(("X_mm", "Y_mm", "Z_mm"))))
+    sig = np.sqrt(sum(r["sigma_" + c] ** 2 for c in ("X_mm", "Y_mm", "Z_mm")))
+    assert np.median(err) > 5.0  # a real error of millimetres
+    assert np.all(err < 4 * sig), (err, sig)
 
 
 def test_aoa_command(tmp_path, calib):

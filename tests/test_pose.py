@@ -19,7 +19,7 @@ from psdcal.measure.aoa import angles_from_points
 from psdcal.measure.pose import estimate_pose, read_emitters
 from psdcal.measure.positioning import SensorPose, triangulate_aoa
 from psdcal.measure.sensor_model import SensorModel
-from psdcal.model.projection import R_from_r
+from psdcal.model.projection import R_from_r, r_from_R
 from psdcal.study.recordings import calib_dict, project_world, room_layout, spot_for_normalised
 
 TRUE = SensorModel.from_dict(calib_dict(seed=4))
@@ -279,3 +279,26 @@ def test_cli_pose_errors_are_one_line(tmp_path, capsys):
     err = capsys.readouterr().err.strip()
     assert "em.csv" in err and "Z_m" in err and len(err.splitlines()) == 1
     assert not (tmp_path / "e.json").exists()
+
+
+def test_ceiling_sensor_over_floor_emitters_is_never_a_mirror_image():
+    """The issue's case: every emitter on the floor (z = 0), a sensor on the ceiling looking down, 25 rooms. The old
+    solver returned a reflection (the sensor below the floor, a good chi2) in about half of them."""
+    rng = np.random.default_rng(19)
+    for _ in range(25):
+        k = int(rng.integers(4, 9))
+        P = np.c_[rng.uniform(0, 6000, k), rng.uniform(0, 4000, k), np.zeros(k)]
+        c = np.array([rng.uniform(1000, 5000), rng.uniform(1000, 3000), rng.uniform(2400, 3000)])
+        # looking down (camera z = -world z), rolled by a random angle about the vertical, tilted a little
+        yaw = rng.uniform(-np.pi, np.pi)
+        R = R_from_r(rng.normal(0, 0.1, 3)) @ np.diag([1.0, -1.0, -1.0]) @ R_from_r(np.array([0.0, 0.0, yaw]))
+        rvec = r_from_R(R)
+        n, _ = project_world(P, rvec, -R @ c)
+        sig = 1e-4
+        n = n + sig * rng.standard_normal(n.shape)
+        r = estimate_pose(n, np.broadcast_to(sig**2 * np.eye(2), (k, 2, 2)), P)
+        assert r.usable and r.center_w_mm[2] > 0
+        assert r.nees(rvec, c) < 37.95  # chi2(6) at 1e-6
+        # the written pose reproduces the fitted angles (a reflection inside would not)
+        m, _ = project_world(P, r.rvec, r.tvec_mm)
+        np.testing.assert_allclose(m, n - r.residual_n, atol=1e-9)

@@ -225,4 +225,38 @@ def with_advice(check: Check, advice: str) -> Check:
     return replace(check, advice=advice)
 
 
-__all__ = ["ALPHA", "Check", "VERDICTS", "chi2_check", "extra_variance", "inflate", "verdict_of", "with_advice"]
+__all__ = ["ALPHA", "Check", "VERDICTS", "chi2_check", "extra_variance", "extra_variance_on_grid", "inflate", "verdict_of",
+           "with_advice"]
+
+
+def extra_variance_on_grid(grid, sums, dof: float) -> float:
+    """:func:`extra_variance` from sums pooled over many calls (bounded memory).
+
+    Parameters
+    ----------
+    grid : (g,) array_like
+        Increasing trial values of the extra variance ``s2`` (> 0, log-spaced).
+    sums : (g,) array_like
+        ``sum_i r_i^2 / (var_i + s2)`` over all residuals for each ``s2`` of ``grid``.
+    dof : float
+        Degrees of freedom of the pooled residuals.
+
+    Returns
+    -------
+    float
+        The ``s2`` where the sums cross ``dof`` (log-log interpolation between
+        grid points); 0 when even the smallest ``s2`` gives ``sums <= dof``,
+        the largest grid value when they never come down to ``dof``.
+    """
+    g = np.asarray(grid, dtype=float)
+    f = np.asarray(sums, dtype=float)
+    if not dof > 0 or f.size == 0 or f[0] <= dof:
+        return 0.0
+    below = np.flatnonzero(f <= dof)
+    if below.size == 0:
+        return float(g[-1])
+    j = int(below[0])
+    x0, x1 = math.log(g[j - 1]), math.log(g[j])
+    y0, y1 = math.log(f[j - 1]), math.log(max(f[j], 1e-300))
+    x = x0 + (math.log(dof) - y0) * (x1 - x0) / (y1 - y0) if y1 != y0 else x1
+    return float(math.exp(x))

@@ -71,11 +71,13 @@ Levenberg-Marquardt through :func:`psdcal.model.readout.gain_map`
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 from scipy.optimize import least_squares
 
+from psdcal._consistency import ALPHA, Check, chi2_check, inflate
 from psdcal.errors import DegenerateViewsError, InputError
 from psdcal.model.readout import LX_MM, LY_MM, _NUM_X, _NUM_Y, _SPLIT, gain_homography, gain_map, impact_point
 
@@ -268,6 +270,11 @@ class GainCalibration:
     iterations : int
     converged : bool
     message : str
+    check : Check or None
+        The chi-squared test of the residuals against the stated point noise
+        (``noise_mm``; :func:`psdcal._consistency.chi2_check`).  Without a
+        stated noise it is not applicable (``passed`` None) and the covariance
+        uses the residual scatter (``chi2 / dof = 1`` by construction).
     """
 
     gains: np.ndarray
@@ -278,6 +285,7 @@ class GainCalibration:
     iterations: int
     converged: bool
     message: str
+    check: Check | None = None
 
     def apply(self, amplitudes) -> np.ndarray:
         """Correct raw amplitudes (..., 4) with the fitted gains (:func:`apply_gains`)."""
@@ -295,11 +303,12 @@ class GainCalibration:
             "n_spots": int(self.n_spots),
             "iterations": int(self.iterations),
             "converged": bool(self.converged),
+            "checks": [] if self.check is None else [self.check.to_dict()],
         }
 
 
 def calibrate_gains(spots_mm, measured_mm, lx_mm: float = LX_MM, ly_mm: float = LY_MM,
-                    *, max_iterations: int = 50) -> GainCalibration:
+                    *, max_iterations: int = 50, noise_mm: float | None = None) -> GainCalibration:
     """Electrical calibration: relative channel gains from spots at known positions.
 
     Minimises ``sum |gain_map(p_k, g) - d_k|^2`` over ``g_x2, g_y1, g_y2``
@@ -318,6 +327,13 @@ def calibrate_gains(spots_mm, measured_mm, lx_mm: float = LX_MM, ly_mm: float = 
     lx_mm, ly_mm : float
         PSD active lengths, mm.
     max_iterations : int
+    noise_mm : float, optional
+        The known noise of each measured coordinate, mm (1-sigma).  With it
+        the residuals are tested (``chi2 = sum r^2 / noise^2`` against
+        ``2 n - 3`` dof at 1e-3): the covariance is ``noise^2 (J^T J)^-1``
+        when they agree and grows by ``chi2 / dof`` (the ratio rule) with a
+        check that says so when they do not.  Without it the covariance is
+        ``s^2 (J^T J)^-1`` with ``s^2`` the residual variance.
 
     Returns
     -------
@@ -347,7 +363,19 @@ def calibrate_gains(spots_mm, measured_mm, lx_mm: float = LX_MM, ly_mm: float = 
     J = jac(sol.x)
     dof = max(r.size - 3, 1)
     sigma2 = float(r @ r) / dof
-    cov = sigma2 * np.linalg.pinv(J.T @ J)
+    what = f"the {p.shape[0]} spots' residuals"
+    if noise_mm is None:
+        check = Check("gains_chi2", None, None, None, ALPHA, None,
+                      f"{what}: no noise stated, the covariance uses their scatter "
+                      f"({math.sqrt(sigma2) * 1e3:.3g} um per coordinate)", dof=float(dof), inflation=1.0)
+        cov = sigma2 * np.linalg.pinv(J.T @ J)
+    else:
+        if not (np.isfinite(noise_mm) and noise_mm > 0):
+            raise InputError(f"the point noise must be a positive number of mm, got {noise_mm}", field="noise_mm")
+        check = chi2_check(float(r @ r) / noise_mm**2, dof, name="gains_chi2", what=what,
+                           advice="the readout noise is larger than stated, a spot position is wrong (units, "
+                                  "x and y swapped), or the PSD is non-linear beyond the gain model")
+        cov = inflate(noise_mm**2 * np.linalg.pinv(J.T @ J), check)
     return GainCalibration(
         gains=full(sol.x),
         covariance=cov,
@@ -357,6 +385,7 @@ def calibrate_gains(spots_mm, measured_mm, lx_mm: float = LX_MM, ly_mm: float = 
         iterations=int(sol.njev) if sol.njev is not None else int(sol.nfev),
         converged=bool(sol.status > 0),
         message=str(sol.message),
+        check=check,
     )
 
 

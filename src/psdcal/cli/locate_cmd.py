@@ -130,7 +130,7 @@ def locate_command(recordings, calib, sensors, gains_file, rate_hz, carriers, em
     \b
     Several sensors (recordings from SENSORS.json or given in its order):
       psdcal locate --sensors sensors.json --rate-hz 125000 --carrier-hz 1000 -o xyz.csv
-    columns: t_s,emitter,X_mm,Y_mm,Z_mm,sigma_X_mm,sigma_Y_mm,sigma_Z_mm,n_sensors,chi2
+    columns: t_s,emitter,X_mm,Y_mm,Z_mm,sigma_X_mm,sigma_Y_mm,sigma_Z_mm,n_sensors,chi2,dof,flagged
 
     \b
     Angles from any AoA front-end (no calibration, no recordings; docs/guide/positioning.md#angles-in):
@@ -256,9 +256,10 @@ def _report(summary, output) -> None:
     for w in summary.warnings:
         click.echo(f"psdcal: warning: {w}", err=True)
     segs = "" if summary.n_segments is None else f", {summary.n_segments} TDM segments"
+    flagged = "" if summary.n_flagged is None else f", {summary.n_flagged} flagged by their chi2"
     click.echo(
         f"wrote {summary.n_rows} rows to {output} ({summary.duration_s:.6g} s of signal, "
-        f"{summary.n_windows} windows of {summary.window_s:g} s{segs}, {summary.n_skipped} below --min-snr)"
+        f"{summary.n_windows} windows of {summary.window_s:g} s{segs}, {summary.n_skipped} below --min-snr{flagged})"
     )
 
 

@@ -386,6 +386,11 @@ def _table_angles(path, header, rows):
 @click.option("--known-rvec", type=(float, float, float), default=None,
               help="Known orientation (rotation vector world -> camera, rad): only the position is estimated.")
 @click.option("--known-height-m", type=float, default=None, help="Known height of the sensor's centre, m.")
+@click.option("--side-point", "side_point", type=(float, float, float), default=None,
+              help="A point (X Y Z, m) on the sensor's side of the emitters' plane, for (nearly) coplanar emitters "
+                   "whose mirror image fits as well (default: the side rule, see the docs).")
+@click.option("--max-extent-m", type=float, default=100.0, show_default=True,
+              help="Largest plausible extent of the emitters, m (beyond: a unit error, exit 2).")
 @click.option("--name", default="s1", show_default=True, help="Sensor name in the sensors file.")
 @click.option("--recording", "rec_key", type=click.Path(dir_okay=False, path_type=Path),
               help="Recording the sensors-file entry names (default: SOURCE when it is a recording).")
@@ -398,7 +403,8 @@ def _table_angles(path, header, rows):
                    "table has it, else the table's only sensor).")
 @_angles.table_options
 def pose_command(source, calib, emitters_csv, rate_hz, carriers, emitter_names, also, window_s, schedule, tdm, min_snr,
-                 known_rvec, known_height_m, name, rec_key, into, output, table_sensor=None, **table_kw):
+                 known_rvec, known_height_m, side_point, max_extent_m, name, rec_key, into, output,
+                 table_sensor=None, **table_kw):
     """Estimate a calibrated sensor's rotation and position in the room (PnP + maximum likelihood).
 
     SOURCE is the sensor's recording of >= 3 emitters at known positions
@@ -423,7 +429,11 @@ def pose_command(source, calib, emitters_csv, rate_hz, carriers, emitter_names, 
       psdcal pose room/s1.npy --rate-hz 20000 --calib calib.json --emitters room/emitters.csv \\
           --name s1 --into sensors.json
     Collinear or too few emitters: an error; a poor layout or angles that do not fit
-    the coordinates (chi2, 0.1 % false alarms): a warning on stderr and in the entry.
+    the coordinates (chi2, 0.1 % false alarms; the covariance is then inflated by
+    chi2/dof): a warning on stderr and in the entry.  A survey that looks mirrored
+    (x/y swapped, a left-handed frame), a sensor on the unexpected side of coplanar
+    emitters (--side-point to state it), or emitters spread over more than
+    --max-extent-m (a unit error): one line, exit 2, nothing written.
     """
     import os
     import tempfile
@@ -443,7 +453,7 @@ def pose_command(source, calib, emitters_csv, rate_hz, carriers, emitter_names, 
     if calib is None and not front_end and not (source.suffix.lower() == ".csv" and source.exists()):
         raise InputError("give --calib (a recording needs the sensor's calibration)", field="calib")
     model = None if calib is None else SensorModel.load(calib)
-    names_w, P, carriers_w = read_emitters(emitters_csv)
+    names_w, P, carriers_w = read_emitters(emitters_csv, max_extent_m=max_extent_m)
     table = _read_table(source) if source.suffix.lower() == ".csv" and source.exists() and not front_end else None
     angles = None
     if front_end:
@@ -493,7 +503,9 @@ def pose_command(source, calib, emitters_csv, rate_hz, carriers, emitter_names, 
             header, rows = _read_table(amp)
             means = _table_means(amp, header, rows, model)
         recording = rec_key or source
-    kw = dict(known_rvec=known_rvec, known_height_mm=None if known_height_m is None else known_height_m * 1000.0)
+    kw = dict(known_rvec=known_rvec, known_height_mm=None if known_height_m is None else known_height_m * 1000.0,
+              side_point_mm=None if side_point is None else np.array(side_point) * 1000.0,
+              max_extent_mm=max_extent_m * 1000.0)
     if angles == "front-end":
         from psdcal.cli._angles import pose_angles
 
@@ -506,6 +518,9 @@ def pose_command(source, calib, emitters_csv, rate_hz, carriers, emitter_names, 
     else:
         moved = [nm for nm, p in zip(means.names, means.scatter_p) if nm in names_w and np.isfinite(p) and p < 1e-6]
         res = pose_from_means(means, model, names_w, P, **kw)
+    if not res.usable:  # a mirrored survey, the sensor on the unexpected side, a unit error: nothing written
+        bad = [c for c in res.checks if c.passed is False and c.severe]
+        raise InputError(f"{bad[0].message}; nothing written", path=emitters_csv)
     base = (into or output).resolve().parent
 
     def rel(p):
@@ -765,7 +780,8 @@ def bundle_command(located, calibs, known_csv, wands, points_out, output, angles
             "pose_covariance": {"names": ["omega_x_rad", "omega_y_rad", "omega_z_rad", "tx_mm", "ty_mm", "tz_mm"],
                                 "matrix": br.cov_omega_t(j).tolist()},
             "pose": {"center_w_mm": c.tolist(), "sigma_center_mm": sig_c.tolist(),
-                     "sigma_rotation_deg": sig_r.tolist(), "method": "bundle", "chi2": br.chi2, "dof": br.dof},
+                     "sigma_rotation_deg": sig_r.tolist(), "method": "bundle", "chi2": br.chi2, "dof": br.dof,
+                     "checks": [br.check.to_dict()] if br.check is not None else []},
         })
     write_json(output, {"sensors": entries})
     if points_out is not None:
@@ -783,12 +799,8 @@ def bundle_command(located, calibs, known_csv, wands, points_out, output, angles
         p = e["pose"]
         click.echo(f"  {e['name']}: centre +- {max(p['sigma_center_mm']):.3g} mm, rotation +- "
                    f"{max(p['sigma_rotation_deg']):.3g} deg")
-    from scipy.stats import chi2 as chi2_dist
-
-    if br.dof > 0 and chi2_dist.sf(br.chi2, br.dof) < 1e-3:
-        click.echo(f"warning: the observations do not fit (chi2 {br.chi2:.4g} for {br.dof} dof): a wrong known "
-                   "position, a wand window seen differently by the sensors, or a wrong start (3 known emitters "
-                   "can give a mirrored pose: use 4 or more)", err=True)
+    if br.check is not None and br.check.passed is False:
+        click.echo(f"warning: the observations do not fit: {br.check.line()} ({br.check.advice})", err=True)
 
 
 # --------------------------------------------------------------------------- plan

@@ -19,11 +19,11 @@ are first brought to common times by
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
-from psdcal._consistency import Check, chi2_check
+from psdcal._consistency import Check
 from psdcal.errors import InputError
 from psdcal.measure.angles_table import AnglesTable
 
@@ -33,6 +33,9 @@ ANGLES_LOCATE_COLUMNS = ("t_s", "emitter", "X_mm", "Y_mm", "Z_mm", "sigma_X_mm",
                          "n_sensors", "chi2")
 #: Appended: the sensor left out as a reflection and the flag (:mod:`psdcal.measure.reflections`), as ``locate``.
 ANGLES_LOCATE_COLUMNS = ANGLES_LOCATE_COLUMNS + ("left_out", "reflection")
+#: What a failed check of the table's rays points to.
+ANGLES_ADVICE = ("the stated angle sigmas are too small, the sensors' poses are off, the sensors do not sample "
+                 "together (--align-to, --time-offset), or a ray is a reflection")
 #: Time steps triangulated at once (bounds memory on long tables).
 CHUNK_STEPS = 65536
 
@@ -153,7 +156,8 @@ def triangulate_table(table: AnglesTable, sensors, *, sensors_path=None, chunk_s
     AnglePositions
         Sorted by time, then emitter name.
     """
-    from psdcal.measure.positioning import triangulate
+    from psdcal.measure.locate_multi import _RowPool
+    from psdcal.measure.positioning import extra_noise_check, triangulate
     from psdcal.measure.reflections import left_out_names, reflection_warnings, screen_rays
 
     check_sensors_known(table, sensors, sensors_path)
@@ -171,7 +175,8 @@ def triangulate_table(table: AnglesTable, sensors, *, sensors_path=None, chunk_s
     cp = None
     if any(s.cov_pose is not None for s in used):
         cp = np.stack([np.zeros((6, 6)) if s.cov_pose is None else np.asarray(s.cov_pose, float) for s in used])
-    parts = []
+    parts, tris, refl = [], [], []
+    pool = _RowPool() if alpha is None else _RowPool(alpha)
     order = np.argsort(gi, kind="stable")
     bounds = np.searchsorted(gi[order], np.arange(0, len(groups) + chunk_steps, chunk_steps))
     for a in range(0, len(groups), chunk_steps):
@@ -181,26 +186,32 @@ def triangulate_table(table: AnglesTable, sensors, *, sensors_path=None, chunk_s
         cov = np.full((k, G, 2, 2), np.nan)
         n[si[rows], gi[rows] - a] = table.n[rows]
         cov[si[rows], gi[rows] - a] = table.cov_n[rows]
-        tri = triangulate(n, cov, R, t, cov_pose=cp)
-        scr = screen_rays(n, cov, R, t, tri, cov_pose=cp, **({} if alpha is None else {"alpha": alpha}))
+        tri = triangulate(n, cov, R, t, cov_pose=cp, inflate=False)  # the file's rule below, as locate's
+        scr = screen_rays(n, cov, R, t, tri, cov_pose=cp, inflate=False,
+                          **({} if alpha is None else {"alpha": alpha}))
         tri = scr.tri  # a sensor whose ray disagrees with the others left out
-        parts.append((tri.p_w_mm, tri.cov_p_mm2, tri.chi2, tri.n_sensors, left_out_names(scr, names), scr.flag))
+        refl.append((left_out_names(scr, names), scr.flag))
+        pool.add(tri)
+        tris.append(tri)
+    check, s2 = pool.result()
+    for tri in tris:
+        parts.append((tri.p_w_mm, tri.cov_p_stated_mm2 + s2 * tri.dcov_dextra_mm2, tri.chi2, tri.n_sensors))
+    if s2 > 0:  # the check's message and inflation: the extra noise and the sigmas' growth over all points
+        C0 = np.concatenate([tri.cov_p_stated_mm2 for tri in tris])
+        C1 = np.concatenate([x[1] for x in parts])
+        check = extra_noise_check(check, s2, np.trace(C0, axis1=-2, axis2=-1), np.trace(C1, axis1=-2, axis2=-1))
+    check = replace(check, name="locate_angles_chi2", advice=ANGLES_ADVICE)
     p = np.concatenate([x[0] for x in parts])
     C = np.concatenate([x[1] for x in parts])
     chi2 = np.concatenate([x[2] for x in parts])
     ns = np.concatenate([x[3] for x in parts])
-    lo = np.concatenate([x[4] for x in parts])
-    fl = np.concatenate([x[5] for x in parts])
+    lo = np.concatenate([x[0] for x in refl])
+    fl = np.concatenate([x[1] for x in refl])
     ok = ns >= 2
     g = groups[ok]
     tt = tu[g // len(eu)]
     ee = eu[g % len(eu)].astype(object)
-    dof = float((2 * ns[ok] - 3).sum())
     kw = {} if alpha is None else {"alpha": alpha}
-    check = chi2_check(float(chi2[ok].sum()), dof, name="locate_angles_chi2", inflate=False,
-                       what=f"the rays of {int(ok.sum())} triangulated points",
-                       advice="the stated angle sigmas are too small, the sensors' poses are off, the sensors do "
-                              "not sample together (--align-to, --time-offset), or a ray is a reflection", **kw)
     return AnglePositions(tt, ee, p[ok], C[ok], chi2[ok], ns[ok].astype(int), int((~ok).sum()), check,
                           lo[ok], fl[ok], tuple(reflection_warnings(lo[ok], fl[ok], **kw)))
 

@@ -29,10 +29,11 @@ solution separately (``calib``) rather than treated as independent noise
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
+from psdcal._consistency import Check, chi2_check
 from psdcal.measure._geometry import skews
 from psdcal.errors import ConvergenceError, DegenerateViewsError, InputError
 from psdcal.model.projection import R_from_r, r_from_R, skew3
@@ -60,6 +61,14 @@ class BundleResult:
     chi2 : float
     dof : int
     iterations : int
+    check : Check or None
+        The chi-squared test of the observations against their stated noise
+        (:func:`psdcal._consistency.chi2_check`, false-alarm rate 1e-3).
+        When it fails, ``cov_poses`` and ``cov_points`` are multiplied by
+        ``check.inflation = chi2 / dof`` (the ratio rule: every stated ray
+        variance was too small by that factor) and the message says so.
+    cov_poses_stated, cov_points_stated : ndarrays or None
+        The covariances before that inflation.
     """
 
     sensors: list
@@ -73,6 +82,9 @@ class BundleResult:
     chi2: float
     dof: int
     iterations: int
+    check: Check | None = None
+    cov_poses_stated: np.ndarray | None = field(default=None, repr=False)
+    cov_points_stated: np.ndarray | None = field(default=None, repr=False)
 
     @property
     def tvecs_mm(self) -> np.ndarray:
@@ -310,8 +322,17 @@ def bundle_adjust(sensors, points, obs_sensor, obs_point, n, cov_n, known_mm: di
             cov_poses = cov_poses + Pp @ Sc[j] @ np.swapaxes(Pp, 1, 2)
             cov_points[unk] += Px @ Sc[j] @ np.swapaxes(Px, 1, 2)
     dof = 2 * N - 6 * S - 3 * Mu
-    return BundleResult(list(sensors), np.stack([r_from_R(R) for R in Rs]), cs, cov_poses, list(points), X,
-                        cov_points, known, float(f), int(dof), it)
+    check = chi2_check(float(f), dof, name="bundle_chi2", what=f"the {N} observations of {S} sensors",
+                       advice=BUNDLE_ADVICE)
+    infl = 1.0 if check.inflation is None else float(check.inflation)
+    return BundleResult(list(sensors), np.stack([r_from_R(R) for R in Rs]), cs, infl * cov_poses, list(points), X,
+                        infl * cov_points, known, float(f), int(dof), it, check=check, cov_poses_stated=cov_poses,
+                        cov_points_stated=cov_points)
+
+
+#: The likely causes of a bundle adjustment that does not fit its stated noise.
+BUNDLE_ADVICE = ("a wrong known position, a wand window seen differently by the sensors, an underestimated angle "
+                 "noise, or a wrong start (3 known emitters can give a mirrored pose: use 4 or more)")
 
 
 def _triangulate_points(Rs, cs, js, ii, n, W, M):

@@ -17,7 +17,13 @@ correction) and its sigma the signal noise alone; the angle and position
 sigmas combine the signal noise and the calibration covariance.  With
 several sensors::
 
-    t_s,emitter,X_mm,Y_mm,Z_mm,sigma_X_mm,sigma_Y_mm,sigma_Z_mm,n_sensors,chi2
+    t_s,emitter,X_mm,Y_mm,Z_mm,sigma_X_mm,sigma_Y_mm,sigma_Z_mm,n_sensors,chi2,dof,flagged
+
+``chi2`` is the row's ray residual against the stated noise with ``dof``
+(``2 n_sensors - 3``) degrees of freedom; ``flagged`` is 1 where it fails its
+test at the false-alarm rate 1e-3.  When all the rows of the file together
+disagree with the stated noise, every row's sigma includes one extra ray noise
+estimated from all of them (:func:`locate_multi_to_csv`).
 """
 from __future__ import annotations
 
@@ -29,10 +35,9 @@ from typing import Callable
 import numpy as np
 
 from psdcal._atomic import atomic_path
-from psdcal.measure.aoa import angles_from_amplitudes, angles_from_points, impact_from_amplitudes
+from psdcal.measure.aoa import angles_from_points, impact_from_amplitudes
 from psdcal.errors import InputError, ZeroSignalError
-from psdcal.measure.positioning import plane_position, ray_inputs, triangulate
-from psdcal.measure.reflections import left_out_names, reflection_warnings, screen_rays
+from psdcal.measure.positioning import plane_position
 from psdcal.signal.recording import DEFAULT_CHUNK, Recording
 from psdcal.measure.sensor_model import SensorModel
 from psdcal.signal.stream import MultiCarrierLockin, TdmSegmenter
@@ -135,6 +140,12 @@ class LocateSummary:
     warnings: tuple = ()
     window_s: float | None = None
     n_segments: int | None = None
+    #: Several sensors: rows whose own chi-squared test failed (the ``flagged`` column).
+    n_flagged: int | None = None
+    #: Several sensors: the file's pooled chi-squared check (:class:`psdcal._consistency.Check`).
+    checks: tuple = ()
+    #: Several sensors: the extra ray variance (normalised coordinates^2) added to every row's rays (0: none).
+    extra_var_n: float | None = None
 
 
 def prescan(recording: Recording, config: LocateConfig) -> tuple[float, list[str]]:
@@ -181,12 +192,6 @@ def single_columns(with_plane: bool) -> tuple[str, ...]:
     if with_plane:
         cols += ["sigma_X_mm", "sigma_Y_mm"]
     return tuple(cols)
-
-
-MULTI_COLUMNS = ("t_s", "emitter", "X_mm", "Y_mm", "Z_mm", "sigma_X_mm", "sigma_Y_mm", "sigma_Z_mm", "n_sensors", "chi2")
-#: Appended to :data:`MULTI_COLUMNS` rows: the sensor left out as a reflection and the flag
-#: (:mod:`psdcal.measure.reflections`).
-MULTI_COLUMNS = MULTI_COLUMNS + ("left_out", "reflection")
 
 
 def _write_rows(fh, cols: dict, order) -> int:
@@ -533,115 +538,6 @@ def amplitudes_to_csv(recording: Recording, out_path, config: LocateConfig, *, i
     return _stream_single(recording, config, out_path, order, make_cols, progress)
 
 
-def locate_multi_to_csv(recordings, sensors, out_path, config: LocateConfig,
-                        progress: Callable[[int], None] | None = None) -> LocateSummary:
-    """Triangulate emitters seen by several sensors; write 3D positions to CSV.
-
-    The recordings (one per sensor, same sampling rate, started together) are
-    demodulated in lockstep; for every window and emitter the rays of the
-    sensors that see it (total amplitude above ``min_snr`` sigma) are
-    intersected (:func:`psdcal.measure.positioning.triangulate`).
-
-    Parameters
-    ----------
-    recordings : sequence of Recording
-    sensors : sequence of SensorPose
-    out_path : str or Path
-    config : LocateConfig
-        ``tdm`` and ``distance_mm`` are not used here.
-    progress : callable, optional
-
-    Returns
-    -------
-    LocateSummary
-    """
-    if config.output_format != "csv":
-        raise InputError("--format npy is not available with --sensors (several sensors): write CSV", field="format")
-    if len(recordings) != len(sensors) or len(sensors) < 2:
-        raise InputError("give one recording per sensor and at least two sensors", field="sensors")
-    if config.tdm:
-        raise InputError("time multiplexing is supported with one sensor only", field="tdm")
-    rates = {r.rate_hz for r in recordings}
-    if len(rates) != 1:
-        raise InputError(f"the recordings have different sampling rates {sorted(rates)}", field="rate_hz")
-    rate = rates.pop()
-    names = config.emitter_names()
-    k = len(names)
-    warnings: list[str] = []
-    window_s = 0.01 if config.window_s is None else config.window_s
-    for r in recordings:
-        warnings += prescan(r, LocateConfig(config.carriers_hz, window_s, check_carriers=config.check_carriers))[1]
-    lockins = [MultiCarrierLockin(rate, config.carriers_hz, window_s) for _ in sensors]
-    nwin = lockins[0].n_window
-    chunk = max(1, int(config.chunk_samples) // nwin) * nwin
-    R = np.stack([s.R for s in sensors])
-    t = np.stack([np.asarray(s.tvec_mm, dtype=float) for s in sensors])
-    names_arr = np.array(names, dtype=object)
-    n_samples = n_windows = n_rows = n_skipped = 0
-    left_all: list = []
-    flag_all: list = []
-    with atomic_path(out_path, suffix=".csv") as tmp:
-        with open(tmp, "w", encoding="utf-8", newline="") as fh:
-            fh.write(",".join(MULTI_COLUMNS) + "\n")
-            iters = [r.chunks(chunk) for r in recordings]
-            while True:
-                items = [next(it, None) for it in iters]
-                if any(item is None for item in items):
-                    break
-                m = min(item[1].shape[1] for item in items)
-                blocks = [lk.process(t0, b[:, :m]) for lk, (t0, b) in zip(lockins, items)]
-                n_samples += m
-                nw = len(blocks[0])
-                n_windows += nw
-                if nw:
-                    results, seens = [], []
-                    for blk, sp in zip(blocks, sensors):
-                        a = blk.amplitude.reshape(-1, 4)
-                        v = blk.var_amplitude.reshape(-1, 4)
-                        seen = (a.sum(-1) > config.min_snr * np.sqrt(v.sum(-1))) & np.all(np.isfinite(a), -1)
-                        a_safe = np.where(seen[:, None], a, 1.0)
-                        results.append(angles_from_amplitudes(a_safe, sp.model, v, on_zero="nan"))
-                        seens.append(seen)
-                    # the rays with their covariance; poses from `psdcal pose` add theirs (ray_inputs)
-                    ns, covs, kw = ray_inputs(results, sensors, seens)
-                    tri = triangulate(ns, covs, R, t, **kw)
-                    scr = screen_rays(ns, covs, R, t, tri, **kw)  # a disagreeing sensor left out
-                    tri = scr.tri
-                    ok = tri.n_sensors >= 2
-                    n_skipped += int((~ok).sum())
-                    sig = tri.sigma_p_mm
-                    cols = {
-                        "t_s": np.repeat(blocks[0].t_s, k)[ok],
-                        "emitter": np.tile(names_arr, nw)[ok],
-                        "X_mm": tri.p_w_mm[ok, 0],
-                        "Y_mm": tri.p_w_mm[ok, 1],
-                        "Z_mm": tri.p_w_mm[ok, 2],
-                        "sigma_X_mm": sig[ok, 0],
-                        "sigma_Y_mm": sig[ok, 1],
-                        "sigma_Z_mm": sig[ok, 2],
-                        "n_sensors": tri.n_sensors[ok],
-                        "chi2": tri.chi2[ok],
-                        "left_out": left_out_names(scr, [sp.name for sp in sensors])[ok],
-                        "reflection": scr.flag[ok],
-                    }
-                    left_all.append(cols["left_out"])
-                    flag_all.append(cols["reflection"])
-                    n_rows += _write_rows(fh, cols, MULTI_COLUMNS)
-                if progress is not None:
-                    progress(n_samples)
-        if n_windows == 0:
-            raise InputError("the recordings are shorter than one window", field="window_s")
-        if n_rows == 0:
-            raise ZeroSignalError(
-                f"no window has a carrier of {list(config.carriers_hz)} Hz seen by two sensors above "
-                f"--min-snr {config.min_snr:g}"
-            )
-    if left_all:
-        warnings += reflection_warnings(np.concatenate(left_all), np.concatenate(flag_all))
-    return LocateSummary(n_samples, n_windows, n_rows, n_skipped, n_samples / rate, MULTI_COLUMNS,
-                         warnings=tuple(warnings), window_s=window_s)
-
-
 # --------------------------------------------------------------------------- impact points -> angles
 #: Columns ``aoa`` computes: on an input (e.g. a ``locate`` output) they are replaced, never duplicated.
 AOA_COMPUTED = ("x_mm", "y_mm", "alpha_x_deg", "alpha_y_deg", "X_mm", "Y_mm", "sigma_alpha_x_deg",
@@ -806,3 +702,7 @@ def _aoa_chunk(chunk, out, path, header, use, idx, sig_cols, sidx, keep_cols, ke
             lists.append([str(v) for v in np.asarray(a).tolist()])
     out.write("\n".join(",".join(r) for r in zip(*lists)) + "\n")
     return m
+
+
+# the several-sensor path lives in its own module; its names stay importable from here
+from psdcal.measure.locate_multi import EXTRA_GRID, MULTI_COLUMNS, locate_multi_to_csv  # noqa: F401

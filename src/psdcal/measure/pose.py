@@ -35,12 +35,16 @@ above the thresholds give warnings.
 """
 from __future__ import annotations
 
+import itertools
 import math
 from dataclasses import dataclass, field
 
 import numpy as np
 
+from psdcal._consistency import Check, chi2_check
+from psdcal._stats import chi2_isf
 from psdcal.errors import DegenerateViewsError, InputError
+from psdcal.measure._pose_solve import candidate_starts, fallback_starts, predict, refine, search
 from psdcal.model.projection import R_from_r, r_from_R, skew3
 
 #: Names of the pose covariance in the sensors file, over ``(omega, t)``: ``R = exp([omega]) R_hat``, ``Pc = R Pw + t``.
@@ -48,6 +52,12 @@ POSE_COV_NAMES = ("omega_x_rad", "omega_y_rad", "omega_z_rad", "tx_mm", "ty_mm",
 
 #: chi2 false-alarm probability of the consistency check.
 CHI2_ALARM = 1e-3
+#: A horizontal layout of emitters at least this high above ``z = 0`` (mm) is taken as a ceiling (sensor below).
+CEILING_MM = 1500.0
+#: A plane that passes closer than this to the origin (mm) leaves its side to the sign of its normal.
+ORIGIN_TIE_MM = 500.0
+#: Largest plausible extent of the emitters (mm): beyond, the coordinates are taken as a unit error.
+MAX_EXTENT_MM = 100_000.0
 
 
 @dataclass(frozen=True)
@@ -76,6 +86,15 @@ class PoseResult:
     residual_n : (k, 2) ndarray
         Residuals in normalised coordinates.
     warnings : tuple of str
+    checks : tuple of psdcal._consistency.Check
+        ``pose_chi2``, ``unique``, ``handedness``, and when they fail ``units`` and ``layout``.
+    usable : bool
+        False when a severe check failed (a mirrored survey, the sensor on
+        the unexpected side of a coplanar layout, a unit error).
+    mirror_chi2 : float or None
+        The chi2 of the best pose fitting the mirror image of the survey.
+    inflation : float
+        The factor applied to the covariance by the ``pose_chi2`` check (1: none).
     """
 
     rvec: np.ndarray
@@ -92,6 +111,10 @@ class PoseResult:
     warnings: tuple = ()
     #: Derivative (6, m) of ``(omega, c)`` by the calibration parameters (None without them).
     dpose_dcalib: np.ndarray | None = field(default=None, repr=False)
+    checks: tuple = ()
+    usable: bool = True
+    mirror_chi2: float | None = None
+    inflation: float = 1.0
 
     @property
     def R(self) -> np.ndarray:
@@ -172,143 +195,15 @@ class PoseResult:
             "chi2_p": None if self.dof <= 0 else self.chi2_p,
             "free": [nm for nm, f in zip(("omega_x", "omega_y", "omega_z", "cx", "cy", "cz"), self.free) if f],
             "warnings": list(self.warnings),
+            "usable": bool(self.usable),
+            "inflation": float(self.inflation),
+            "mirror_chi2": None if self.mirror_chi2 is None else float(self.mirror_chi2),
+            "checks": [c.to_dict() for c in self.checks],
         }
         return d
 
 
-# --------------------------------------------------------------------------- model
-def _predict(R, c, P):
-    """Normalised coordinates (k, 2), camera points (k, 3) and Jacobian (k, 2, 6) over (omega, c)."""
-    pc = (P - c) @ R.T
-    z = pc[:, 2]
-    n = pc[:, :2] / z[:, None]
-    dpi = np.zeros((len(P), 2, 3))
-    dpi[:, 0, 0] = 1 / z
-    dpi[:, 1, 1] = 1 / z
-    dpi[:, 0, 2] = -n[:, 0] / z
-    dpi[:, 1, 2] = -n[:, 1] / z
-    # d pc / d omega = -[pc]_x ; d pc / d c = -R
-    J = np.concatenate([-dpi @ np.stack([skew3(p) for p in pc]), -dpi @ R], axis=-1)
-    return n, pc, J
-
-
-def _kabsch(Q, P):
-    """R, c with Q ~ R (P - c), least squares (Q camera points, P world points, (k, 3))."""
-    qm, pm = Q.mean(0), P.mean(0)
-    H = (P - pm).T @ (Q - qm)
-    U, _, Vt = np.linalg.svd(H)
-    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
-    R = Vt.T @ D @ U.T
-    c = pm - R.T @ qm
-    return R, c
-
-
-def _start_general(n, P, *, n_starts: int = 12, seed: int = 0):
-    """Candidate poses (R, c), one at a time, for the caller to refine until one fits.
-
-    1. linear estimates (:func:`_linear_starts`);
-    2. the distances ``lambda_k`` along the rays from the triangle constraints
-       ``|lambda_i u_i - lambda_j u_j| = |P_i - P_j|`` over all emitters (the
-       first start at one common distance, the next ones at random distances
-       0.2 to 5 times that), then Kabsch;
-    3. the same on triplets of emitters (the widest triangles first): each
-       triplet's up to four exact solutions (P3P) are found from random
-       starts, so a wrong basin of the all-emitter equations (the mirror
-       ambiguity of nearly planar layouts) is left.
-    """
-    from scipy.optimize import least_squares
-
-    u = np.concatenate([n, np.ones((len(n), 1))], axis=1)
-    u /= np.linalg.norm(u, axis=1, keepdims=True)
-    k = len(P)
-    rng = np.random.default_rng(seed)
-    seen: list[np.ndarray] = []
-
-    def new(R, c, scale):
-        if np.any((P - c) @ R.T[:, 2] <= 0) or any(np.linalg.norm(c - c2) < 1e-6 * scale for c2 in seen):
-            return False
-        seen.append(c)
-        return True
-
-    for R, c in _linear_starts(n, P):
-        if new(R, c, 1.0):
-            yield R, c
-
-    def solve(idx, starts):
-        ii, jj = np.triu_indices(len(idx), 1)
-        ii, jj = idx[ii], idx[jj]
-        dist = np.linalg.norm(P[ii] - P[jj], axis=1)
-        ang = np.arccos(np.clip(np.sum(u[ii] * u[jj], axis=1), -1.0, 1.0))
-        scale = float(np.median(dist / np.maximum(ang, 1e-6)))
-        pos = {v: q for q, v in enumerate(idx)}
-        a = np.array([pos[v] for v in ii])
-        b = np.array([pos[v] for v in jj])
-
-        def res(lam):
-            return (np.linalg.norm(lam[a, None] * u[ii] - lam[b, None] * u[jj], axis=1) - dist) / scale
-
-        for s in range(starts):
-            lam0 = scale * (np.ones(len(idx)) if s == 0 else np.exp(rng.uniform(np.log(0.2), np.log(5.0), len(idx))))
-            sol = least_squares(res, lam0, bounds=(1e-9 * scale, np.inf), method="trf", xtol=1e-10, ftol=1e-10)
-            R, c = _kabsch(sol.x[:, None] * u[idx], P[idx])
-            if new(R, c, scale):
-                yield R, c
-
-    yield from solve(np.arange(k), n_starts)
-    if k > 3:
-        tri = [(i, j, l) for i in range(k) for j in range(i + 1, k) for l in range(j + 1, k)]
-        area = [np.linalg.norm(np.cross(P[j] - P[i], P[l] - P[i])) for i, j, l in tri]
-        for q in np.argsort(area)[::-1][:4]:
-            yield from solve(np.array(tri[q]), 12)
-
-
-def _orthonormal(M):
-    U, _, Vt = np.linalg.svd(M)
-    R = U @ Vt
-    if np.linalg.det(R) < 0:
-        R = U @ np.diag([1.0, 1.0, -1.0]) @ Vt
-    return R
-
-
-def _linear_starts(n, P):
-    """Linear pose estimates: the plane-to-image homography (Zhang's decomposition) for >= 4 emitters, and
-    the direct linear transform of the 3 x 4 projection for >= 6 emitters spread in depth."""
-    k = len(P)
-    out = []
-    m = P.mean(0)
-    _, sv, Vt = np.linalg.svd(P - m)
-    E = Vt.T  # columns: the layout's principal axes; the third is the plane's normal
-    if k >= 4:
-        uv = (P - m) @ E[:, :2]
-        A = []
-        for (u, v), (x, y) in zip(uv, n):
-            A.append([u, v, 1, 0, 0, 0, -x * u, -x * v, -x])
-            A.append([0, 0, 0, u, v, 1, -y * u, -y * v, -y])
-        H = np.linalg.svd(np.array(A))[2][-1].reshape(3, 3)
-        h1, h2, h3 = H[:, 0], H[:, 1], H[:, 2]
-        scale = 2.0 / (np.linalg.norm(h1) + np.linalg.norm(h2))
-        if h3[2] * scale < 0:
-            scale = -scale
-        Rp = _orthonormal(np.stack([scale * h1, scale * h2, np.cross(scale * h1, scale * h2)], 1))
-        t = scale * h3
-        R = Rp @ E.T
-        out.append((R, m - R.T @ t))
-    if k >= 6 and sv[2] > 0.05 * sv[0]:
-        X = np.concatenate([P - m, np.ones((k, 1))], 1)
-        A = []
-        for Xk, (x, y) in zip(X, n):
-            A.append(np.concatenate([Xk, np.zeros(4), -x * Xk]))
-            A.append(np.concatenate([np.zeros(4), Xk, -y * Xk]))
-        Pm = np.linalg.svd(np.array(A))[2][-1].reshape(3, 4)
-        scale = 1.0 / np.cbrt(abs(np.linalg.det(Pm[:, :3])) or 1.0)
-        if (Pm[2] @ X[0]) * scale < 0:
-            scale = -scale
-        R = _orthonormal(scale * Pm[:, :3])
-        t = scale * Pm[:, 3]
-        out.append((R, m - R.T @ t))
-    return out
-
-
+# --------------------------------------------------------------------------- starts
 def _start_known_rotation(n, P, R, height_mm=None):
     """Centre from the world rays through the emitters (a known rotation); ``c_z = height`` when given."""
     u = np.concatenate([n, np.ones((len(n), 1))], axis=1) @ R  # R^T (n, 1): world directions
@@ -331,7 +226,8 @@ def _start_known_rotation(n, P, R, height_mm=None):
 # --------------------------------------------------------------------------- front door
 def estimate_pose(n, cov_n_noise, points_w_mm, *, dn_dp=None, cov_params=None, known_rvec=None,
                   known_height_mm=None, iterations: int = 30, warn_rotation_deg: float = 0.5,
-                  warn_center_frac: float = 0.01) -> PoseResult:
+                  warn_center_frac: float = 0.01, side_point_mm=None, check_mirror: bool = True,
+                  max_extent_mm: float | None = MAX_EXTENT_MM) -> PoseResult:
     """A sensor's pose from the directions of emitters at known positions.
 
     Parameters
@@ -354,10 +250,28 @@ def estimate_pose(n, cov_n_noise, points_w_mm, *, dn_dp=None, cov_params=None, k
         A pose whose rotation 1-sigma (any axis) exceeds ``warn_rotation_deg``
         or whose centre 1-sigma exceeds ``warn_center_frac`` of the mean
         distance to the emitters gets a warning (poor layout).
+    side_point_mm : (3,) array_like, optional
+        A point on the sensor's side of the emitters' plane (mm), for
+        (nearly) coplanar layouts where the data cannot tell a survey from its
+        mirror image; default: the rule of :func:`expected_side`.
+    check_mirror : bool
+        Fit the mirror image of the survey too (the ``handedness`` check).
+    max_extent_mm : float, optional
+        Largest plausible extent of the emitters (default
+        :data:`MAX_EXTENT_MM`, 100 m): beyond, the ``units`` check fails.
 
     Returns
     -------
     PoseResult
+        ``checks`` holds ``pose_chi2`` (the chi2 against its ``2 k - p``
+        degrees of freedom: when it fails, the covariance is multiplied by
+        ``chi2 / dof``, see :mod:`psdcal._consistency`), ``handedness`` (the
+        mirror image of the survey fitted too: a mirrored survey, or a sensor
+        on the unexpected side of a coplanar layout, fails it), ``unique`` (a
+        second minimum that fits outside the stated uncertainty fails it), and
+        only when they fail ``units`` and ``layout`` (the poor-layout warning). ``usable`` is False when a severe check failed
+        (a mirrored survey, a sensor on the wrong side, a unit error): the
+        pose is then not to be used, and ``warnings`` says why.
 
     Raises
     ------
@@ -406,44 +320,42 @@ def estimate_pose(n, cov_n_noise, points_w_mm, *, dn_dp=None, cov_params=None, k
     except np.linalg.LinAlgError:
         raise InputError("the angle covariance is singular") from None
 
-    def cost(R, c):
-        pred, pc, _ = _predict(R, c, P)
-        if np.any(pc[:, 2] <= 0):
-            return math.inf
-        r = (n - pred).ravel()
-        return float(r @ W @ r)
-
+    dof = 2 * k - p
+    accept = chi2_isf(CHI2_ALARM, dof) if dof > 0 else 1e-9
     if known_rvec is not None:
         R0 = R_from_r(np.asarray(known_rvec, dtype=float))
-        starts = iter([(R0, _start_known_rotation(n, P, R0, known_height_mm))])
+        R, c, chi2 = refine(R0, _start_known_rotation(n, P, R0, known_height_mm), n, P, W, free, iterations)
     else:
-        starts = _start_general(n, P)
-        if known_height_mm is not None:
-            starts = ((R, np.array([c[0], c[1], known_height_mm])) for R, c in starts)
-    from scipy.stats import chi2 as chi2_dist
-
-    dof = 2 * k - p
-    accept = chi2_dist.isf(CHI2_ALARM, dof) if dof > 0 else 1e-9
-    best = None
-    for R, c in starts:
-        R, c, chi2 = _refine(R, c, n, P, W, free, iterations)
-        if best is None or chi2 < best[2] - 1e-9:
-            best = (R, c, chi2)
-        if chi2 <= accept:  # consistent with the noise: the global minimum (or as good as one)
-            break
-    if best is None:
+        minima: list = []
+        R, c, chi2 = search(candidate_starts(n, P, fallback=False), n, P, W, free, iterations, accept,
+                            known_height_mm=known_height_mm, after_accept=6, minima=minima)
+        if R is None:  # no closed-form start led anywhere: the distances along the rays, fitted
+            R, c, chi2 = search(fallback_starts(n, P), n, P, W, free, iterations, accept,
+                                known_height_mm=known_height_mm)
+    if R is None or not np.isfinite(chi2):
         raise DegenerateViewsError("no pose puts every emitter in front of the sensor")
-    R, c, chi2 = best
-    if not np.isfinite(chi2):
-        raise DegenerateViewsError("no pose puts every emitter in front of the sensor")
-    pred, pc, J = _predict(R, c, P)
+    if abs(np.linalg.det(R) - 1.0) > 1e-6:  # pragma: no cover - the solver builds proper rotations only
+        raise AssertionError(f"pose solver returned a rotation of determinant {np.linalg.det(R):.6g}")
+    checks = []
+    mirror_chi2 = None
+    if known_rvec is None and check_mirror:
+        hand, mirror_chi2 = _handedness_check(R, c, chi2, n, P, W, free, iterations, accept, dof,
+                                              known_height_mm, side_point_mm)
+        checks.append(hand)
+    units = _units_check(P, max_extent_mm)
+    if units is not None:
+        checks.append(units)
+    pred, pc, J = predict(R, c, P)
     Jf = J.reshape(2 * k, 6)[:, free]
     H = Jf.T @ W @ Jf
     try:
-        if np.linalg.cond(H) > 1e14:
+        # the condition of the information scaled to unit diagonal (radians and millimetres mixed otherwise)
+        dsc = 1.0 / np.sqrt(np.diag(H))
+        Hs = H * dsc[:, None] * dsc[None, :]
+        if not np.all(np.isfinite(Hs)) or np.linalg.cond(Hs) > 1e12:
             raise np.linalg.LinAlgError
-        Hinv = np.linalg.inv(H)
-    except np.linalg.LinAlgError:
+        Hinv = np.linalg.inv(Hs) * dsc[:, None] * dsc[None, :]
+    except (np.linalg.LinAlgError, FloatingPointError):
         raise DegenerateViewsError("the emitters' layout leaves the pose undetermined (singular information)") from None
     G = Hinv @ Jf.T @ W  # d pose / d n
     cov = np.zeros((6, 6))
@@ -458,73 +370,219 @@ def estimate_pose(n, cov_n_noise, points_w_mm, *, dn_dp=None, cov_params=None, k
         dpose_dcalib = np.zeros((6, D.shape[1]))
         dpose_dcalib[free] = G @ D
     warnings = []
+    fit = chi2_check(chi2, dof, name="pose_chi2", what=f"the angles of {k} emitters", advice=_CHI2_ADVICE)
+    checks.insert(0, fit)
     if dof > 0:
-        pval = float(chi2_dist.sf(chi2, dof))
-        if pval < CHI2_ALARM:
-            warnings.append(
-                f"the angles do not fit the emitter positions (chi2 {chi2:.3g} for {dof} dof, p = {pval:.2g}): "
-                "a wrong emitter coordinate, a reflection, or an underestimated angle noise")
+        if fit.passed is False:
+            # the documented rule (ratio): every sigma grows by sqrt(chi2 / dof); the extra error is counted
+            # as noise (independent of the calibration), so cov = cov_noise + cov_calib still holds
+            f = float(fit.inflation)
+            cov_n = cov_n + (f - 1.0) * cov
+            cov = f * cov
+            warnings.append(f"the angles do not fit the emitter positions: {fit.message} ({fit.advice})")
     else:
         warnings.append(f"{k} emitters fix the pose exactly (no redundancy): the fit cannot be checked"
                         + ("; 3 emitters can also fit up to 4 poses" if k == 3 and known_rvec is None else ""))
+    if known_rvec is None:
+        checks.insert(1, _uniqueness_check(R, c, chi2, cov, free, minima, accept, dof))
+    for chk in checks[1:]:
+        if chk.passed is False:
+            warnings.append(chk.message)
     sig_rot = np.degrees(np.sqrt(np.clip(np.diag(cov)[:3], 0, None)))
     sig_c = np.sqrt(np.clip(np.diag(cov)[3:], 0, None))
     dist = float(np.mean(np.linalg.norm(P - c, axis=1)))
     if sig_rot.max() > warn_rotation_deg or sig_c.max() > warn_center_frac * dist:
-        warnings.append(
-            f"poor emitter layout: pose 1-sigma {sig_rot.max():.3g} deg, centre {sig_c.max():.3g} mm at "
-            f"{dist / 1000:.3g} m (spread the emitters wider, in depth too, or add more)")
+        msg = (f"poor emitter layout: pose 1-sigma {sig_rot.max():.3g} deg, centre {sig_c.max():.3g} mm at "
+               f"{dist / 1000:.3g} m (spread the emitters wider, in depth too, or add more)")
+        warnings.append(msg)
+        checks.append(Check("layout", float(sig_rot.max()), float(warn_rotation_deg), None, 0.0, False,
+                            msg + "; so far from a quadratic bowl, the sigmas and even the minimum found (another "
+                                  "may fit as well) are not to be relied on",
+                            advice="spread the emitters wider, in depth too, or add more"))
     rvec = r_from_R(R)
+    R = R_from_r(rvec)  # what is written (rvec, tvec) is exactly the pose whose centre is reported
+    usable = not any(chk.passed is False and chk.severe for chk in checks)
     return PoseResult(rvec=rvec, tvec_mm=-R @ c, center_w_mm=c, cov=cov, cov_noise=cov_n, cov_calib=cov_c,
                       chi2=float(chi2), dof=int(dof), n_emitters=k, free=free, residual_n=n - pred,
-                      warnings=tuple(warnings), dpose_dcalib=dpose_dcalib)
+                      warnings=tuple(warnings), dpose_dcalib=dpose_dcalib, checks=tuple(checks), usable=usable,
+                      mirror_chi2=mirror_chi2, inflation=float(fit.inflation or 1.0))
 
 
-def _refine(R, c, n, P, W, free, iterations):
-    """Gauss-Newton with step halving on ``r^T W r`` over the free parameters of ``(omega, c)``."""
-    k = len(P)
+_CHI2_ADVICE = "a wrong emitter coordinate, an emitter that moved, a reflection, or an underestimated angle noise"
 
-    def evaluate(R, c):
-        pred, pc, J = _predict(R, c, P)
-        if np.any(pc[:, 2] <= 0):
-            return math.inf, None, None
-        r = (n - pred).ravel()
-        return float(r @ W @ r), r, J.reshape(2 * k, 6)[:, free]
 
-    f, r, J = evaluate(R, c)
-    if not np.isfinite(f):
-        return R, c, math.inf
-    for _ in range(iterations):
-        H = J.T @ W @ J
-        g = J.T @ W @ r
-        try:
-            step = np.linalg.solve(H + 1e-12 * np.trace(H) * np.eye(len(H)), g)
-        except np.linalg.LinAlgError:
-            break
-        full = np.zeros(6)
-        full[free] = step
-        lam = 1.0
-        improved = False
-        for _ in range(20):
-            R2 = R_from_r(lam * full[:3]) @ R
-            c2 = c + lam * full[3:]
-            f2, r2, J2 = evaluate(R2, c2)
-            if f2 <= f:
-                improved = True
-                break
-            lam *= 0.5
-        if not improved:
-            break
-        done = f - f2 <= 1e-12 * max(f, 1e-300) + 1e-15
-        R, c, f, r, J = R2, c2, f2, r2, J2
-        if done:
-            break
-    return R, c, f
+
+def expected_side(P, side_point_mm=None):
+    """The side of the emitters' plane where the sensor is expected (the rule for coplanar layouts).
+
+    The room frame is right-handed with ``z`` up. For emitters whose mirror
+    image fits the angles as well (a (nearly) coplanar layout), the data
+    cannot tell a correct survey from a mirrored one: the sensor then lands
+    on one side of the emitters' best-fit plane or the other. It is expected
+
+    - on the side of ``side_point_mm`` when given (any point on the sensor's
+      side: a point in the room);
+    - for a horizontal layout (normal within 45 deg of ``z``): above the
+      emitters when their centroid is less than :data:`CEILING_MM` above
+      ``z = 0`` (floor, table), below them otherwise (ceiling);
+    - for any other layout (a wall): on the side facing the room frame's
+      origin, or, when the plane passes within :data:`ORIGIN_TIE_MM` of the
+      origin, on the side its normal's largest component points to positive
+      coordinates (into the room when the room lies at positive coordinates).
+
+    Parameters
+    ----------
+    P : (k, 3) array_like
+        The emitters, mm.
+    side_point_mm : (3,) array_like, optional
+
+    Returns
+    -------
+    (normal, words) : the unit normal (3,) of the plane pointing to the expected side, and the rule in words.
+    """
+    P = np.asarray(P, dtype=float)
+    m = P.mean(0)
+    e3 = np.linalg.svd(P - m)[2][2]
+    if side_point_mm is not None:
+        d = float((np.asarray(side_point_mm, dtype=float) - m) @ e3)
+        if abs(d) < 1e-6 * (1.0 + float(np.linalg.norm(P - m, axis=1).max())):
+            raise InputError("the side point lies in the emitters' plane: give a point on the sensor's side",
+                             field="side_point")
+        return e3 * np.sign(d), "on the side of the given side point"
+    if abs(e3[2]) >= math.sqrt(0.5):
+        up = e3 * np.sign(e3[2])
+        if m[2] < CEILING_MM:
+            return up, f"above the emitters (a horizontal layout less than {CEILING_MM / 1000:g} m above z = 0)"
+        return -up, f"below the emitters (a horizontal layout {CEILING_MM / 1000:g} m or more above z = 0: a ceiling)"
+    d0 = float(-m @ e3)
+    if abs(d0) >= ORIGIN_TIE_MM:
+        return e3 * np.sign(d0), "on the side of the emitters' plane that faces the room frame's origin"
+    j = int(np.argmax(np.abs(e3)))
+    return e3 * np.sign(e3[j]), "on the side of the emitters' plane toward positive coordinates (it passes by the origin)"
+
+
+def _handedness_check(R, c, chi2, n, P, W, free, iterations, accept, dof, known_height_mm, side_point_mm):
+    """Fit the mirror image of the survey; name a mirrored survey, or apply the side rule when both fit.
+
+    The survey is reflected in the plane ``x = mean x`` (any reflection gives the same test: a proper rotation
+    fitting a reflected survey is a reflection fitting the survey). The first start is the current pose
+    mirrored through the emitters' best-fit plane, which fits a coplanar layout exactly.
+
+    Returns
+    -------
+    (Check, chi2 of the mirror's best fit)
+    """
+    m = P.mean(0)
+    e3 = np.linalg.svd(P - m)[2][2]
+    S = np.diag([-1.0, 1.0, 1.0])
+    M = np.eye(3) - 2.0 * np.outer(e3, e3)
+    P2 = m + (P - m) @ S
+    first = [(R @ M @ S, m + S @ M @ (c - m))]
+    scale = max(1.0, chi2 / dof) if dof > 0 else 1.0
+    # a quick search (the mirror of a fitting survey is found from its first, exact starts in a few steps),
+    # then a full refinement when the best of it comes near fitting
+    # emitters spread in depth (6 or more): the DLT of the mirror image is its exact start when it fits
+    sv = np.linalg.svd(P - m, compute_uv=False)
+    tri = 0 if len(P) >= 6 and sv[2] > 0.1 * sv[0] else 4
+    Rm, cm, chi2_m = search(itertools.chain(first, candidate_starts(n, P2, fallback=False, triplets=tri)), n, P2, W, free,
+                            min(iterations, 8), accept * scale, known_height_mm=known_height_mm, max_refine=6,
+                            skip_above=1e4 * accept * scale)
+    if Rm is not None and accept * scale < chi2_m < 100.0 * accept * scale:
+        chi2_m = min(chi2_m, refine(Rm, cm, n, P2, W, free, iterations)[2])
+    # each fit judged against the noise the better of the two shows (the stated one, or more)
+    if dof > 0:
+        scale = max(1.0, min(chi2, chi2_m) / dof)
+    fits, fits_m = chi2 <= accept * scale, chi2_m <= accept * scale
+    stat = f"chi2 {chi2:.4g}, mirror image {chi2_m:.4g}, for {dof} dof"
+    if fits and not fits_m:
+        return Check("handedness", chi2_m, accept * scale, None, 0.0, True,
+                     f"the survey's handedness is confirmed: its mirror image does not fit ({stat})", dof=dof), chi2_m
+    if fits_m and not fits:
+        return Check("handedness", chi2, accept * scale, None, 0.0, False,
+                     f"the survey looks mirrored (x/y swapped or a left-handed frame): its mirror image fits the "
+                     f"angles and it does not ({stat})",
+                     advice="check the survey's axes: the room frame must be right-handed (x, y on the floor, z up)",
+                     severe=True, dof=dof), chi2_m
+    normal, words = expected_side(P, side_point_mm)
+    h = float((c - m) @ normal)
+    if h > 0:
+        return Check("handedness", h, 0.0, None, 0.0, True,
+                     f"the survey's mirror image fits as well ({stat}: (nearly) coplanar emitters, or angles that "
+                     f"fit neither); the sensor is {words}, as the side rule expects", dof=dof), chi2_m
+    if abs(normal[2]) >= math.sqrt(0.5):
+        side = "below" if normal[2] > 0 else "above"
+    else:
+        side = "behind"
+    return Check("handedness", h, 0.0, None, 0.0, False,
+                 f"the sensor lands {side} the emitters' plane, {abs(h) / 1000:.3g} m on the wrong side for the rule "
+                 f"(expected {words}); a mirrored survey (x/y swapped or a left-handed frame) fits as well ({stat}: "
+                 f"(nearly) coplanar emitters): check the survey, or give the sensor's side "
+                 f"(side_point_mm, --side-point) if it really is there",
+                 advice="a coplanar layout cannot tell a survey from its mirror image: add an emitter off the plane, "
+                        "or state the sensor's side", severe=True, dof=dof), chi2_m
+
+
+#: Two minima whose chi2 differ by less than this are both taken as possible (a likelihood ratio of e^4.5 = 90).
+AMBIGUOUS_DCHI2 = 9.0
+
+
+def _uniqueness_check(R, c, chi2, cov, free, minima, accept, dof):
+    """Whether another pose (a second minimum, outside the covariance) fits the angles nearly as well.
+
+    A rival minimum that fits (``chi2 <= accept``, the noise scaled as the fit shows) and lies beyond the
+    covariance's 99.9 % region, with a chi2 less than :data:`AMBIGUOUS_DCHI2` above the best, makes the pose
+    ambiguous (a severe failure); a rival inside the region is covered by the stated sigmas.
+    """
+    scale = max(1.0, chi2 / dof) if dof > 0 else 1.0
+    idx = np.flatnonzero(free)
+    Cinv = np.linalg.inv(cov[np.ix_(idx, idx)])
+    m2_limit = chi2_isf(CHI2_ALARM, len(idx))
+
+    def mahalanobis(m):
+        e = np.concatenate([r_from_R(m[0] @ R.T), m[1] - c])[idx]
+        return float(e @ Cinv @ e)
+
+    rivals = [m for m in minima if m[2] <= accept * scale and mahalanobis(m) > m2_limit]
+    if not rivals:
+        return Check("unique", None, AMBIGUOUS_DCHI2, None, 0.0, True,
+                     "no other pose found that fits the angles outside the stated uncertainty")
+    R2, c2, chi2_2 = min(rivals, key=lambda m: m[2])
+    ang = math.degrees(math.acos(np.clip((np.trace(R2 @ R.T) - 1.0) / 2.0, -1.0, 1.0)))
+    d = float(np.linalg.norm(c2 - c))
+    dchi2 = (chi2_2 - chi2) / scale
+    words = (f"another pose fits the angles too (chi2 {chi2_2:.4g} against {chi2:.4g}): the centre "
+             f"{d / 1000:.3g} m and the rotation {ang:.3g} deg away")
+    if dchi2 >= AMBIGUOUS_DCHI2:
+        return Check("unique", dchi2, AMBIGUOUS_DCHI2, None, 0.0, True,
+                     words + f"; the data prefer this one by {dchi2:.3g} in chi2")
+    return Check("unique", dchi2, AMBIGUOUS_DCHI2, None, 0.0, False,
+                 words + f"; the data cannot tell them apart (chi2 difference {dchi2:.3g} < {AMBIGUOUS_DCHI2:g}): "
+                         "the pose is ambiguous",
+                 advice="a plane of emitters seen from afar: add emitters, spread them wider or in depth, or give a "
+                        "known orientation or height", severe=True)
+
+
+def _units_check(P, max_extent_mm):
+    """A failed plausibility check when the emitters span more than ``max_extent_mm`` (a unit error), else None."""
+    ext = float(np.linalg.norm(P.max(0) - P.min(0)))
+    if max_extent_mm is None or ext <= max_extent_mm:
+        return None
+    return Check("units", ext, float(max_extent_mm), None, 0.0, False,
+                 f"the emitters span {ext / 1000:.4g} m (more than {max_extent_mm / 1000:g} m): coordinates in "
+                 f"centimetres or millimetres where metres (mm in the API) were expected?",
+                 advice="give the coordinates in metres (X_m,Y_m,Z_m), or raise max_extent_mm for a larger site",
+                 severe=True)
 
 
 # --------------------------------------------------------------------------- helpers for files
-def read_emitters(path) -> tuple[list[str], np.ndarray, np.ndarray | None]:
+def read_emitters(path, *, max_extent_m: float | None = MAX_EXTENT_MM / 1000.0
+                  ) -> tuple[list[str], np.ndarray, np.ndarray | None]:
     """Read an emitters CSV ``emitter,X_m,Y_m,Z_m[,carrier_hz]``.
+
+    ``max_extent_m``: emitters spread over more than this (the diagonal of
+    their bounding box, m) raise an :class:`InputError` naming the file and
+    ``X_m``: centimetres or millimetres under the metre columns (a room of
+    5 m in centimetres spans 500 "m"). None: no check.
 
     Returns
     -------
@@ -572,6 +630,11 @@ def read_emitters(path) -> tuple[list[str], np.ndarray, np.ndarray | None]:
     if not names:
         raise InputError("no emitters after the header", path=path)
     a = np.array(vals)
+    ext = float(np.linalg.norm(a[:, :3].max(0) - a[:, :3].min(0)))
+    if max_extent_m is not None and ext > max_extent_m:
+        raise InputError(f"the emitters span {ext:.4g} m (more than {max_extent_m:g} m): X_m,Y_m,Z_m are metres, "
+                         "not centimetres or millimetres (for a larger site, raise the limit: --max-extent-m)",
+                         path=path, field="X_m")
     return names, a[:, :3] * 1000.0, (a[:, 3] if a.shape[1] == 4 else None)
 
 

@@ -14,11 +14,13 @@ projection centre is at ``-R^T tvec`` in the world frame.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+import math
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 
+from psdcal._consistency import ALPHA, Check, chi2_check, extra_variance
 from psdcal.measure.aoa import AoAResult, angles_from_points
 from psdcal.errors import DegenerateViewsError, InputError
 from psdcal.model.projection import R_from_r
@@ -212,12 +214,45 @@ class Triangulation:
         ``2 n_sensors - 3`` for consistent rays).
     n_sensors : (...) int ndarray
         Number of rays used.
+    dof : (...) int ndarray or None
+        Degrees of freedom of each point's ``chi2``: ``2 n_sensors - 3``.
+    flagged : (...) bool ndarray or None
+        Points whose own chi-squared test fails at the false-alarm rate
+        ``check.false_alarm`` (``chi2`` beyond the ``1 - alpha`` quantile of
+        ``chi2(dof)``): rays that disagree with the stated noise at that point.
+    check : Check or None
+        The chi-squared test of all the points together (``sum chi2`` against
+        ``sum dof``, :func:`psdcal._consistency.chi2_check`).  When it fails,
+        every ray's covariance gains an extra isotropic noise ``extra_var_n``
+        (the ``"extra"`` rule of :mod:`psdcal._consistency`, estimated from all
+        the points' residuals) and ``cov_p_mm2`` is inflated accordingly.
+    extra_var_n : float
+        That extra variance of the normalised coordinates (rad^2 near the
+        axis); 0 when the test passed or was not run.
+    cov_p_stated_mm2 : (..., 3, 3) ndarray or None
+        The covariance from the stated noise alone (before inflation), mm^2.
+    dcov_dextra_mm2 : (..., 3, 3) ndarray or None
+        ``d cov_p / d extra_var_n``: the covariance with an extra ray variance
+        ``s2`` is ``cov_p_stated_mm2 + s2 * dcov_dextra_mm2`` (the sandwich
+        covariance of the point computed with the stated weights).
+    residual_n : (k, ..., 2) ndarray or None
+        The rays' residuals ``n_i - pi(R_i P + t_i)`` at the solution (NaN for unused rays).
+    ray_cov_n : (k, ..., 2, 2) ndarray or None
+        The rays' total stated covariances (noise, pose and calibration parts) at the solution.
     """
 
     p_w_mm: np.ndarray
     cov_p_mm2: np.ndarray
     chi2: np.ndarray
     n_sensors: np.ndarray
+    dof: np.ndarray | None = None
+    flagged: np.ndarray | None = None
+    check: Check | None = None
+    extra_var_n: float = 0.0
+    cov_p_stated_mm2: np.ndarray | None = field(default=None, repr=False)
+    dcov_dextra_mm2: np.ndarray | None = field(default=None, repr=False)
+    residual_n: np.ndarray | None = field(default=None, repr=False)
+    ray_cov_n: np.ndarray | None = field(default=None, repr=False)
 
     @property
     def sigma_p_mm(self) -> np.ndarray:
@@ -225,7 +260,8 @@ class Triangulation:
         return np.sqrt(np.clip(np.diagonal(self.cov_p_mm2, axis1=-2, axis2=-1), 0.0, None))
 
 
-def triangulate(n, cov_n, R, t_mm, *, iterations: int = 8, cov_pose=None, calib=None) -> Triangulation:
+def triangulate(n, cov_n, R, t_mm, *, iterations: int = 8, cov_pose=None, calib=None, inflate: bool = True,
+                alpha: float = ALPHA) -> Triangulation:
     """3D point from the normalised image coordinates seen by several sensors.
 
     Minimises ``sum_i r_i^T W_i r_i`` with ``r_i = n_i - pi(R_i P + t_i)``,
@@ -258,6 +294,25 @@ def triangulate(n, cov_n, R, t_mm, *, iterations: int = 8, cov_pose=None, calib=
         residual by ``(dn_dcalib - J_pose pose_dcalib) d theta`` (a pose fitted
         with the same calibration partly compensates it); ``cov_n`` and
         ``cov_pose`` must then be their noise parts only.
+    inflate : bool
+        Check the points against the stated noise and inflate the covariance
+        when they disagree (below).  False: only the per-point ``flagged``
+        and the stated covariance (a caller that pools several calls, as
+        ``locate`` over a file, applies the rule itself with
+        :func:`extra_ray_sums` and :func:`apply_extra_variance`).
+    alpha : float
+        False-alarm rate of the per-point flags and of the pooled test.
+
+    Consistency rule (docs/guide/positioning.md#sigmas-that-cover-the-error):
+    each point's ``chi2`` is tested against ``chi2(2 k - 3)`` at ``alpha``
+    (``flagged``); all the points of the call are tested together
+    (``check``: ``sum chi2`` against ``sum dof``).  When that pooled test
+    fails, an extra noise of variance ``s2`` on every ray's normalised
+    coordinates (isotropic, the same for all rays) is estimated from all the
+    residuals, ``sum r^T (C + s2 I)^-1 r = sum dof``, and each point's
+    covariance becomes the sandwich covariance of the same estimate under that
+    noise; ``check.message`` gives its size.  One noisy point does not
+    inflate the others unless the whole call disagrees with the noise.
 
     Returns
     -------
@@ -319,7 +374,9 @@ def triangulate(n, cov_n, R, t_mm, *, iterations: int = 8, cov_pose=None, calib=
         )
         J = dpred_dpc @ Rb
         if cp is not None:
-            W = _pose_weights(cov, cp, pc - tb, dpred_dpc, ok, calib)
+            W, ray_cov = _pose_weights(cov, cp, pc - tb, dpred_dpc, ok, calib, with_total=True)
+        else:
+            ray_cov = cov
         JtW = np.swapaxes(J, -1, -2) @ W
         info = (JtW @ J).sum(0)
         grad = np.einsum("k...ij,k...j->...i", JtW, r)  # sums over the sensors k
@@ -333,13 +390,112 @@ def triangulate(n, cov_n, R, t_mm, *, iterations: int = 8, cov_pose=None, calib=
         cov_p = np.linalg.inv(info_safe)
     except np.linalg.LinAlgError:
         raise DegenerateViewsError("the rays are parallel: the point cannot be triangulated") from None
+    # the sandwich increment: cov(s2) = H^-1 sum J^T W (C + s2 I) W J H^-1 = cov_p + s2 B
+    B = cov_p @ (JtW @ np.swapaxes(JtW, -1, -2)).sum(0) @ cov_p
     p = np.where(good[..., None], p, np.nan)
     cov_p = np.where(good[..., None, None], cov_p, np.nan)
+    B = np.where(good[..., None, None], 0.5 * (B + np.swapaxes(B, -1, -2)), np.nan)
     chi2 = np.where(good, chi2, np.nan)
-    return Triangulation(p_w_mm=p, cov_p_mm2=cov_p, chi2=chi2, n_sensors=n_used)
+    dof = np.where(good, 2 * n_used - 3, 0)
+    use = ok & good[None]
+    residual = np.where(use[..., None], r, np.nan)
+    ray_cov = np.where(use[..., None, None], ray_cov, np.nan)
+    flagged = row_flags(chi2, dof, alpha)
+    tri = Triangulation(p_w_mm=p, cov_p_mm2=cov_p, chi2=chi2, n_sensors=n_used, dof=dof, flagged=flagged,
+                        cov_p_stated_mm2=cov_p, dcov_dextra_mm2=B, residual_n=residual, ray_cov_n=ray_cov)
+    if not inflate:
+        return tri
+    check = pooled_check(float(np.nansum(chi2)), int(dof.sum()), int(good.sum()), alpha)
+    return apply_extra_variance(tri, check, extra_ray_variance(tri, int(dof.sum())) if check.passed is False else 0.0)
 
 
-def _pose_weights(cov, cov_pose, rp, dpred_dpc, ok, calib=None):
+#: The likely causes of rays that disagree with their stated noise.
+TRIANGULATION_ADVICE = ("the angle noise is larger than stated, a sensor's pose (or calibration) is off, or the "
+                        "emitter moved between the sensors' measurements")
+
+
+def pooled_check(chi2_sum: float, dof_sum: float, n_points: int, alpha: float = ALPHA) -> Check:
+    """The chi-squared test of ``n_points`` triangulated points together (no inflation applied yet)."""
+    what = "the rays of the point" if n_points == 1 else f"the rays of {n_points} points"
+    return chi2_check(chi2_sum, dof_sum, name="triangulation_chi2", what=what, alpha=alpha, inflate=False,
+                      advice=TRIANGULATION_ADVICE)
+
+
+def row_flags(chi2, dof, alpha: float = ALPHA) -> np.ndarray:
+    """Points whose ``chi2`` exceeds the ``1 - alpha`` quantile of ``chi2(dof)`` (False where ``dof <= 0``)."""
+    from psdcal._stats import chi2_isf
+
+    chi2 = np.asarray(chi2, dtype=float)
+    dof = np.asarray(dof)
+    out = np.zeros(chi2.shape, dtype=bool)
+    for d in np.unique(dof):
+        if d > 0:
+            m = dof == d
+            out[m] = chi2[m] > chi2_isf(alpha, float(d))
+    return out
+
+
+def _whitened(tri: Triangulation):
+    """Residual components along the eigenvectors of each ray's covariance, and those eigenvalues (flat)."""
+    r = tri.residual_n
+    C = tri.ray_cov_n
+    use = np.all(np.isfinite(r), -1) & np.all(np.isfinite(C), (-1, -2))
+    lam, V = np.linalg.eigh(C[use])
+    rw = np.einsum("nji,nj->ni", V, r[use])
+    return rw.ravel(), np.maximum(lam, 1e-300).ravel()
+
+
+def extra_ray_variance(tri: Triangulation, dof: float) -> float:
+    """The extra isotropic variance ``s2`` of the rays' normalised coordinates with ``sum r^T (C + s2 I)^-1 r = dof``.
+
+    ``dof``: the degrees of freedom of the residuals pooled (``tri.dof.sum()``
+    for one call).  0 when the stated noise already explains them.
+    """
+    rw, lam = _whitened(tri)
+    return extra_variance(rw, lam, dof)
+
+
+def extra_ray_sums(tri: Triangulation, grid) -> np.ndarray:
+    """``sum r^T (C + s2 I)^-1 r`` over all the call's rays for each ``s2`` of ``grid`` (to pool several calls)."""
+    rw, lam = _whitened(tri)
+    grid = np.asarray(grid, dtype=float)
+    out = np.zeros(grid.shape)
+    for i in range(0, len(rw), 8192):
+        out += ((rw[i:i + 8192, None] ** 2) / (lam[i:i + 8192, None] + grid[None, :])).sum(0)
+    return out
+
+
+def apply_extra_variance(tri: Triangulation, check: Check, s2: float) -> Triangulation:
+    """The triangulation with every ray's covariance grown by ``s2 I`` (the check records the size).
+
+    ``cov_p_mm2 = cov_p_stated_mm2 + s2 * dcov_dextra_mm2``; the check's
+    ``inflation`` is the median growth of the points' covariance traces and
+    its message names the extra noise (in urad near the sensors' axes).
+    """
+    s2 = float(s2)
+    if not s2 > 0:
+        return replace(tri, check=check, extra_var_n=0.0)
+    cov = tri.cov_p_stated_mm2 + s2 * tri.dcov_dextra_mm2
+    check = extra_noise_check(check, s2, np.trace(tri.cov_p_stated_mm2, axis1=-2, axis2=-1),
+                              np.trace(cov, axis1=-2, axis2=-1))
+    return replace(tri, cov_p_mm2=cov, check=check, extra_var_n=s2)
+
+
+def extra_noise_check(check: Check, s2: float, trace_before, trace_after) -> Check:
+    """``check`` with the size of an extra ray noise ``s2`` and the sigma growth it causes in its message."""
+    tr0 = np.asarray(trace_before, dtype=float).ravel()
+    tr1 = np.asarray(trace_after, dtype=float).ravel()
+    ratio = tr1 / np.where(tr0 > 0, tr0, np.nan)
+    ratio = ratio[np.isfinite(ratio)]
+    infl = float(np.median(ratio)) if ratio.size else 1.0
+    lo, hi = (float(np.sqrt(ratio.min())), float(np.sqrt(ratio.max()))) if ratio.size else (1.0, 1.0)
+    grow = f"x{lo:.3g}" if hi - lo < 1e-3 * lo else f"x{lo:.3g} to x{hi:.3g}"
+    msg = (check.message + f"; an extra ray noise of {1e6 * math.sqrt(s2):.4g} urad (in normalised coordinates) "
+           f"added to every ray explains them: position sigmas grown {grow}")
+    return replace(check, message=msg, inflation=infl, effect_sigma=math.sqrt(infl) - 1.0)
+
+
+def _pose_weights(cov, cov_pose, rp, dpred_dpc, ok, calib=None, with_total=False):
     """Inverse of the ray covariance ``cov`` plus the pose part ``Jp Cp Jp^T``, ``Jp = dpi/dPc [-[R P]_x, I]``,
     plus, with ``calib = (D, Sigma, A)``, the common calibration part ``(D - Jp A) Sigma (D - Jp A)^T``."""
     x, y, zz = rp[..., 0], rp[..., 1], rp[..., 2]
@@ -352,7 +508,8 @@ def _pose_weights(cov, cov_pose, rp, dpred_dpc, ok, calib=None):
         D, Sc, Ap = calib
         E = D - Jp @ Ap  # (k, ..., 2, m)
         total = total + E @ Sc @ np.swapaxes(E, -1, -2)
-    return np.linalg.inv(total) * ok[..., None, None]
+    W = np.linalg.inv(total) * ok[..., None, None]
+    return (W, total) if with_total else W
 
 
 def triangulate_aoa(results, sensors) -> Triangulation:

@@ -34,7 +34,7 @@ Flags are ``""`` (nothing found), ``left_out``, ``ambiguous``,
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields, replace
 
 import numpy as np
 
@@ -97,7 +97,9 @@ def screen_rays(n, cov_n, R, t_mm, tri: Triangulation | None = None, *, alpha: f
         As :func:`psdcal.measure.positioning.triangulate`: rays ``(k, ..., 2)``
         (NaN where a sensor does not see the emitter), covariances
         ``(k, ..., 2, 2)``, poses ``(k, 3, 3)`` and ``(k, 3)`` mm, and its
-        keyword arguments (``cov_pose``, ``calib``).
+        keyword arguments (``cov_pose``, ``calib``, ``inflate``).  Give
+        ``inflate=False`` and pool the rows afterwards: the refits are
+        per-row, a whole-batch check in ``tri`` is not recomputed.
     tri : Triangulation, optional
         The triangulation with every ray when already computed.
     alpha : float
@@ -161,17 +163,40 @@ def screen_rays(n, cov_n, R, t_mm, tri: Triangulation | None = None, *, alpha: f
         l_ = np.where(one, np.argmax(suspect, axis=0), -1)
         flag[sub] = f_
         left[sub] = l_
-        p, C, c2, nn = (np.array(tri.p_w_mm, copy=True), np.array(tri.cov_p_mm2, copy=True),
-                        np.array(tri.chi2, copy=True), np.array(tri.n_sensors, copy=True))
-        ps, Cs, c2s, nns = p[sub], C[sub], c2[sub], nn[sub]
-        for j, tj in enumerate(tris):
-            sel = l_ == j
-            if tj is None or not np.any(sel):
-                continue
-            ps[sel], Cs[sel], c2s[sel], nns[sel] = tj.p_w_mm[sel], tj.cov_p_mm2[sel], tj.chi2[sel], tj.n_sensors[sel]
-        p[sub], C[sub], c2[sub], nn[sub] = ps, Cs, c2s, nns
-        tri = Triangulation(p_w_mm=p, cov_p_mm2=C, chi2=c2, n_sensors=nn)
+        tri = _merge(tri, tris, sub, l_)
     return RayScreen(tri=tri, left_out=left, flag=flag, chi2_all=chi2_all, drop=best, alpha=float(alpha))
+
+
+#: Fields of :class:`Triangulation` whose leading axis is the sensor (the others lead with the batch).
+_PER_SENSOR = ("residual_n", "ray_cov_n")
+
+
+def _merge(tri: Triangulation, refits, sub, left) -> Triangulation:
+    """``tri`` with the rows ``sub`` (a batch mask) whose ``left`` (index into the refitted rows) is ``j``
+    taken from ``refits[j]`` (fitted on those rows only), field by field."""
+    out = {}
+    for f in fields(tri):
+        v = getattr(tri, f.name)
+        if not isinstance(v, np.ndarray):
+            continue
+        v = np.array(v, copy=True)
+        per_sensor = f.name in _PER_SENSOR
+        part = v[:, sub] if per_sensor else v[sub]
+        for j, tj in enumerate(refits):
+            sel = left == j
+            w = None if tj is None else getattr(tj, f.name)
+            if w is None or not np.any(sel):
+                continue
+            if per_sensor:
+                part[:, sel] = w[:, sel]
+            else:
+                part[sel] = w[sel]
+        if per_sensor:
+            v[:, sub] = part
+        else:
+            v[sub] = part
+        out[f.name] = v
+    return replace(tri, **out)
 
 
 def left_out_names(screen: RayScreen, names) -> np.ndarray:
