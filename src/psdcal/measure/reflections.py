@@ -40,7 +40,13 @@ import numpy as np
 
 from psdcal._consistency import ALPHA
 from psdcal._stats import chi2_isf
-from psdcal.measure.positioning import Triangulation, triangulate
+from psdcal.measure.positioning import (
+    Triangulation,
+    apply_extra_variance,
+    extra_ray_variance,
+    pooled_check,
+    triangulate,
+)
 
 #: Flags of :class:`RayScreen` (``""``: nothing found).
 FLAGS = ("", "left_out", "ambiguous", "unresolved")
@@ -97,11 +103,13 @@ def screen_rays(n, cov_n, R, t_mm, tri: Triangulation | None = None, *, alpha: f
         As :func:`psdcal.measure.positioning.triangulate`: rays ``(k, ..., 2)``
         (NaN where a sensor does not see the emitter), covariances
         ``(k, ..., 2, 2)``, poses ``(k, 3, 3)`` and ``(k, 3)`` mm, and its
-        keyword arguments (``cov_pose``, ``calib``, ``inflate``).  Give
-        ``inflate=False`` and pool the rows afterwards: the refits are
-        per-row, a whole-batch check in ``tri`` is not recomputed.
+        keyword arguments (``cov_pose``, ``calib``, ``inflate``).  With
+        ``inflate`` (the default, as ``triangulate``) the batch's pooled rule
+        is applied to the rays kept; give ``inflate=False`` to pool several
+        batches afterwards (``locate --sensors``).
     tri : Triangulation, optional
-        The triangulation with every ray when already computed.
+        The triangulation with every ray when already computed (with
+        ``inflate=False``).
     alpha : float
         Design false-alarm rate per row (Bonferroni-split over the sensors).
 
@@ -112,8 +120,10 @@ def screen_rays(n, cov_n, R, t_mm, tri: Triangulation | None = None, *, alpha: f
     n = np.asarray(n, dtype=float)
     cov_n = np.asarray(cov_n, dtype=float)
     k = n.shape[0]
+    inflate = bool(kw.pop("inflate", True))
+    kw.pop("alpha", None)
     if tri is None:
-        tri = triangulate(n, cov_n, R, t_mm, **kw)
+        tri = triangulate(n, cov_n, R, t_mm, inflate=False, alpha=alpha, **kw)
     valid = np.all(np.isfinite(n), axis=-1) & np.all(np.isfinite(cov_n), axis=(-1, -2))  # (k, ...)
     m = valid.sum(0)
     batch = m.shape
@@ -145,7 +155,7 @@ def screen_rays(n, cov_n, R, t_mm, tri: Triangulation | None = None, *, alpha: f
                 continue
             nj = ns_.copy()
             nj[j] = np.nan
-            tj = triangulate(nj, cov_, R, t_mm, **kw_)
+            tj = triangulate(nj, cov_, R, t_mm, inflate=False, alpha=alpha, **kw_)
             tris.append(tj)
             with np.errstate(invalid="ignore"):
                 d = np.where(v_[j], c_all - tj.chi2, -np.inf)
@@ -164,6 +174,11 @@ def screen_rays(n, cov_n, R, t_mm, tri: Triangulation | None = None, *, alpha: f
         flag[sub] = f_
         left[sub] = l_
         tri = _merge(tri, tris, sub, l_)
+    if inflate and tri.cov_p_stated_mm2 is not None:  # the batch's pooled rule, on the rays kept
+        tri = replace(tri, cov_p_mm2=tri.cov_p_stated_mm2)
+        dof = int(np.sum(tri.dof))
+        check = pooled_check(float(np.nansum(tri.chi2)), dof, int(np.sum(tri.n_sensors >= 2)), alpha)
+        tri = apply_extra_variance(tri, check, extra_ray_variance(tri, dof) if check.passed is False else 0.0)
     return RayScreen(tri=tri, left_out=left, flag=flag, chi2_all=chi2_all, drop=best, alpha=float(alpha))
 
 
