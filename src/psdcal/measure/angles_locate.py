@@ -158,7 +158,12 @@ def triangulate_table(table: AnglesTable, sensors, *, sensors_path=None, chunk_s
     """
     from psdcal.measure.locate_multi import _RowPool
     from psdcal.measure.positioning import extra_noise_check, triangulate
-    from psdcal.measure.reflections import left_out_names, reflection_warnings, screen_rays
+    from psdcal.measure.reflections import (
+        left_out_names,
+        reflection_warnings,
+        screen_rays,
+        screen_with_extra_noise,
+    )
 
     check_sensors_known(table, sensors, sensors_path)
     used = [s for s in sensors if s.name in set(table.sensors)]
@@ -175,7 +180,7 @@ def triangulate_table(table: AnglesTable, sensors, *, sensors_path=None, chunk_s
     cp = None
     if any(s.cov_pose is not None for s in used):
         cp = np.stack([np.zeros((6, 6)) if s.cov_pose is None else np.asarray(s.cov_pose, float) for s in used])
-    parts, tris, refl = [], [], []
+    parts, tris, refl, rays = [], [], [], []
     pool = _RowPool() if alpha is None else _RowPool(alpha)
     order = np.argsort(gi, kind="stable")
     bounds = np.searchsorted(gi[order], np.arange(0, len(groups) + chunk_steps, chunk_steps))
@@ -193,7 +198,18 @@ def triangulate_table(table: AnglesTable, sensors, *, sensors_path=None, chunk_s
         refl.append((left_out_names(scr, names), scr.flag))
         pool.add(tri)
         tris.append(tri)
+        rays.append((n, cov))
     check, s2 = pool.result()
+    if s2 > 0:  # rays noisier than stated: screen again against that noise, then the file's rule as before
+        pool = _RowPool() if alpha is None else _RowPool(alpha)
+        tris, refl = [], []
+        for n, cov in rays:
+            scr, tri = screen_with_extra_noise(n, cov, R, t, s2, cov_pose=cp,
+                                               **({} if alpha is None else {"alpha": alpha}))
+            refl.append((left_out_names(scr, names), scr.flag))
+            pool.add(tri)
+            tris.append(tri)
+        check, s2 = pool.result()
     for tri in tris:
         parts.append((tri.p_w_mm, tri.cov_p_stated_mm2 + s2 * tri.dcov_dextra_mm2, tri.chi2, tri.n_sensors))
     if s2 > 0:  # the check's message and inflation: the extra noise and the sigmas' growth over all points

@@ -163,6 +163,11 @@ def locate_multi_to_csv(recordings, sensors, out_path, config: LocateConfig,
     codes = np.concatenate(refl_codes) if refl_codes else np.zeros((0, 2), np.int8)
     lut = np.array([*snames, ""], dtype=object)
     warnings += reflection_warnings(lut[codes[:, 0]], np.array(FLAGS, dtype=object)[codes[:, 1]])
+    n_left = int((codes[:, 0] >= 0).sum())
+    if s2 > 0 and n_left:  # the test of each sensor used the stated ray noise, which the file's rule found too small
+        warnings.append(f"{out_path}: the rays are noisier than stated, and the reflection test used the stated "
+                        f"noise: some of the {n_left} rows with a sensor left out may be noise, not reflections "
+                        "(the calibration or a pose is off?); 'locate --angles' screens again with the grown noise")
     return LocateSummary(n_samples, n_windows, n_rows, n_skipped, n_samples / rate, MULTI_COLUMNS,
                          warnings=tuple(warnings), window_s=window_s, n_flagged=n_flagged, checks=(check,),
                          extra_var_n=s2)

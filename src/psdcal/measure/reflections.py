@@ -182,6 +182,33 @@ def screen_rays(n, cov_n, R, t_mm, tri: Triangulation | None = None, *, alpha: f
     return RayScreen(tri=tri, left_out=left, flag=flag, chi2_all=chi2_all, drop=best, alpha=float(alpha))
 
 
+def screen_with_extra_noise(n, cov_n, R, t_mm, s2: float, *, alpha: float = ALPHA, **kw):
+    """Screen again when the rays are noisier than stated: decide with ``cov_n + s2 I``, fit with ``cov_n``.
+
+    When the pooled test of a file's rows (after a first screening) finds an
+    extra ray noise ``s2``, the first screening's drops were measured against
+    too small a noise and some sensors were left out for noise alone.  This
+    screens again with each ray's covariance grown by ``s2 I`` (so the
+    false-alarm rate is the stated one again), and returns the triangulation
+    of the rays kept with the *stated* covariances and ``inflate=False``, for
+    the caller's pooled rule to grow by ``s2`` as usual.
+
+    Returns
+    -------
+    screen : RayScreen
+        The decisions (``left_out``, ``flag``) made with the grown noise.
+    tri : Triangulation
+        The rays kept, stated covariances, not inflated.
+    """
+    kw.pop("inflate", None)
+    cov_n = np.asarray(cov_n, dtype=float)
+    n = np.array(n, dtype=float, copy=True)
+    scr = screen_rays(n, cov_n + float(s2) * np.eye(2), R, t_mm, alpha=alpha, inflate=False, **kw)
+    for j in range(n.shape[0]):
+        n[j][scr.left_out == j] = np.nan
+    return scr, triangulate(n, cov_n, R, t_mm, inflate=False, alpha=alpha, **kw)
+
+
 #: Fields of :class:`Triangulation` whose leading axis is the sensor (the others lead with the batch).
 _PER_SENSOR = ("residual_n", "ray_cov_n")
 
@@ -253,4 +280,4 @@ def reflection_warnings(left_names, flags, alpha: float = ALPHA) -> list[str]:
     return out
 
 
-__all__ = ["FLAGS", "RayScreen", "left_out_names", "reflection_warnings", "screen_rays"]
+__all__ = ["FLAGS", "RayScreen", "left_out_names", "reflection_warnings", "screen_rays", "screen_with_extra_noise"]
