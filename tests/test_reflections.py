@@ -298,3 +298,26 @@ def test_cli_angles_locate_and_track_say_what_they_found(tmp_path, capsys, k):
                  "-o", str(tmp_path / "track.csv")]) == 0
     err = capsys.readouterr().err
     assert ("left out of" in err) if k == 4 else ("cannot tell which" in err)
+
+
+def test_angles_noisier_than_stated_are_not_called_reflections(tmp_path, capsys):
+    """Rays 4x noisier than the table states, no reflection (k = 4, N = 400): the screening is redone against
+    the file's extra ray noise, so sensors are left out at about the stated rate (<= 0.1 % + 4 SE), not for noise;
+    the same screening with the stated noise alone would flag most rows."""
+    n, cov, R, t, _, _, _ = draw(4, 400, seed=50, reflect=False)
+    rng = np.random.default_rng(51)
+    n = n + 3.87 * SIGMA * rng.standard_normal(n.shape)  # total sigma 4x the stated one
+    names = [f"c{j}" for j in range(4)]
+    keep = np.all(np.isfinite(n), -1).sum(0) >= 3
+    _angles_table(tmp_path / "a.csv", n[:, keep], names, np.arange(400)[keep] * 0.01, SIGMA)
+    _sensors_file(tmp_path / "s.json", R, t, names)
+    assert main(["locate", "--angles", str(tmp_path / "a.csv"), "--sensors", str(tmp_path / "s.json"),
+                 "-o", str(tmp_path / "xyz.csv")]) == 0
+    err = capsys.readouterr().err
+    assert "extra ray noise" in err
+    body = [ln.split(",") for ln in (tmp_path / "xyz.csv").read_text().splitlines()[1:]]
+    assert len(body) > 300
+    left = np.mean([r[-2] != "" for r in body])
+    assert left <= 1e-3 + 4 * math.sqrt(1e-3 / len(body)), left
+    naive = screen_rays(n[:, keep], cov[:, keep], R, t, inflate=False)
+    assert (naive.flag != "").mean() > 0.3
