@@ -161,8 +161,9 @@ def triangulate_table(table: AnglesTable, sensors, *, sensors_path=None, chunk_s
     from psdcal.measure.reflections import (
         left_out_names,
         reflection_warnings,
+        noise_scale,
         screen_rays,
-        screen_with_extra_noise,
+        screen_with_noise_scale,
     )
 
     check_sensors_known(table, sensors, sensors_path)
@@ -191,20 +192,22 @@ def triangulate_table(table: AnglesTable, sensors, *, sensors_path=None, chunk_s
         cov = np.full((k, G, 2, 2), np.nan)
         n[si[rows], gi[rows] - a] = table.n[rows]
         cov[si[rows], gi[rows] - a] = table.cov_n[rows]
-        tri = triangulate(n, cov, R, t, cov_pose=cp, inflate=False)  # the file's rule below, as locate's
-        scr = screen_rays(n, cov, R, t, tri, cov_pose=cp, inflate=False,
+        tri0 = triangulate(n, cov, R, t, cov_pose=cp, inflate=False)  # the file's rule below, as locate's
+        scr = screen_rays(n, cov, R, t, tri0, cov_pose=cp, inflate=False,
                           **({} if alpha is None else {"alpha": alpha}))
         tri = scr.tri  # a sensor whose ray disagrees with the others left out
         refl.append((left_out_names(scr, names), scr.flag))
         pool.add(tri)
         tris.append(tri)
-        rays.append((n, cov))
+        rays.append((n, cov, tri0.chi2, tri0.dof))
     check, s2 = pool.result()
     if s2 > 0:  # rays noisier than stated: screen again against that noise, then the file's rule as before
+        # every ray's chi2 (before any was left out): its median is robust to a minority of reflections
+        scale = noise_scale(np.concatenate([x[2] for x in rays]), np.concatenate([x[3] for x in rays]))
         pool = _RowPool() if alpha is None else _RowPool(alpha)
         tris, refl = [], []
-        for n, cov in rays:
-            scr, tri = screen_with_extra_noise(n, cov, R, t, s2, cov_pose=cp,
+        for n, cov, _, _ in rays:
+            scr, tri = screen_with_noise_scale(n, cov, R, t, scale, cov_pose=cp,
                                                **({} if alpha is None else {"alpha": alpha}))
             refl.append((left_out_names(scr, names), scr.flag))
             pool.add(tri)

@@ -182,28 +182,46 @@ def screen_rays(n, cov_n, R, t_mm, tri: Triangulation | None = None, *, alpha: f
     return RayScreen(tri=tri, left_out=left, flag=flag, chi2_all=chi2_all, drop=best, alpha=float(alpha))
 
 
-def screen_with_extra_noise(n, cov_n, R, t_mm, s2: float, *, alpha: float = ALPHA, **kw):
-    """Screen again when the rays are noisier than stated: decide with ``cov_n + s2 I``, fit with ``cov_n``.
+def noise_scale(chi2, dof) -> float:
+    """A robust factor on the stated ray covariances from rows' ``chi2`` and ``dof`` (>= 1).
 
-    When the pooled test of a file's rows (after a first screening) finds an
-    extra ray noise ``s2``, the first screening's drops were measured against
-    too small a noise and some sensors were left out for noise alone.  This
-    screens again with each ray's covariance grown by ``s2 I`` (so the
-    false-alarm rate is the stated one again), and returns the triangulation
-    of the rays kept with the *stated* covariances and ``inflate=False``, for
-    the caller's pooled rule to grow by ``s2`` as usual.
+    The median over the rows of ``chi2_i / m(dof_i)``, ``m(d)`` the median of
+    chi^2(d): about 1 when the stated noise is right, the variance factor when
+    every ray is noisier than stated by the same factor, and (a median) little
+    moved by a minority of rows with a reflection.
+    """
+    from scipy.stats import chi2 as chi2_dist
+
+    chi2 = np.asarray(chi2, dtype=float)
+    dof = np.asarray(dof, dtype=float)
+    use = np.isfinite(chi2) & (dof > 0)
+    if not np.any(use):
+        return 1.0
+    return max(1.0, float(np.median(chi2[use] / chi2_dist.median(dof[use]))))
+
+
+def screen_with_noise_scale(n, cov_n, R, t_mm, scale: float, *, alpha: float = ALPHA, **kw):
+    """Screen again when the rays are noisier than stated: decide with ``scale * cov_n``, fit with ``cov_n``.
+
+    When a file's rows are noisier than their stated covariances (its pooled
+    test fails), a first screening measured the drops against too small a
+    noise and left sensors out for noise alone.  This screens again with every
+    ray's covariance multiplied by ``scale`` (:func:`noise_scale`, robust to a
+    minority of reflections), so that the false-alarm rate is the stated one
+    again, and returns the triangulation of the rays kept with the *stated*
+    covariances and ``inflate=False``, for the caller's pooled rule.
 
     Returns
     -------
     screen : RayScreen
-        The decisions (``left_out``, ``flag``) made with the grown noise.
+        The decisions (``left_out``, ``flag``) made with the scaled noise.
     tri : Triangulation
         The rays kept, stated covariances, not inflated.
     """
     kw.pop("inflate", None)
     cov_n = np.asarray(cov_n, dtype=float)
     n = np.array(n, dtype=float, copy=True)
-    scr = screen_rays(n, cov_n + float(s2) * np.eye(2), R, t_mm, alpha=alpha, inflate=False, **kw)
+    scr = screen_rays(n, cov_n * float(scale), R, t_mm, alpha=alpha, inflate=False, **kw)
     for j in range(n.shape[0]):
         n[j][scr.left_out == j] = np.nan
     return scr, triangulate(n, cov_n, R, t_mm, inflate=False, alpha=alpha, **kw)
@@ -280,4 +298,4 @@ def reflection_warnings(left_names, flags, alpha: float = ALPHA) -> list[str]:
     return out
 
 
-__all__ = ["FLAGS", "RayScreen", "left_out_names", "reflection_warnings", "screen_rays", "screen_with_extra_noise"]
+__all__ = ["FLAGS", "RayScreen", "left_out_names", "reflection_warnings", "noise_scale", "screen_rays", "screen_with_noise_scale"]
