@@ -73,7 +73,13 @@ def main():
     ap.add_argument("--seconds", type=float, default=3.0)
     ap.add_argument("--rate-hz", type=float, default=125_000.0)
     ap.add_argument("--markdown", action="store_true")
-    a = ap.parse_args()
+    ap.add_argument("--sensors", type=int, default=1,
+                    help="4: several sensors live over TCP (benchmarks/bench_live_multi.py, 20 kS/s each)")
+    a, rest = ap.parse_known_args()
+    if a.sensors > 1:
+        import bench_live_multi
+
+        return bench_live_multi.main(rest + ["--seconds", str(a.seconds)] + (["--markdown"] if a.markdown else []))
     run(a.seconds, a.rate_hz, markdown=a.markdown)
 
 

@@ -14,6 +14,13 @@ LEDs swapped), ``mislabel`` (one view's labels shifted by one), ``metres``
 (points and template in metres), ``no_k2`` (Lens 2 fitted with radial 1).
 Detected: verdict not ``good``, or the calibration refused with an error.
 
+Real sets (``--real``, default on): the six real calibration sets in
+``tests/data`` (Zhang 1998, OpenCV's left/right samples, BoofCV's Sony HX5V and
+Bumblebee2 left/right): the clean verdict with the checks that fail and the
+largest effect, the time of the fit and of the verdict, and each fault of
+:func:`psdcal.study.faults.plant_fault` (two LEDs swapped, one view's labels
+mirrored, points in metres, f fixed 5 % off) with the check that names it.
+
 Usage::
 
     .venv/bin/python benchmarks/study_verdict.py [--correct 500] [--faults 100] [--jobs 2] [--markdown]
@@ -106,6 +113,56 @@ def advice(args) -> dict:
     return {"kind": kind, "seed": seed, "named": any(w in text for w in want), "text": text[:200]}
 
 
+REAL_SETS = ("zhang1998", "opencv_left", "opencv_right", "boofcv_sony_hx5v", "boofcv_bumblebee2_left",
+             "boofcv_bumblebee2_right")
+#: The check that names each planted fault on a real set.
+REAL_CHECK = {"swap": "leds", "reversed": "template_side", "metres": "scale", "fix_f": "held_values"}
+
+
+def real(name: str) -> dict:
+    """The verdict on one real set, clean and with each planted fault (times: fit and verdict, best of 3)."""
+    from pathlib import Path
+
+    from psdcal.calibration.core import calibrate, with_verdict
+    from psdcal.calibration.verdict import Verdict, assess
+    from psdcal.io import read_points, read_template
+    from psdcal.study.faults import REAL_FAULTS, plant_fault
+
+    data = Path(__file__).resolve().parent.parent / "tests" / "data"
+    d = data / name if name == "zhang1998" else data / "chessboards" / name
+    tids, txy = read_template(d / "template.csv")
+    pf = read_points(d / "points.csv", tids)
+    t_fit, t_ver = [], []
+    for _ in range(3):
+        t0 = time.perf_counter()
+        r = calibrate(txy, pf.points_mm, image_ids=pf.image_ids, point_ids=tids, verdict=False)
+        t1 = time.perf_counter()
+        assess(r, diagnose=False)
+        t_fit.append(t1 - t0)
+        t_ver.append(time.perf_counter() - t1)
+    res = with_verdict(r, points_kind="points")
+    vv = Verdict.from_dict(res.verdict)
+    eff = max((c.effect_sigma or 0.0 for c in vv.checks if c.name in ("structure", "model_terms", "views", "leds")),
+              default=0.0)
+    out = {"name": name, "verdict": vv.verdict, "failed": [c.name for c in vv.failed],
+           "notes": [c.name for c in vv.notes], "effect": eff, "inflation": vv.inflation,
+           "t_fit": min(t_fit), "t_verdict": min(t_ver), "f_mm": r.intrinsics.f_mm, "faults": {}}
+    for fault in REAL_FAULTS:
+        T, X, kw, _ = plant_fault(txy, pf.points_mm, fault, f_mm=r.intrinsics.f_mm)
+        try:
+            rf = calibrate(T, X, image_ids=pf.image_ids, point_ids=tids, verdict=False, **kw)
+        except Exception as exc:  # noqa: BLE001
+            rf = getattr(exc, "result", None)
+        if rf is None:
+            out["faults"][fault] = ("refused", True)
+            continue
+        vf = assess(rf, points_kind="points")
+        named = any(c.name == REAL_CHECK[fault] for c in vf.failed) or (
+            fault == "swap" and any("permutation" in c.advice for c in vf.failed))
+        out["faults"][fault] = (vf.verdict, named)
+    return out
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--correct", type=int, default=500)
@@ -113,6 +170,7 @@ def main(argv=None):
     ap.add_argument("--jobs", type=int, default=1)
     ap.add_argument("--markdown", action="store_true")
     ap.add_argument("--advice", type=int, default=0, help="cases per fault whose diagnosis is checked (slower: refits)")
+    ap.add_argument("--no-real", dest="real", action="store_false", help="skip the six real sets")
     a = ap.parse_args(argv)
     from concurrent.futures import ProcessPoolExecutor
 
@@ -121,6 +179,7 @@ def main(argv=None):
     rows = list(mp(correct, range(a.correct)))
     frows = list(mp(faulty, [(k, s) for k in FAULT_KINDS for s in range(a.faults)]))
     arows = list(mp(advice, [(k, s) for k in FAULT_KINDS for s in range(a.advice)])) if a.advice else []
+    rrows = list(mp(real, REAL_SETS)) if a.real else []
     if ex:
         ex.shutdown()
     n = max(len(rows), 1)
@@ -151,6 +210,15 @@ def main(argv=None):
         for r in rs:
             if r["verdict"] == "good":
                 print(f"    missed: {r}")
+    if rrows:
+        print("| real set | clean verdict | failed checks | notes | largest effect | covariance x | fit ms | verdict ms |"
+              + " | ".join(f" {k}" for k in REAL_CHECK) + " |")
+        print("|---|---|---|---|---|---|---|---|" + "---|" * len(REAL_CHECK))
+        for r in rrows:
+            cells = [f"{w} ({REAL_CHECK[k]} {'fails' if named else 'silent'})" for k, (w, named) in r["faults"].items()]
+            print(f"| {r['name']} | {r['verdict']} | {', '.join(r['failed']) or '-'} | {', '.join(r['notes']) or '-'} | "
+                  f"{r['effect']:.2g} sigma | {r['inflation']:.3g} | {1e3 * r['t_fit']:.0f} | {1e3 * r['t_verdict']:.0f} | "
+                  + " | ".join(cells) + " |")
     if arows:
         print("| fault | cases | advice names the planted cause |")
         print("|---|---|---|")

@@ -141,3 +141,33 @@ def test_seen_4_row_listed_in_reverse_points_to_the_template(tmp_path):
     code, text = _run(["calibrate", tmp_path / "p.csv", "-t", tmp_path / "t.csv"])
     assert "degenerate views" not in text
     assert "the row of LEDs 0, 1, 2, 3, 4 looks listed in reverse" in text
+
+
+def test_seen_good_where_it_should_not_is_no_longer_good(tmp_path):
+    """Issue 19: nearly fronto-parallel views (f known to tens of per cent) and six identical views are not good and
+    are told to tilt the template (never "the data need l1"); a fixed f the data contradict is wrong, named in
+    sigmas."""
+    from psdcal.io import write_points, write_template
+    from psdcal.model.params import Distortion, Intrinsics
+    from psdcal.study.simulate import measured_points, simulate_set
+
+    s = simulate_set("lens2", n_images=10, noise_mm=1e-4, seed=1)
+    T = s.template_mm
+    ids = list(range(len(T)))
+    write_template(tmp_path / "t.csv", ids, T)
+    intr, dist = Intrinsics(f_mm=8.0, cx_mm=0.1, cy_mm=-0.05), Distortion(k1=1e-3)
+    rng = np.random.default_rng(0)
+    rv = np.array([[rng.normal(0, 0.01), rng.normal(0, 0.01), a] for a in (0.1, 0.9, 2.0, -1.2, 0.5, -0.3)])
+    tv = np.array([[x, y, 600.0] for x, y in ((0, 0), (40, 10), (-30, 20), (10, -50), (20, 20), (-20, -20))])
+    fronto = measured_points(T, intr, dist, rv, tv)
+    same = np.repeat(measured_points(T, intr, dist, np.array([[0.3, -0.2, 0.1]]), np.array([[0, 0, 500.0]])), 6, axis=0)
+    for name, X in (("fronto", fronto), ("same", same)):
+        write_points(tmp_path / f"{name}.csv", list(range(6)), ids, X + rng.normal(0, 1e-3, X.shape))
+        code, text = _run(["calibrate", tmp_path / f"{name}.csv", "-t", tmp_path / "t.csv"])
+        assert "verdict: GOOD" not in text, text
+        assert "determination:" in text and "tilt the template" in text
+        assert "the data need" not in text
+    write_points(tmp_path / "p.csv", list(range(10)), ids, s.points_mm)
+    code, text = _run(["calibrate", tmp_path / "p.csv", "-t", tmp_path / "t.csv", "--fix", "f_mm=8.05"])
+    assert "verdict: WRONG" in text
+    assert "held_values: f_mm fixed at 8.05: the data say 8.000" in text and "sigma)" in text

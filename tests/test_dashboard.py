@@ -234,23 +234,35 @@ def test_events_log_records_warning_lines(tmp_path, capsys):
 def test_events_option_logs_a_command_warning(tmp_path, capsys):
     """`psdcal --events FILE CMD`: the warning CMD prints is in the log, with the command's name."""
     bad = tmp_path / "bad.csv"
-    bad.write_text("a,b\n1,2\n")
+    bad.write_text("t_s,emitter,X_mm,Y_mm,Z_mm,sigma_X_mm,sigma_Y_mm,sigma_Z_mm,n_sensors,chi2\n"
+                   "0.1,tag,1,2,3,1,1,1,2,0.5\n0.2,tag,1,2\n")
     log = tmp_path / "ev.jsonl"
     assert main(["--events", str(log), "dashboard", str(bad), "--export", str(tmp_path / "o.html")]) == 0
-    assert "not a psdcal rows CSV" in capsys.readouterr().err
+    assert "1 line(s) not read" in capsys.readouterr().err
     ev = [json.loads(line) for line in log.read_text().splitlines()]
-    assert len(ev) == 1 and ev[0]["command"] == "dashboard" and "not a psdcal rows CSV" in ev[0]["text"]
+    assert len(ev) == 1 and ev[0]["command"] == "dashboard" and "1 line(s) not read" in ev[0]["text"]
+
+
+def test_a_finished_file_that_is_not_rows_is_an_error(tmp_path, capsys):
+    """--export / --replay read finished files: an empty file or another CSV is one line, exit 2, no page."""
+    for name, text, what in (("empty.csv", "", "empty"), ("other.csv", "a,b\n1,2\n", "not a psdcal rows CSV")):
+        p = tmp_path / name
+        p.write_text(text)
+        assert main(["dashboard", str(p), "--export", str(tmp_path / "o.html")]) == 2
+        err = capsys.readouterr().err
+        assert what in err and str(p) in err and "header" in err and len(err.strip().splitlines()) == 1
+        assert not (tmp_path / "o.html").exists()
 
 
 def test_events_from_the_environment(tmp_path, monkeypatch, capsys):
-    bad = tmp_path / "empty.csv"
-    bad.write_text("")
+    bad = tmp_path / "short.csv"
+    bad.write_text("t_s,emitter,X_mm,Y_mm,Z_mm,sigma_X_mm,sigma_Y_mm,sigma_Z_mm,n_sensors,chi2\n0.2,tag,1\n")
     log = tmp_path / "env.jsonl"
     monkeypatch.setenv("PSDCAL_EVENTS", str(log))
     assert main(["dashboard", str(bad), "--export", str(tmp_path / "o.html")]) == 0
     capsys.readouterr()
     ev = [json.loads(line) for line in log.read_text().splitlines()]
-    assert [e["text"] for e in ev] == [f"{bad}: empty"]
+    assert [e["text"] for e in ev] == [f"{bad}: 1 line(s) not read (cells missing or not numbers)"]
 
 
 def test_a_new_run_starts_the_rows_over(tmp_path):

@@ -71,7 +71,9 @@ def test_electrical_calibration_noiseless_is_exact():
 def test_electrical_calibration_through_the_chain_at_50db():
     s = chain_settings(50.0)
     g = channel_gains(s, np.random.default_rng(7))
-    cal = G.simulate_electrical_calibration(g, s, np.random.default_rng(8))
+    from psdcal.study.gain_sim import simulate_electrical_calibration
+
+    cal = simulate_electrical_calibration(g, s, np.random.default_rng(8))
     err = cal.gains - g / g[0]
     assert np.all(np.abs(err[1:]) < 5 * cal.std + 1e-6)
     assert np.all(cal.std < 2e-4)

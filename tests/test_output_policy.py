@@ -1,6 +1,7 @@
 """The output policy: no input overwritten, existing outputs only with --force, sets all-or-nothing."""
 import json
 import os
+from pathlib import Path
 
 import pytest
 
@@ -124,16 +125,75 @@ def test_unwritable_places_are_one_line(made, capsys, where):
     assert snapshot(made) == before
 
 
-@pytest.mark.skipif(os.geteuid() == 0, reason="root writes anywhere")
 def test_read_only_folder_is_one_line(made, capsys, tmp_path):
-    ro = tmp_path / "ro"
-    ro.mkdir()
-    ro.chmod(0o555)
+    """A folder the user may not write: refused in one line, before any work, nothing written.
+
+    As root (CI runs as root, and root writes anywhere) the command runs in a
+    child process with its privileges dropped to uid/gid 65534, so the
+    permission failure is the kernel's, as for any user.
+    """
+    import shutil
+    import subprocess
+    import sys
+    import tempfile
+
+    if os.geteuid() != 0:
+        ro = tmp_path / "ro"
+        ro.mkdir()
+        ro.chmod(0o555)
+        try:
+            code, _, err = run(["calibrate", made / "points.csv", "-t", made / "template.csv", "-o", ro / "c.json"],
+                               capsys)
+            assert code == 2 and "not writable" in one_error_line(err)
+            assert list(ro.iterdir()) == []
+        finally:
+            ro.chmod(0o755)
+        return
+    # root: a world-readable copy of the inputs (pytest's tmp_path is private to root) and a folder owned by root
+    top = Path(tempfile.mkdtemp(prefix="psdcal-ro-"))
     try:
-        code, _, err = run(["calibrate", made / "points.csv", "-t", made / "template.csv", "-o", ro / "c.json"], capsys)
-        assert code == 2 and "not writable" in one_error_line(err)
+        top.chmod(0o755)
+        for n in ("points.csv", "template.csv"):
+            shutil.copy(made / n, top / n)
+            (top / n).chmod(0o644)
+        ro = top / "ro"
+        ro.mkdir()
+        ro.chmod(0o755)  # others may enter, not write
+        src = str(Path(__file__).resolve().parents[1] / "src")
+        env = {**os.environ, "PYTHONPATH": src + os.pathsep + os.environ.get("PYTHONPATH", ""), "HOME": str(top),
+               "NUMBA_CACHE_DIR": str(top / "numba"), "MPLCONFIGDIR": str(top / "mpl")}
+        proc = subprocess.run([sys.executable, "-m", "psdcal.cli", "calibrate", str(top / "points.csv"), "-t",
+                               str(top / "template.csv"), "-o", str(ro / "c.json")], cwd=top, env=env,
+                              capture_output=True, text=True, user=65534, group=65534, extra_groups=[], timeout=120)
+        assert proc.returncode == 2, (proc.returncode, proc.stderr[-2000:])
+        assert "not writable" in one_error_line(proc.stderr)
+        assert list(ro.iterdir()) == []
     finally:
-        ro.chmod(0o755)
+        shutil.rmtree(top, ignore_errors=True)
+
+
+def test_permission_denied_while_writing_is_one_line(made, capsys, monkeypatch):
+    """A permission failure the guard could not foresee (an ACL, a file system that refuses at write time).
+
+    Simulated by the staging of the temporary file failing with EACCES, as
+    root and as any user: exit 2, one line, the old outputs untouched, no
+    temporary left.
+    """
+    import tempfile
+
+    before = snapshot(made)
+    real = tempfile.mkstemp
+
+    def denied(*a, **k):
+        if k.get("dir") is not None and str(k["dir"]) == str(made):
+            raise PermissionError(13, "Permission denied", str(made))
+        return real(*a, **k)
+
+    monkeypatch.setattr(tempfile, "mkstemp", denied)
+    code, _, err = run(["simulate", "--images", "5", "--seed", "4", "-o", made, "--force"], capsys)
+    assert code == 2 and "Permission denied" in one_error_line(err)
+    assert snapshot(made) == before
+    assert not [p for p in made.iterdir() if p.name.startswith((TMP_PREFIX, JOURNAL_PREFIX))]
 
 
 def test_set_commits_all_or_nothing(tmp_path):

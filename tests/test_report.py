@@ -4,6 +4,7 @@ import html
 import io
 import os
 import re
+from pathlib import Path
 
 import matplotlib.image as mpimg
 import numpy as np
@@ -96,14 +97,53 @@ def _chromium():
     return find_chromium()
 
 
+def _on_ci() -> bool:
+    return os.environ.get("CI", "").strip().lower() in ("true", "1", "yes")
+
+
+def _need_chromium() -> None:
+    """Skip without Chromium on a workstation; on CI (CI=true, set by .ci/run) a missing Chromium FAILS."""
+    if _chromium() is not None:
+        return
+    if _on_ci():
+        pytest.fail("CI=true but no chromium on PATH: .ci/run must install it so that the browser tests run")
+    pytest.skip("no chromium on this machine (apt-get install chromium); CI installs it and fails without it")
+
+
 def test_ci_has_a_browser():
-    if os.environ.get("CI", "").lower() not in ("true", "1", "yes"):
+    if not _on_ci():
         pytest.skip("only enforced on CI (CI=true)")
     assert _chromium() is not None, "CI must install chromium (.ci/run) so that the browser test runs"
 
 
-@pytest.mark.skipif(_chromium() is None, reason="no chromium on this machine (apt-get install chromium); CI installs it")
+def test_ci_run_sets_ci_and_fails_without_chromium(tmp_path):
+    """.ci/run exports CI=true (the browser tests then fail rather than skip) and stops when Chromium cannot be had."""
+    import subprocess
+
+    script = Path(__file__).resolve().parents[1] / ".ci" / "run"
+    text = script.read_text()
+    assert re.search(r"^export CI=true$", text, re.M)
+    assert "|| echo" not in text and "|| true" not in text
+    # its Chromium step alone, with no chromium on PATH and an apt-get that fails, or "succeeds" installing nothing
+    step = text[text.index("# chromium-step-begin"):text.index("# chromium-step-end")]
+    for rc in (100, 0):
+        (tmp_path / "apt-get").write_text(f"#!/bin/sh\nexit {rc}\n")
+        (tmp_path / "apt-get").chmod(0o755)
+        proc = subprocess.run(["/bin/bash", "-c", "set -euo pipefail\n" + step + "\necho reached"],
+                              env={"PATH": str(tmp_path), "HOME": str(tmp_path)}, capture_output=True, text=True,
+                              timeout=60)
+        assert proc.returncode != 0 and "reached" not in proc.stdout, (rc, proc.returncode, proc.stdout, proc.stderr)
+    # and with a chromium on PATH the step passes without installing anything
+    (tmp_path / "apt-get").write_text("#!/bin/sh\nexit 100\n")
+    (tmp_path / "chromium").write_text("#!/bin/sh\nexit 0\n")
+    (tmp_path / "chromium").chmod(0o755)
+    proc = subprocess.run(["/bin/bash", "-c", "set -euo pipefail\n" + step + "\necho reached"],
+                          env={"PATH": str(tmp_path), "HOME": str(tmp_path)}, capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 0 and "reached" in proc.stdout, (proc.stdout, proc.stderr)
+
+
 def test_report_in_a_headless_browser(made):
+    _need_chromium()
     from browser import inspect_page
 
     page = inspect_page(made / "report.html")
@@ -121,9 +161,9 @@ def test_report_in_a_headless_browser(made):
         assert crop.std() > 0.05 and dark > 0.02, (f["alt"], crop.std(), dark)
 
 
-@pytest.mark.skipif(_chromium() is None, reason="no chromium on this machine")
 def test_browser_check_catches_errors(tmp_path):
     """The harness itself: a page with a console error, an exception and a missing image is caught."""
+    _need_chromium()
     from browser import inspect_page
 
     p = tmp_path / "bad.html"

@@ -390,7 +390,7 @@ def validate_calibration_dict(d: dict, path=None) -> None:
         return InputError(msg, path=path, field=key)
 
     def is_num(v):
-        return isinstance(v, (int, float)) and not isinstance(v, bool)
+        return _finite(v) is not None
 
     def need_obj(key, required=False):
         v = d.get(key)
@@ -409,38 +409,57 @@ def validate_calibration_dict(d: dict, path=None) -> None:
     for k, v in intr.items():
         if v is None and k not in ("f_mm", "cx_mm", "cy_mm"):
             continue
-        if not is_num(v) or not math.isfinite(v):
-            raise bad(f"must be a finite number, got {v!r}", f"intrinsics.{k}")
+        if not is_num(v):
+            raise bad(f"must be a finite number, got {_short(v)}", f"intrinsics.{k}")
     for k in ("f_mm", "fy_mm"):
         if k in intr and intr[k] is not None and not intr[k] > 0:
             raise bad(f"focal length must be positive, got {intr[k]!r}", f"intrinsics.{k}")
     for k, v in need_obj("distortion").items():
-        if v is not None and (not is_num(v) or not math.isfinite(v)):
-            raise bad(f"must be a finite number, got {v!r}", f"distortion.{k}")
+        if v is not None and not is_num(v):
+            raise bad(f"must be a finite number, got {_short(v)}", f"distortion.{k}")
     for k, v in need_obj("sensor").items():
-        if k in ("lx_mm", "ly_mm") and (not is_num(v) or not math.isfinite(v) or v <= 0):
-            raise bad(f"must be a positive number, got {v!r}", f"sensor.{k}")
+        if k in ("lx_mm", "ly_mm") and (not is_num(v) or v <= 0):
+            raise bad(f"must be a positive number, got {_short(v)}", f"sensor.{k}")
+    _check_model(need_obj("model"), bad)
     res = need_obj("residuals")
     if "points" in res and not isinstance(res["points"], dict):
         raise bad("'residuals.points' must be an object", "residuals.points")
     rows = res.get("points", {}).get("rows", []) if isinstance(res.get("points"), dict) else []
-    if not isinstance(rows, list) or not all(isinstance(r, list) and len(r) >= 4 for r in rows):
+    if not isinstance(rows, list) or not all(
+            isinstance(r, list) and len(r) >= 4 and all(_is_id(x) for x in r[:2])
+            and all(x is None or is_num(x) for x in r[2:4]) for r in rows):
         raise bad("'residuals.points.rows' must be a list of [image_id, point_id, dx_mm, dy_mm]", "residuals.points.rows")
+    for k in ("rms_mm", "cost_rms", "sigma_mm"):
+        if res.get(k) is not None and not is_num(res[k]):
+            raise bad(f"must be a finite number or null, got {_short(res[k])}", f"residuals.{k}")
+    pir = res.get("per_image_rms_mm")
+    if pir is not None and not (isinstance(pir, list) and all(x is None or is_num(x) for x in pir)):
+        raise bad("must be a list of numbers", "residuals.per_image_rms_mm")
     ext = d.get("extrinsics", [])
-    if not isinstance(ext, list) or not all(isinstance(e, dict) and "image_id" in e for e in ext):
+    if not isinstance(ext, list) or not all(isinstance(e, dict) and _is_id(e.get("image_id")) for e in ext):
         raise bad("'extrinsics' must be a list of objects with image_id, rvec, tvec_mm", "extrinsics")
     for i, e in enumerate(ext):
         for k, n in (("rvec", 3), ("tvec_mm", 3)):
             v = e.get(k)
             if not (isinstance(v, list) and len(v) == n and all(is_num(x) for x in v)):
                 raise bad(f"must be a list of {n} numbers", f"extrinsics[{i}].{k}")
+        v = e.get("std")
+        if v is not None and not (isinstance(v, list) and len(v) == 6 and all(x is None or is_num(x) for x in v)):
+            raise bad("must be a list of 6 numbers (or null)", f"extrinsics[{i}].std")
     g = d.get("gains")
     if g is not None and not (isinstance(g, list) and len(g) == 4 and all(is_num(x) and x > 0 for x in g)):
-        raise bad(f"'gains' must be 4 positive numbers, got {g!r}", "gains")
+        raise bad(f"'gains' must be 4 positive numbers, got {_short(g)}", "gains")
     std = need_obj("std")
     for k, v in std.items():
         if v is not None and (not is_num(v) or not v >= 0):
-            raise bad(f"a standard error must be a non-negative number or null, got {v!r}", f"std.{k}")
+            raise bad(f"a standard error must be a non-negative number or null, got {_short(v)}", f"std.{k}")
+    for k, types, what in (("iterations", int, "a whole number"), ("converged", bool, "true or false"),
+                           ("cost", str, "a string"), ("message", str, "a string"), ("created", str, "a string"),
+                           ("verdict", str, "a string"), ("checks", list, "a list"), ("stages", dict, "an object"),
+                           ("problem", dict, "an object")):
+        v = d.get(k)
+        if v is not None and (not isinstance(v, types) or (types is int and (isinstance(v, bool) or v < 0))):
+            raise bad(f"must be {what}, got {_short(v)}", k)
     cov = d.get("covariance")
     if cov is not None:
         if not isinstance(cov, dict) or not isinstance(cov.get("names"), list) or not isinstance(cov.get("matrix"), list):
@@ -450,17 +469,86 @@ def validate_calibration_dict(d: dict, path=None) -> None:
             raise bad("'covariance.names' must be distinct strings", "covariance.names")
         try:
             m = np.array(cov["matrix"], dtype=float)
-        except (TypeError, ValueError):
+        except (TypeError, ValueError, OverflowError):
             raise bad("'covariance.matrix' must be a list of lists of numbers", "covariance.matrix") from None
         n = len(names)
         if m.shape != (n, n) and not (n == 0 and m.size == 0):
             raise bad(f"'covariance.matrix' must be {n}x{n}, got shape {m.shape}", "covariance.matrix")
         check_covariance(m, path, "covariance.matrix")
+    check_plausible_distortion(intr, need_obj("distortion"), need_obj("sensor"), path)
     if "sensor_id" in d and d["sensor_id"] is not None and not isinstance(d["sensor_id"], str):
         raise bad(f"'sensor_id' must be a string, got {d['sensor_id']!r}", "sensor_id")
     w = _software_version_check(d, path)
     if w:
         warnings.warn(w, UserWarning, stacklevel=3)
+
+
+def _finite(v):
+    """``float(v)`` for a finite JSON number (not a bool); None otherwise (an integer too large is not finite)."""
+    if isinstance(v, bool) or not isinstance(v, (int, float)):
+        return None
+    try:
+        f = float(v)
+    except OverflowError:
+        return None
+    return f if math.isfinite(f) else None
+
+
+def _is_id(v) -> bool:
+    """An image or point id as JSON writes one: a string or a whole number."""
+    return isinstance(v, str) or (isinstance(v, int) and not isinstance(v, bool))
+
+
+def _short(v) -> str:
+    """``repr(v)``, cut to 40 characters (an error message stays one short line)."""
+    r = repr(v)
+    return r if len(r) <= 40 else r[:37] + "..."
+
+
+def _check_model(m: dict, bad) -> None:
+    """The calibration JSON's ``model`` object: counts of terms and switches."""
+    for k, hi in (("radial", 3), ("psd_radial", 2)):
+        v = m.get(k)
+        if v is not None and not (_finite(v) is not None and 0 <= v <= hi and float(v).is_integer()):
+            raise bad(f"must be a whole number 0..{hi}, got {_short(v)}", f"model.{k}")
+    for k in ("tangential", "skew", "aspect", "fit_gains"):
+        v = m.get(k)
+        if v is not None and not isinstance(v, bool):
+            raise bad(f"must be true or false, got {_short(v)}", f"model.{k}")
+
+
+#: A distortion that moves a point of the sensor by more than this many sensor diagonals is not a lens.
+MAX_DISTORTION_DIAGONALS = 10.0
+
+
+def check_plausible_distortion(intr: dict, dist: dict, sensor: dict, path=None) -> None:
+    """The distortion of a calibration JSON maps the sensor to a finite, plausible region.
+
+    The undistortion (Eq 7-16) is evaluated on a 9 x 9 grid over the PSD: a
+    non-finite point, or one moved by more than :data:`MAX_DISTORTION_DIAGONALS`
+    sensor diagonals (``k1 = 1e300``: every sigma then overflows to NaN) is
+    refused, naming the largest term.
+    """
+    from psdcal.model.distortion import undistort
+    from psdcal.model.params import DISTORTION_NAMES
+
+    lx = _finite(sensor.get("lx_mm", LX_MM)) or LX_MM
+    ly = _finite(sensor.get("ly_mm", LY_MM)) or LY_MM
+    coef = np.array([_finite(dist.get(n, 0.0)) or 0.0 for n in DISTORTION_NAMES])
+    c = np.array([_finite(intr.get("cx_mm", 0.0)) or 0.0, _finite(intr.get("cy_mm", 0.0)) or 0.0])
+    g = np.stack(np.meshgrid(np.linspace(-lx / 2, lx / 2, 9), np.linspace(-ly / 2, ly / 2, 9)), -1).reshape(-1, 2)
+    with np.errstate(all="ignore"):
+        x = undistort(g, coef, c)
+        move = np.max(np.hypot(*(x - g).T))
+    diag = math.hypot(lx, ly)
+    if not (np.all(np.isfinite(x)) and move <= MAX_DISTORTION_DIAGONALS * diag):
+        names = [n for n in DISTORTION_NAMES if dist.get(n)]
+        worst = max(names, key=lambda n: abs(coef[DISTORTION_NAMES.index(n)]) * (diag / 2) ** (
+            {"k1": 2, "k2": 4, "k3": 6, "p1": 1, "p2": 1, "l1": 2, "l2": 4}[n]), default="k1")
+        amount = "to infinity" if not np.isfinite(move) else f"by {move:.3g} mm"
+        raise InputError(f"implausible distortion: it moves points of the {lx:g} x {ly:g} mm sensor {amount} "
+                         f"(more than {MAX_DISTORTION_DIAGONALS:g} sensor diagonals; {worst} = "
+                         f"{coef[DISTORTION_NAMES.index(worst)]:.3g})", path=path, field=f"distortion.{worst}")
 
 
 def check_covariance(m, path=None, field="covariance.matrix") -> None:

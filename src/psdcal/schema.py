@@ -199,6 +199,13 @@ def calibration_schema() -> dict:
                 description="the refinement's starts and the lowest-cost one chosen",
             ),
             "linear": {"type": "object", "description": "direction calibration: the linear start"},
+            "covariance_inflation": _obj(
+                {"factor": {"type": "number", "minimum": 1},
+                 "checks": {"type": "array", "items": {"type": "string"}},
+                 "rule": {"type": "string"}},
+                ("factor",),
+                description="the factor the verdict multiplied the covariance by (1 + effect_sigma^2 of its largest "
+                            "effect; absent when 1) and the checks that asked for it"),
         },
         extra=True,
         description="starting values each linear step produced (the paper's Tables 1-2)",
@@ -247,7 +254,12 @@ def calibration_schema() -> dict:
                  "p_value": {"type": ["number", "null"], "minimum": 0, "maximum": 1},
                  "false_alarm": {"type": "number", "minimum": 0, "maximum": 1},
                  "passed": {"type": ["boolean", "null"], "description": "null: not applicable"},
-                 "message": {"type": "string"}, "advice": {"type": "string"}, "severe": {"type": "boolean"}},
+                 "message": {"type": "string"}, "advice": {"type": "string"}, "severe": {"type": "boolean"},
+                 "dof": {**_NUM_OR_NULL, "description": "degrees of freedom of the statistic"},
+                 "effect_sigma": {**_NUM_OR_NULL, "description": "how far the problem moves f, C or the angles over "
+                                                                 "the field of view, in their standard errors"},
+                 "inflation": {**_NUM_OR_NULL, "description": "the factor this check asks of the covariance "
+                                                              "(1 + effect_sigma^2; 1: none)"}},
                 ("name", "passed", "message"))},
         },
         "required": ["intrinsics", "distortion", "std", "extrinsics", "residuals", "cost", "iterations", "converged",

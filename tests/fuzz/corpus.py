@@ -63,6 +63,56 @@ def build_base(d, main) -> None:
         fh.write("\n".join(f"{az},{el},{0.1 * az:.3f},{0.1 * el:.3f}" for az in (-10, 0, 10) for el in (-10, 0, 10)) + "\n")
     with open(f"{d}/prior.json", "w") as fh:
         json.dump({"names": ["f_mm"], "values": [8.0], "std": [0.1]}, fh)
+    # gains: spots at known places on a bare PSD and their four amplitudes (a duo-lateral readout, gains 1)
+    spots = [(x, y) for x in (-3.0, 0.0, 3.0) for y in (-3.0, 0.0, 3.0)]
+    with open(f"{d}/spots.csv", "w") as fh:
+        fh.write("point_id,x_mm,y_mm\n" + "".join(f"s{i},{x},{y}\n" for i, (x, y) in enumerate(spots)))
+    with open(f"{d}/bench.csv", "w") as fh:
+        fh.write("point_id,vx1,vx2,vy1,vy2\n")
+        fh.write("".join(f"s{i},{0.5 - x / 9:.6f},{0.5 + x / 9:.6f},{0.5 - y / 9:.6f},{0.5 + y / 9:.6f}\n"
+                         for i, (x, y) in enumerate(spots)))
+    # module: a text recording 't_s , x , y , sum' of two LEDs in turn with dark samples between
+    rng = np.random.default_rng(1)
+    with open(f"{d}/module.txt", "w") as fh:
+        for k in range(600):
+            slot, i = divmod(k, 6)
+            lx, ly, ls = ((0.9, 0.4, 4.3), (-0.55, 1.7, 1.9))[slot % 2] if i < 5 else (0.0, 0.0, 0.03)
+            fh.write(f"{0.002 * (k + 1):.3f} , {lx + 4e-4 * rng.standard_normal():.4f} , "
+                     f"{ly + 4e-4 * rng.standard_normal():.4f} , {ls:.4f}\n")
+    # bundle: two sensors' locate outputs (x_mm, y_mm on the PSD) and the known emitters
+    with open(f"{d}/known.csv", "w") as fh:
+        fh.write("emitter,X_m,Y_m,Z_m\na1,0,0,2\na2,1,0,2\na3,0,1,2\na4,1,1,2.5\n")
+    for name, shift in (("s1", 0.0), ("s2", 0.4)):
+        with open(f"{d}/located_{name}.csv", "w") as fh:
+            fh.write("t_s,emitter,x_mm,y_mm,sigma_x_mm,sigma_y_mm\n")
+            fh.write("".join(f"{0.01 * w:.2f},{e},{shift + 0.8 * (i % 2) - 0.4:.4f},{0.8 * (i // 2) - 0.4:.4f},"
+                             "0.001,0.001\n" for w in range(3) for i, e in enumerate(("a1", "a2", "a3", "a4"))))
+
+    # selfcal / tag-pose: a 4-emitter tag seen by s1 and s2 of sensors.json (psdcal's alpha convention)
+    from scipy.spatial.transform import Rotation
+
+    tag = np.array([[-60.0, -30.0, 0.0], [60.0, -30.0, 0.0], [60.0, 30.0, 10.0], [-60.0, 30.0, 0.0]])
+    with open(f"{d}/tag.csv", "w") as fh:
+        fh.write("emitter,X_mm,Y_mm,Z_mm\n" + "".join(f"t{i},{x},{y},{z}\n" for i, (x, y, z) in enumerate(tag)))
+    cams = [(Rotation.from_rotvec(s["rvec"]).as_matrix(), np.array(s["tvec_mm"], float)) for s in sensors["sensors"]]
+    lines = []
+    for k in range(24):
+        Rt = Rotation.from_rotvec([0.2 * np.sin(0.3 * k), 0.15 * np.cos(0.2 * k), 0.1 * k]).as_matrix()
+        Pw = tag @ Rt.T + [300 * np.sin(0.25 * k) - 250, 200 * np.cos(0.25 * k), 2000 + 100 * np.sin(0.1 * k)]
+        for name, (Rc, tc) in zip(("s1", "s2"), cams):
+            Pc = Pw @ Rc.T + tc
+            for i, q in enumerate(Pc):
+                ax, ay = np.degrees(np.arctan(q[:2] / q[2]))
+                lines.append(f"{0.05 * k:.2f},{name},t{i},{ax:.6f},{ay:.6f},0.002,0.002")
+    with open(f"{d}/angles.csv", "w") as fh:
+        fh.write("t_s,sensor,emitter,alpha_x_deg,alpha_y_deg,sigma_alpha_x_deg,sigma_alpha_y_deg\n")
+        fh.write("\n".join(lines) + "\n")
+    # record: a raw float64 stream of frames (vx1, vx2, vy1, vy2) read as a live source 'file:PATH'
+    rec[:400].astype("<f8").tofile(f"{d}/raw.bin")
+    # dashboard: multi-sensor locate rows
+    with open(f"{d}/xyz.csv", "w") as fh:
+        fh.write("t_s,emitter,X_mm,Y_mm,Z_mm,sigma_X_mm,sigma_Y_mm,sigma_Z_mm,n_sensors,chi2\n")
+        fh.write("".join(f"{0.05 * k:.2f},tag,{10.0 * k:.1f},{-5.0 * k:.1f},2000,2,2,3,2,0.8\n" for k in range(20)))
 
 
 # ------------------------------------------------------------------ broken text files
@@ -118,6 +168,29 @@ TEXT_SLOTS = [
     ("directions", ["calibrate-directions", "{X}", "-o", "{b}/out.json"], ".csv"),
     ("amplitudes-rec-csv", ["amplitudes", "{X}", "--rate-hz", "20000", "--carrier-hz", "1000", "-o", "{b}/out.csv"],
      ".csv"),
+    ("bundle-located", ["bundle", "s1={X}", "s2={b}/located_s2.csv", "--calib", "{b}/calib.json", "--known",
+                        "{b}/known.csv", "-o", "{b}/out.json"], ".csv"),
+    ("bundle-known", ["bundle", "s1={b}/located_s1.csv", "s2={b}/located_s2.csv", "--calib", "{b}/calib.json",
+                      "--known", "{X}", "-o", "{b}/out.json"], ".csv"),
+    ("bundle-calib", ["bundle", "s1={b}/located_s1.csv", "s2={b}/located_s2.csv", "--calib", "{X}", "--known",
+                      "{b}/known.csv", "-o", "{b}/out.json"], ".json"),
+    ("export-calib", ["export", "{X}", "--format", "opencv-yaml", "-o", "{b}/out.yaml"], ".json"),
+    ("gains-amplitudes", ["gains", "{X}", "--positions", "{b}/spots.csv", "-o", "{b}/out.json"], ".csv"),
+    ("gains-positions", ["gains", "{b}/bench.csv", "--positions", "{X}", "-o", "{b}/out.json"], ".csv"),
+    ("module", ["module", "{X}", "-o", "{b}/out.csv"], ".txt"),
+    ("module-calib", ["module", "{b}/module.txt", "--calib", "{X}", "-o", "{b}/out.csv"], ".json"),
+    ("next-view-calib", ["next-view", "{X}"], ".json"),
+    ("next-view-points", ["next-view", "{X}", "-t", "{b}/sim/template.csv"], ".csv"),
+    ("next-view-template", ["next-view", "{b}/sim/points.csv", "-t", "{X}"], ".csv"),
+    ("selfcal-angles", ["selfcal", "{X}", "--tag", "{b}/tag.csv", "-o", "{b}/out.json"], ".csv"),
+    ("selfcal-tag", ["selfcal", "{b}/angles.csv", "--tag", "{X}", "-o", "{b}/out.json"], ".csv"),
+    ("tag-pose-angles", ["tag-pose", "{X}", "--tag", "{b}/tag.csv", "--sensors", "{b}/sensors.json",
+                         "-o", "{b}/out.csv"], ".csv"),
+    ("tag-pose-sensors", ["tag-pose", "{b}/angles.csv", "--tag", "{b}/tag.csv", "--sensors", "{X}",
+                          "-o", "{b}/out.csv"], ".json"),
+    ("locate-angles", ["locate", "--angles", "{X}", "--sensors", "{b}/sensors.json", "-o", "{b}/out.csv"], ".csv"),
+    ("dashboard-rows", ["dashboard", "{X}", "--export", "{b}/out.html"], ".csv"),
+    ("dashboard-sensors", ["dashboard", "{b}/xyz.csv", "--sensors", "{X}", "--export", "{b}/out.html"], ".json"),
 ]
 
 # ------------------------------------------------------------------ calibration JSON with wrong types/ranges
@@ -172,7 +245,8 @@ def _calib_variants(base: dict) -> dict:
     }
 
 
-CALIB_SLOTS = ["report", "compare-a", "compare-b", "errormap", "aoa-calib", "locate-calib", "pose-calib"]
+CALIB_SLOTS = ["report", "compare-a", "compare-b", "errormap", "aoa-calib", "locate-calib", "pose-calib",
+               "export-calib", "next-view-calib", "bundle-calib", "module-calib"]
 
 # ------------------------------------------------------------------ recordings
 def _npy_bytes(arr) -> bytes:
@@ -206,6 +280,7 @@ REC_SLOTS = [
     ("amplitudes", ["amplitudes", "{X}", "--rate-hz", "20000", "--carrier-hz", "1000", "-o", "{b}/out.csv"]),
     ("pose", ["pose", "{X}", "--calib", "{b}/calib.json", "--emitters", "{b}/emitters.csv", "--rate-hz", "20000",
               "-o", "{b}/out.json"]),
+    ("inspect", ["inspect", "{X}", "--rate-hz", "20000", "--carrier-hz", "1000"]),
 ]
 
 
@@ -314,6 +389,57 @@ OPTION_CASES = [
     ["simulate-recording", "template", "-o", "{b}/r", "--gain-imbalance", "0.9"],
     ["simulate-recording", "room", "-o", "{b}/r", "--duration-s", "nan"],
     ["simulate-recording", "nothing"],
+    ["bundle", "s1={b}/located_s1.csv", "--calib", "{b}/calib.json", "--known", "{b}/known.csv", "-o", "{b}/o.json"],
+    ["bundle", "s1={b}/located_s1.csv", "s1={b}/located_s2.csv", "--calib", "{b}/calib.json", "--known",
+     "{b}/known.csv", "-o", "{b}/o.json"],
+    ["bundle", "s1{b}/located_s1.csv", "s2={b}/located_s2.csv", "--calib", "{b}/calib.json", "--known",
+     "{b}/known.csv", "-o", "{b}/o.json"],
+    ["bundle", "s1={b}/located_s1.csv", "s2={b}/located_s2.csv", "--calib", "s1={b}/calib.json", "--known",
+     "{b}/known.csv", "-o", "{b}/o.json"],
+    ["export", "{b}/calib.json", "--format", "matlab", "-o", "{b}/o.yaml"],
+    ["export", "{b}/calib.json", "--format", "opencv-yaml", "--pixel-um", "0", "-o", "{b}/o.yaml"],
+    ["export", "{b}/calib.json", "--format", "opencv-yaml", "--coeffs", "6", "-o", "{b}/o.yaml"],
+    ["export", "{b}/calib.json", "--format", "opencv-yaml", "--grid", "2", "-o", "{b}/o.yaml"],
+    ["export", "--format", "opencv-yaml", "-o", "{b}/o.yaml"],
+    ["gains", "{b}/bench.csv", "--positions", "{b}/spots.csv", "--lx-mm", "-9", "-o", "{b}/o.json"],
+    ["gains", "{b}/bench.csv", "--positions", "{b}/spots.csv", "--ly-mm", "nan", "-o", "{b}/o.json"],
+    ["gains", "{b}/bench.csv", "-o", "{b}/o.json"],
+    ["inspect", "{b}/rec.npy"],
+    ["inspect", "{b}/rec.npy", "--rate-hz", "-1"],
+    ["inspect", "{b}/rec.npy", "--rate-hz", "20000", "--max-samples", "0"],
+    ["inspect", "{b}/rec.npy", "--rate-hz", "20000", "--window-s", "nan"],
+    ["inspect", "{b}/rec.npy", "--rate-hz", "20000", "--carrier-hz", "15000"],
+    ["module", "{b}/module.txt", "--channels", "t,x,y", "-o", "{b}/o.csv"],
+    ["module", "{b}/module.txt", "--channels", "t,x,x,sum", "-o", "{b}/o.csv"],
+    ["module", "{b}/module.txt", "--mm-per-unit", "0", "-o", "{b}/o.csv"],
+    ["module", "{b}/module.txt", "--mm-per-unit", "nan", "-o", "{b}/o.csv"],
+    ["module", "{b}/module.txt", "--n-emitters", "3", "-o", "{b}/o.csv"],
+    ["module", "{b}/module.txt", "--channels", "x,y,sum,-", "-o", "{b}/o.csv"],
+    ["next-view", "{b}/calib.json", "--noise-um", "0"],
+    ["next-view", "{b}/calib.json", "--min-gain", "2"],
+    ["next-view", "{b}/calib.json", "--grid", "1"],
+    ["next-view", "{b}/calib.json", "--max-tilt-deg", "95"],
+    ["next-view", "{b}/sim/points.csv"],
+    ["demo", "--cost", "magic"], ["demo", "--bogus"],
+    ["selfcal", "{b}/angles.csv", "-o", "{b}/o.json"],
+    ["selfcal", "{b}/angles.csv", "--tag", "{b}/tag.csv", "--convention", "polar", "-o", "{b}/o.json"],
+    ["selfcal", "{b}/angles.csv", "--tag", "{b}/tag.csv", "--reference", "s9", "-o", "{b}/o.json"],
+    ["selfcal", "{b}/angles.csv", "--tag", "{b}/tag.csv", "--sigma-rad", "0", "-o", "{b}/o.json"],
+    ["tag-pose", "{b}/angles.csv", "--tag", "{b}/tag.csv", "-o", "{b}/o.csv"],
+    ["tag-pose", "{b}/angles.csv", "--tag", "{b}/tag.csv", "--sensors", "{b}/sensors.json", "--convention", "x",
+     "-o", "{b}/o.csv"],
+    ["locate", "--angles", "{b}/angles.csv", "-o", "{b}/o.csv"],
+    ["locate", "--angles", "{b}/angles.csv", "--sensors", "{b}/sensors.json", "--convention", "polar",
+     "-o", "{b}/o.csv"],
+    ["dashboard", "{b}/xyz.csv", "--speed", "0", "--export", "{b}/o.html"],
+    ["dashboard", "{b}/xyz.csv", "--host", "0.0.0.0", "--port", "0"],
+    ["dashboard", "{b}/xyz.csv", "--host", "0.0.0.0", "--allow-remote", "--token", "short", "--port", "0"],
+    ["dashboard", "{b}/no-such.csv", "--replay", "--export", "{b}/o.html"],
+    ["record", "--rate-hz", "20000", "-o", "{b}/o.psdsession"],
+    ["record", "file:{b}/raw.bin", "--rate-hz", "nan", "-o", "{b}/o.psdsession"],
+    ["record", "file:{b}/raw.bin", "--rate-hz", "20000", "--raw-scale", "nan", "-o", "{b}/o.psdsession"],
+    ["record", "file:{b}/no-such.bin", "--rate-hz", "20000", "-o", "{b}/o.psdsession"],
+    ["record", "file:{b}/raw.bin", "file:{b}/raw.bin", "--rate-hz", "20000", "--names", "a", "-o", "{b}/o.psdsession"],
     ["no-such-command"], ["--no-such-flag"],
 ]
 
@@ -352,6 +478,24 @@ WRITERS = [
      ".csv", "{b}/sensors.json"),
     ("directions", ["calibrate-directions", "{b}/directions.csv", "-o", "{O}"], ".json", "{b}/directions.csv"),
     ("demo", ["demo", "-o", "{O}"], ".json", None),
+    ("bundle", ["bundle", "s1={b}/located_s1.csv", "s2={b}/located_s2.csv", "--calib", "{b}/calib.json", "--known",
+                "{b}/known.csv", "-o", "{O}"], ".json", "{b}/calib.json"),
+    ("bundle-points", ["bundle", "s1={b}/located_s1.csv", "s2={b}/located_s2.csv", "--calib", "{b}/calib.json",
+                       "--known", "{b}/known.csv", "-o", "{b}/o.json", "--points-out", "{O}"], ".csv",
+     "{b}/known.csv"),
+    ("export", ["export", "{b}/calib.json", "--format", "opencv-yaml", "-o", "{O}"], ".yaml", "{b}/calib.json"),
+    ("gains", ["gains", "{b}/bench.csv", "--positions", "{b}/spots.csv", "-o", "{O}"], ".json", "{b}/bench.csv"),
+    ("module", ["module", "{b}/module.txt", "-o", "{O}"], ".csv", "{b}/module.txt"),
+    ("next-view", ["next-view", "{b}/calib.json", "--json", "{O}"], ".json", "{b}/calib.json"),
+    ("selfcal", ["selfcal", "{b}/angles.csv", "--tag", "{b}/tag.csv", "-o", "{O}"], ".json", "{b}/angles.csv"),
+    ("selfcal-poses", ["selfcal", "{b}/angles.csv", "--tag", "{b}/tag.csv", "-o", "{b}/o.json", "--tag-poses", "{O}"],
+     ".csv", "{b}/tag.csv"),
+    ("tag-pose", ["tag-pose", "{b}/angles.csv", "--tag", "{b}/tag.csv", "--sensors", "{b}/sensors.json", "-o", "{O}"],
+     ".csv", "{b}/angles.csv"),
+    ("locate-angles", ["locate", "--angles", "{b}/angles.csv", "--sensors", "{b}/sensors.json", "-o", "{O}"], ".csv",
+     "{b}/angles.csv"),
+    ("dashboard", ["dashboard", "{b}/xyz.csv", "--export", "{O}"], ".html", "{b}/xyz.csv"),
+    ("record", ["record", "file:{b}/raw.bin", "--rate-hz", "20000", "-o", "{O}"], ".psdsession", "{b}/raw.bin"),
 ]
 #: Commands whose output is replaced on every run (psdcal.cli.REPLACING_COMMANDS).
 REPLACING = {"demo"}

@@ -130,3 +130,68 @@ def run_kills(root, n_kills: int, scenarios=None, seed: int = 0, log=None) -> Co
         assert not left, f"temporaries left after recovery: {left}"
         shutil.rmtree(work)
     return outcomes
+
+
+HOOK = Path(__file__).with_name("killhook.py")
+
+
+def _hooked(argv, cwd, env, at: int, log: Path):
+    e = dict(env, PSDCAL_KILL_AT=str(at), PSDCAL_KILL_LOG=str(log))
+    return subprocess.run([sys.executable, str(HOOK), *argv, "--force"], cwd=cwd, env=e, capture_output=True,
+                          text=True)
+
+
+def _events(log: Path):
+    return [ln.split(" ", 2)[1:] for ln in log.read_text().splitlines()] if log.exists() else []
+
+
+def run_kills_at_every_write(root, name: str, log=None, fresh_too: bool = True) -> Counter:
+    """Kill scenario ``name`` at every write event in turn (see ``killhook.py``), over A (and fresh).
+
+    A dry run lists the events (each output's staged write, then each rename
+    of the commit: the journal, the outputs).  Then one run per event, over
+    the A outputs and in a fresh folder, is killed exactly there; each must
+    die of SIGKILL at that event (so the window was reached), and after the
+    recovery every output is whole and all of one version, no temporary left.
+    Returns the outcomes per (kill point, over-A/fresh, version).
+    """
+    root = Path(root)
+    src = prepare(root)
+    a, b, outputs = SCENARIOS[name]
+    env = dict(os.environ, PYTHONWARNINGS="ignore")
+    ra, rb = root / f"det-ref-{name}-a", root / f"det-ref-{name}-b"
+    for d, argv in ((ra, a), (rb, b)):
+        shutil.copytree(src, d, dirs_exist_ok=True)
+        proc = _hooked(argv, d, env, -1, root / f"det-{name}-{d.name}.log")
+        assert proc.returncode == 0, proc.stderr
+    ref_a, ref_b = ({o: (ra / o).read_bytes() for o in outputs}, {o: (rb / o).read_bytes() for o in outputs})
+    events = _events(root / f"det-{name}-{rb.name}.log")
+    written = [n for kind, n in events if kind == "written"]
+    assert sorted(written) == sorted(Path(o).name for o in outputs), events  # every output through the writer
+    outcomes = Counter()
+    for fresh in (False, True) if fresh_too else (False,):
+        for k, (kind, target) in enumerate(events):
+            work = root / f"det-{name}-{k}-{'fresh' if fresh else 'over'}"
+            shutil.copytree(src, work)
+            if not fresh:  # the A outputs, as a completed run A left them
+                for o in outputs:
+                    (work / o).parent.mkdir(parents=True, exist_ok=True)
+                    shutil.copy2(ra / o, work / o)
+            klog = work.parent / (work.name + ".log")
+            proc = _hooked(b, work, env, k, klog)
+            assert proc.returncode == -signal.SIGKILL, (name, k, kind, target, proc.returncode, proc.stderr[-500:])
+            assert _events(klog)[-1] == [kind, target], (name, k, _events(klog))  # killed exactly there
+            for d in {(work / o).parent for o in outputs}:
+                recover(d)
+            v = _state(work, outputs, ref_a, ref_b, fresh)
+            common = set.intersection(*v)
+            version = "MIXED" if not common or common == {"other"} else "/".join(sorted(common))
+            where = f"{name}: killed at event {k} ({kind} {target}, {'fresh' if fresh else 'over A'})"
+            if log:
+                log(f"{where}: {v}")
+            assert {"other"} not in v, f"a broken output, {where}: {dict(zip(outputs, v))}"
+            assert version != "MIXED", f"mixed set, {where}: {dict(zip(outputs, v))}"
+            assert not _leftovers(work), f"temporaries left, {where}: {_leftovers(work)}"
+            outcomes[(f"{kind} {target}", "fresh" if fresh else "over-A", version)] += 1
+            shutil.rmtree(work)
+    return outcomes

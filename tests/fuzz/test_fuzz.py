@@ -31,8 +31,8 @@ def _base(tmp_path_factory):
     return _BASE["dir"]
 
 
-def _case_ids():
-    # ids are computed without the base (the calibration variants' names do not depend on it)
+def _cases_without_base():
+    # ids and command lines are computed without the base (the calibration variants' names do not depend on it)
     import json
     import tempfile
 
@@ -45,10 +45,11 @@ def _case_ids():
                 "sensor_id": "x"}
         with open(os.path.join(d, "calib.json"), "w") as fh:
             json.dump(fake, fh)
-        return [c.id for c in corpus.cases(d, d)]
+        return corpus.cases(d, d)
 
 
-CASE_IDS = _case_ids()
+_CASES = _cases_without_base()
+CASE_IDS = [c.id for c in _CASES]
 
 
 def snapshot(root):
@@ -81,16 +82,47 @@ def _plant(work, case):
                 fh.write(spec)
 
 
-def test_corpus_is_large_and_covers_every_command():
-    from psdcal.cli import _register
+def _commands():
+    """Every command of the CLI (from the click group itself: a new command without a case fails)."""
+    from psdcal.cli import OUTPUT_PARAMS, _register, cli
 
-    assert len(CASE_IDS) >= 400
     _register()
-    covered = set()
-    for cid in CASE_IDS:
-        covered.add(cid.split("/")[1].split("-")[0])
+
+    def walk(group, prefix=()):
+        for name, cmd in group.commands.items():
+            if hasattr(cmd, "commands"):
+                yield from walk(cmd, (*prefix, name))
+            else:
+                yield (*prefix, name), any(p.name in OUTPUT_PARAMS for p in cmd.params)
+
+    return dict(walk(cli))
+
+
+def _command_of(argv):
+    return tuple(argv[:2]) if argv and argv[0] in {c[0] for c in _commands() if len(c) > 1} else tuple(argv[:1])
+
+
+def test_corpus_is_large_and_covers_every_command():
+    assert len(CASE_IDS) >= 400
+    assert len(set(CASE_IDS)) == len(CASE_IDS)
+    commands = _commands()
+    assert len(commands) >= 22
     classes = {cid.split("/")[0] for cid in CASE_IDS}
     assert {"text", "path", "calib-json", "recording", "option", "output", "resource"} <= classes
+    by_class: dict = {}
+    for c in _CASES:
+        by_class.setdefault(c.cls, set()).add(_command_of(c.argv))
+    covered = set().union(*by_class.values())
+    missing = sorted(" ".join(c) for c in commands if c not in covered)
+    assert not missing, f"commands without a hostile case: {missing}"
+    # every command that reads a file gets broken files, every command that writes gets the output cases
+    groups = {c[0] for c in commands if len(c) > 1}
+    unknown = {c for c in covered if c[0] in ("no-such-command", "--no-such-flag") or (c[0] in groups and c not in commands)}
+    assert covered - unknown <= set(commands), covered - set(commands)
+    no_option = sorted(" ".join(c) for c in commands if c not in by_class["option"])
+    assert not no_option, f"commands without a bad-option case: {no_option}"
+    writers = {c for c, writes in commands.items() if writes}
+    assert not sorted(" ".join(c) for c in writers - by_class["output"]), writers - by_class["output"]
 
 
 @pytest.mark.parametrize("case_id", CASE_IDS)

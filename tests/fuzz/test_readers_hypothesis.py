@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -16,6 +17,8 @@ def _readers():
     from psdcal.measure.pose import read_emitters
     from psdcal.measure.positioning import load_sensors
     from psdcal.measure.sensor_model import SensorModel
+    from psdcal.calibration.bench import read_bench_amplitudes, read_positions
+    from psdcal.signal.module import read_module
     from psdcal.signal.recording import open_recording
     from psdcal.signal.stream import load_schedule
 
@@ -35,13 +38,16 @@ def _readers():
         "emitters.csv": read_emitters,
         "rec.csv": rec,
         "rec.npy": rec,
+        "spots.csv": read_positions,
+        "bench.csv": lambda p: read_bench_amplitudes(p, {"s0": np.zeros(2), "s1": np.ones(2)}),
+        "module.txt": lambda p: read_module(p, "t,x,y,sum"),
     }
 
 
 READERS = _readers()
 
 # text that looks like the files: headers, numbers, separators, odd characters
-_TOKENS = st.sampled_from(["point_id", "X_mm", "Y_mm", "image_id", "x_mm", "y_mm", "vx1", "vx2", "vy1", "vy2",
+_TOKENS = st.sampled_from(["point_id", "X_mm", "sum", "t", "Y_mm", "image_id", "x_mm", "y_mm", "vx1", "vx2", "vy1", "vy2",
                            "emitter", "t_start_s", "t_end_s", "X_m", "Y_m", "Z_m", ",", ",", "\n", "\n", "0", "1",
                            "-2.5", "1e308", "nan", "inf", "\"", "\ufeff", "\x00", "é", "{", "}", "[", "]", ":",
                            "\"intrinsics\"", "\"f_mm\"", "\"covariance\"", "\"sensors\"", "null", "true", "  "])
@@ -59,9 +65,13 @@ def test_reader_raises_only_input_errors(name, data, tmp_path_factory):
     try:
         READERS[name](p)
     except PsdcalError as exc:
-        assert isinstance(exc, InputError) or "Error" in type(exc).__name__
-        assert "\n" not in " ".join(str(exc).split("\n"))  # one line once joined by the CLI
-        assert str(p.name) in str(exc) or getattr(exc, "path", None) is not None, str(exc)
+        # bad bytes are bad input: the project's InputError (not a solver's error), naming THIS file
+        assert isinstance(exc, InputError), (type(exc).__name__, str(exc))
+        assert exc.path is not None and Path(exc.path).name == p.name, str(exc)
+        assert str(exc).startswith(exc.path), str(exc)
+        # one line a user can act on: no newline, and a message beyond the location
+        assert "\n" not in str(exc) and "\r" not in str(exc), repr(str(exc))
+        assert exc.detail.strip(), repr(str(exc))
 
 
 @settings(max_examples=40, deadline=None)

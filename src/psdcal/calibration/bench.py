@@ -36,17 +36,13 @@ AMP_COLS = ("vx1", "vx2", "vy1", "vy2")
 
 
 def _read_csv(path: Path):
-    try:
-        fh = open(path, newline="", encoding="utf-8-sig")
-    except FileNotFoundError:
-        raise InputError("file not found", path=path) from None
-    except OSError as exc:
-        raise InputError(f"cannot read ({exc.strerror})", path=path) from None
-    with fh:
-        try:
-            rows = list(csv.reader(fh))
-        except UnicodeDecodeError:
-            raise InputError("not a UTF-8 text file", path=path) from None
+    """Header and rows of a text CSV; the project's checked reader (no device, no binary, size and field limits)."""
+    import io as _io
+
+    from psdcal.io import csv_rows_checked, read_text_file
+
+    text = read_text_file(path, "CSV file")
+    rows = list(csv_rows_checked(csv.reader(_io.StringIO(text, newline="")), path))
     if not rows:
         raise InputError("empty file", path=path)
     return [h.strip() for h in rows[0]], rows[1:]
@@ -84,6 +80,57 @@ def read_positions(path) -> dict[str, np.ndarray]:
     if not out:
         raise InputError("no positions", path=path)
     return out
+
+
+#: The spots the amplitudes give may differ from the positions by the gains' projective map, not by more
+#: than this (largest element of ``A - I`` of the affine fit ``measured = A positions + b``).
+MAX_POSITION_MAP_ERROR = 0.5
+
+
+def check_spot_positions(spots_mm, amplitudes, lx_mm: float, ly_mm: float, path=None) -> None:
+    """The known positions agree with the spots the amplitudes give (before the gains are fitted).
+
+    Unequal gains move the measured spots by a mild projective map (a few %
+    for a few % of imbalance).  An affine fit ``measured = A positions + b``
+    shows what no gains explain: positions in another unit (``sqrt|det A|``
+    far from 1: metres give 1000), x and y swapped or an axis mirrored
+    (``det A < 0`` or an element of ``A - I`` above :data:`MAX_POSITION_MAP_ERROR`),
+    a spot outside the PSD.
+
+    Raises
+    ------
+    InputError
+        Naming the positions file and what is wrong.
+    """
+    from psdcal.model.readout import impact_point
+
+    p = np.asarray(spots_mm, dtype=float)
+    half = np.array([lx_mm, ly_mm]) / 2
+    out = np.flatnonzero(np.any(np.abs(p) > half, axis=1))
+    if out.size:
+        x, y = p[out[0]]
+        raise InputError(f"spot at ({x:g}, {y:g}) mm is outside the {lx_mm:g} x {ly_mm:g} mm PSD (positions are "
+                         "millimetres from the PSD's centre)", path=path, field="x_mm")
+    if p.shape[0] < 4:
+        return
+    m = impact_point(np.asarray(amplitudes, dtype=float), lx_mm, ly_mm)
+    design = np.c_[p, np.ones(len(p))]
+    coef, *_ = np.linalg.lstsq(design, m, rcond=None)
+    a = coef[:2].T  # measured ~ a @ p + b
+    if np.linalg.matrix_rank(design) < 3 or not np.all(np.isfinite(a)):
+        raise InputError("the spots are collinear: they cannot determine the gains", path=path, field="x_mm")
+    det = float(np.linalg.det(a))
+    scale = math.sqrt(abs(det))
+    if not 0.2 < scale < 5.0:
+        raise InputError(f"the spots the amplitudes give are {scale:.3g}x the positions: another unit? (x_mm, y_mm "
+                         "are millimetres; positions in metres give 1000x)", path=path, field="x_mm")
+    if np.abs(a - np.eye(2)).max() > MAX_POSITION_MAP_ERROR:
+        r = np.round(a / scale, 2) + 0.0
+        what = ("x and y swapped" if abs(r[0, 1]) > abs(r[0, 0]) and abs(r[1, 0]) > abs(r[1, 1]) and det < 0
+                else "an axis mirrored" if det < 0 else "rotated or mislabelled")
+        raise InputError(f"the positions do not match the spots the amplitudes give: measured = "
+                         f"[[{r[0, 0]:g}, {r[0, 1]:g}], [{r[1, 0]:g}, {r[1, 1]:g}]] x positions ({what}; the gains "
+                         f"only bend the spots by a few %)", path=path, field="x_mm")
 
 
 def read_bench_amplitudes(path, positions: dict) -> dict:
@@ -189,6 +236,20 @@ def load_gains(path, carrier_hz: float | None = None) -> tuple[np.ndarray, np.nd
             raise InputError(f"no gains for the {carrier_hz:g} Hz carrier (the file has {have})", path=path,
                              field="per_carrier")
         entry = match[0]
+    return check_gains_entry(entry, path)
+
+
+def check_gains_entry(entry, path=None) -> tuple[np.ndarray, np.ndarray]:
+    """One gains entry ``{gains, covariance: {names, matrix}}`` checked: ``(gains / gains[0], covariance)``.
+
+    The rules ``locate/aoa --gains`` read a gains file by; ``psdcal gains`` applies them to what it is
+    about to write (a file it writes is one they read).
+
+    Raises
+    ------
+    InputError
+        Naming ``path`` and the field.
+    """
     try:
         g = np.asarray(entry["gains"], dtype=float)
         cov = np.asarray(entry["covariance"]["matrix"], dtype=float)

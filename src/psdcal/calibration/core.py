@@ -411,7 +411,7 @@ class CalibrationResult:
                 created=str(d.get("created", "")),
                 verdict={"verdict": d["verdict"], "checks": list(d.get("checks", []))} if "verdict" in d else None,
             )
-        except (KeyError, TypeError, ValueError) as exc:
+        except (KeyError, TypeError, ValueError, AttributeError, OverflowError) as exc:
             raise InputError(f"not a psdcal calibration ({type(exc).__name__}: {exc})", path=source) from None
 
 
@@ -609,10 +609,35 @@ def _n_points(points_mm) -> float:
 
 def with_verdict(res: CalibrationResult, *, noise_mm: float | None = None, points_kind: str | None = None,
                  diagnose: bool = True) -> CalibrationResult:
-    """``res`` with its statistical verdict attached (:func:`psdcal.calibration.verdict.assess`)."""
+    """``res`` with its statistical verdict attached (:func:`psdcal.calibration.verdict.assess`).
+
+    A systematic effect the verdict finds too small to move the result beyond
+    its uncertainty still enters the covariance: the covariance (and the
+    standard errors of the parameters and poses) are multiplied by the
+    verdict's inflation (``1 + effect_sigma^2`` of its largest effect; 1 on
+    most correct fits), recorded as ``stages["covariance_inflation"]``. A
+    verdict attached again starts from the uninflated covariance.
+    """
     from psdcal.calibration.verdict import assess
 
-    return replace(res, verdict=assess(res, noise_mm=noise_mm, points_kind=points_kind, diagnose=diagnose).to_dict())
+    v = assess(res, noise_mm=noise_mm, points_kind=points_kind, diagnose=diagnose)
+    stages = dict(res.stages or {})
+    old = float(stages.get("covariance_inflation", {}).get("factor", 1.0))
+    new = v.inflation
+    if old != new:
+        k = new / old
+        sk = math.sqrt(k)
+        std = {n: (None if s is None else float(s) * sk) for n, s in res.std.items()}
+        if new == 1.0:
+            stages.pop("covariance_inflation", None)
+        else:
+            why = [c.name for c in v.checks if (c.inflation or 1.0) == new]
+            stages["covariance_inflation"] = {
+                "factor": float(new), "checks": why,
+                "rule": "covariance x (1 + effect_sigma^2) of the verdict's largest effect (psdcal.calibration.verdict)"}
+        res = replace(res, covariance=np.asarray(res.covariance, dtype=float) * k, std=std,
+                      pose_std=np.asarray(res.pose_std, dtype=float) * sk, stages=stages)
+    return replace(res, verdict=v.to_dict())
 
 
 def _calibrate_constrained(template_mm, points_mm, *, fix, priors, gains, fit_gains, solver, verdict=True, noise_mm=None,

@@ -563,6 +563,11 @@ def check_result(result):
                                result=result)
     if not (np.isfinite(intr.f_mm) and intr.f_mm > 0 and intr.fy > 0):
         raise ConvergenceError(f"the direction calibration stopped at f = {intr.f_mm:.3g} mm, not a camera", result=result)
+    res = np.asarray(result.residuals_mm, dtype=float)
+    if not np.isfinite(result.rms_mm) or (res.size and not np.any(np.isfinite(res))):
+        raise ConvergenceError("the direction calibration stopped where its model cannot reach the measured points "
+                               "(no finite residual): check the directions' convention (az about the vertical axis, "
+                               "then el: are az_deg and el_deg swapped?) and signs", result=result)
     return result
 
 

@@ -79,7 +79,7 @@ from scipy.optimize import least_squares
 
 from psdcal._consistency import ALPHA, Check, chi2_check, inflate
 from psdcal.errors import DegenerateViewsError, InputError
-from psdcal.model.readout import LX_MM, LY_MM, _NUM_X, _NUM_Y, _SPLIT, gain_homography, gain_map, impact_point
+from psdcal.model.readout import LX_MM, LY_MM, _NUM_X, _NUM_Y, _SPLIT, gain_homography, gain_map
 
 GAIN_NAMES = ("g_x2", "g_y1", "g_y2")
 
@@ -389,36 +389,6 @@ def calibrate_gains(spots_mm, measured_mm, lx_mm: float = LX_MM, ly_mm: float = 
     )
 
 
-def simulate_electrical_calibration(gains, settings=None, rng=None, *, spots_mm=None, l1: float = 0.0,
-                                    repeats: int = 1) -> GainCalibration:
-    """Simulate remedy (b): read known spots on the bare PSD through the chain, fit the gains.
-
-    Parameters
-    ----------
-    gains : (4,) array_like
-        The true channel gains, V/A.
-    settings : psdcal.signal.chain.ChainSettings
-        Noise (``snr_db``), demodulation and record of the bench measurement.
-    rng : numpy.random.Generator, int or None
-    spots_mm : (n, 2), default :func:`calibration_spots` (7 x 7 over +-3.5 mm).
-    l1 : float
-        PSD distortion of the bare sensor, mm^-2 (the fit assumes none).
-    repeats : int
-        Records averaged per spot (amplitudes averaged).
-
-    Returns
-    -------
-    GainCalibration
-    """
-    from psdcal.signal.chain import ChainSettings, measure_amplitudes
-
-    s = ChainSettings() if settings is None else settings
-    spots = calibration_spots() if spots_mm is None else np.asarray(spots_mm, dtype=float)
-    gen = np.random.default_rng(rng)
-    amps = np.mean([measure_amplitudes(spots, s, gains, gen, l1) for _ in range(max(1, int(repeats)))], axis=0)
-    meas = impact_point(amps, s.lx_mm, s.ly_mm)
-    return calibrate_gains(spots, meas, s.lx_mm, s.ly_mm)
-
 
 # ---------------------------------------------------------------------------
 # Identifiability of the joint (gains + geometry) model
@@ -512,36 +482,3 @@ def identifiability(template_mm, intrinsics, distortion, rvecs, tvecs_mm, gains=
     cov = np.linalg.pinv(info, rcond=1e-14)
     std = {n: float(np.sqrt(max(cov[k, k], 0.0))) for k, n in enumerate(prob.names)}
     return Identifiability(tuple(prob.names), sv, null, float(sv[-1] / sv[0]), std)
-
-
-def simulate_amplitudes(points_mm, *, snr_db: float | None = None, r_tol: float = 0.0, c_tol: float = 0.0, seed=0):
-    """Raw amplitudes of readout points through the paper's signal chain, for an amplitude points file.
-
-    The chain of :meth:`psdcal.signal.chain.ChainSettings.paper` (band-pass,
-    Eq 43 gains); the four channels' R and C drawn within ``r_tol``,
-    ``c_tol`` (none when both are 0), white noise at ``snr_db``.
-
-    Parameters
-    ----------
-    points_mm : (..., 2) array_like
-        Noiseless readout points (Eq 1-2 with equal gains; PSD distortion
-        already included), mm.  NaN rows stay NaN.
-    snr_db : float or None
-    r_tol, c_tol : float
-    seed : int or Generator
-
-    Returns
-    -------
-    amplitudes : (..., 4) ndarray, V
-    gains : (4,) ndarray, V/A (the drawn channel gains)
-    chain : dict, the chain settings used (for the truth file)
-    """
-    from dataclasses import asdict
-
-    from psdcal.signal.chain import ChainSettings, channel_gains, measure_amplitudes
-
-    chain = ChainSettings.paper(snr_db=snr_db, r_tol=float(r_tol), c_tol=float(c_tol))
-    rng = np.random.default_rng(seed)
-    g = channel_gains(chain, rng) if (r_tol > 0 or c_tol > 0) else channel_gains(chain)
-    amps = measure_amplitudes(points_mm, chain, g, rng)
-    return amps, g, asdict(chain)

@@ -275,29 +275,54 @@ class SystematicMisfitError(PsdcalError, ValueError):
     """``--reject`` refused: the misfit is systematic (a wrong model, gains or template), not a few bad points."""
 
 
+#: --reject is refused when a smooth field explains more than this fraction of the residuals left.
+SYSTEMATIC_FRACTION = 0.5
+
+
+def _rest_dof(result, exclude, ch) -> float:
+    """The F statistic's denominator degrees of freedom times 1 (so that F dof1 / (F dof1 + dof2) is the explained
+    fraction)."""
+    from psdcal.calibration._verdict_linear import linearise
+
+    return float(linearise(result, exclude).dof - ch.dof)
+
+
 def refuse_if_systematic(result, k: float = DEFAULT_K, *, points_kind=None, alpha: float | None = None) -> None:
-    """Raise :class:`SystematicMisfitError` when the residuals, without the points above ``k`` sigma, still show structure.
+    """Raise :class:`SystematicMisfitError` when the residuals, without the points above ``k`` sigma, still show a
+    structure that moves the result.
 
     Removing points cannot repair a misfit that a smooth field over the sensor
-    explains (:func:`psdcal.calibration.verdict.structure_test` at the
-    verdict's false-alarm rate): deleting the worst points of such a fit
-    deletes good points and leaves a wrong calibration. The message carries
-    the verdict's diagnosis (the command that fixes the cause).
+    explains: deleting the worst points of such a fit deletes good points and
+    leaves a wrong calibration. The test is the verdict's ``structure`` check
+    on the points that would remain (:func:`psdcal.calibration.verdict.structure_judged`):
+    refused when the field fails it (significant at the verdict's false-alarm
+    rate and moving f, C or the angles by a standard error or more) *and*
+    either explains more than :data:`SYSTEMATIC_FRACTION` of the remaining
+    residual sum of squares (the misfit is mostly systematic) or moves the
+    result by :data:`~psdcal.calibration.verdict.EFFECT_WRONG` standard errors
+    or more. A systematic pattern that is a small part of the residuals (real
+    lenses, thousands of points) does not block the rejection of a few bad
+    points; the verdict of the refit reports it. The message carries the
+    verdict's diagnosis (the command that fixes the cause).
     """
-    from psdcal.calibration.verdict import ALPHA, assess, structure_test
+    from psdcal.calibration.verdict import ALPHA, EFFECT_WRONG, assess, structure_judged
 
     alpha = ALPHA if alpha is None else alpha
     flags = flag_outliers(align_to_problem(result), k)
-    F, p = structure_test(result, exclude=flags.points)
-    if not p < alpha:
+    ch = structure_judged(result, exclude=flags.points, alpha=alpha)
+    if ch is None or ch.passed is not False:
         return
+    frac = ch.dof and ch.statistic * ch.dof / (ch.statistic * ch.dof + _rest_dof(result, flags.points, ch))
+    if frac <= SYSTEMATIC_FRACTION and (ch.effect_sigma or 0.0) < EFFECT_WRONG:
+        return  # a few bad points on top of a small systematic pattern: reject them; the verdict reports the rest
     v = assess(result, points_kind=points_kind)
     advice = next((c.advice for c in v.failed if c.name == "structure" and c.advice), "") or \
         next((c.advice for c in v.failed if c.advice), "")
     raise SystematicMisfitError(
         f"--reject refused: the misfit is systematic, not a few bad points (with the {int(flags.points.sum())} point(s) "
-        f"above {k:g} sigma left out, a smooth field over the sensor still explains the residuals: F = {F:.3g}, "
-        f"p = {p:.2g}); removing points would delete good ones" + (f". {advice}" if advice else "")
+        f"above {k:g} sigma left out, a smooth field over the sensor still explains the residuals: F = {ch.statistic:.3g}, "
+        f"p = {ch.p_value:.2g}, and removing it moves the result by {ch.effect_sigma:.2g} sigma); removing points "
+        "would delete good ones" + (f". {advice}" if advice else "")
     )
 
 

@@ -14,7 +14,8 @@ import click
 from psdcal.errors import PsdcalError
 
 #: Parameters (by their Python name) that name files or folders a command writes.
-OUTPUT_PARAMS = frozenset({"output", "out", "out_dir", "csv_path", "json_out", "points_out", "track_path", "into"})
+OUTPUT_PARAMS = frozenset({"output", "out", "out_dir", "csv_path", "json_out", "points_out", "track_path", "into",
+                           "record_path"})
 #: Outputs updated in place (merged into): they may exist without --force.
 MERGE_PARAMS = frozenset({"into"})
 #: Files a command writes into its output folder, keyed by command name (an existing one needs --force).
@@ -76,6 +77,11 @@ class PolicyCommand(click.Command):
 
         ins, outs, dirs = [], [], []
         for p in self.params:
+            if isinstance(p, click.Option | click.Argument) and not isinstance(p.type, click.Path):
+                # live sources given as text: 'file:PATH' reads a file (or a named pipe), an input like any other
+                for v in _paths(ctx.params.get(p.name)):
+                    if isinstance(v, str) and v.startswith("file:") and len(v) > 5:
+                        ins.append((p.human_readable_name, Path(v[5:])))
             if not isinstance(p, click.Option | click.Argument) or not isinstance(p.type, click.Path):
                 continue
             opt = p.opts[-1] if isinstance(p, click.Option) else p.human_readable_name
@@ -179,6 +185,7 @@ _COMMANDS = (
     "export_cmd",
     "capture_cmd",
     "selfcal_cmd",
+    "live_cmd",
 )
 
 

@@ -84,13 +84,19 @@ def dashboard_command(rows, sensor_rows, sensors, emitters, plan, events, replay
                    events=tuple(events), replay=replay or output is not None, speed=speed,
                    history_s=float("inf") if output is not None else history_s, trail_s=trail_s, title=title)
     hub = Hub(opts)
+    if replay or output is not None:
+        # finished files: one that is empty or not a psdcal rows file is an error (a live file may still be starting)
+        for src in hub.sources:
+            if src.parser.kind is None:
+                raise InputError("empty" if src.parser.header is None else
+                                 "not a psdcal rows CSV (the header of `locate`, `locate --sensors`, `aoa`, "
+                                 "`amplitudes` or a track)", path=src.follower.path, line=1, field="header")
     if output is not None:
         export_html(hub, output)
         for src in hub.sources:
-            p = src.parser
-            if p.kind is None or p.bad_lines:
-                what = "empty" if p.header is None else "not a psdcal rows CSV" if p.kind is None else f"{p.bad_lines} line(s) not read (cells missing or not numbers)"
-                click.echo(f"psdcal: warning: {src.follower.path}: {what}", err=True)
+            if src.parser.bad_lines:
+                click.echo(f"psdcal: warning: {src.follower.path}: {src.parser.bad_lines} line(s) not read "
+                           "(cells missing or not numbers)", err=True)
         click.echo(f"wrote {output}")
         return
     missing = [str(p) for p in (*rows, *(p for _, p in sensor_rows)) if not p.exists()]

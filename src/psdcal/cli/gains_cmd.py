@@ -34,7 +34,8 @@ def gains_command(amplitudes, positions, lx_mm, ly_mm, output):
     import json
 
     from psdcal._atomic import write_text_atomic
-    from psdcal.calibration.bench import fit_bench, gains_document, read_bench_amplitudes, read_positions
+    from psdcal.calibration.bench import (check_gains_entry, check_spot_positions, fit_bench, gains_document,
+                                         read_bench_amplitudes, read_positions)
     from psdcal.errors import InputError
 
     for name, v in (("lx_mm", lx_mm), ("ly_mm", ly_mm)):
@@ -42,8 +43,19 @@ def gains_command(amplitudes, positions, lx_mm, ly_mm, output):
             raise InputError(f"--{name.replace('_', '-')} must be positive, got {v}", field=name)
     pos = read_positions(positions)
     groups = read_bench_amplitudes(amplitudes, pos)
+    for spots, amps in groups.values():  # metres, x/y swapped, a mirrored axis: refused before the fit
+        check_spot_positions(spots, amps, lx_mm, ly_mm, positions)
     fits = {car: fit_bench(spots, amps, lx_mm, ly_mm) for car, (spots, amps) in groups.items()}
     doc = gains_document(fits, lx_mm, ly_mm)
+    # what is written is what 'locate/aoa --gains' will read
+    for entry in [doc, *doc.get("per_carrier", [])]:
+        label = "" if "carrier_hz" not in entry else f" at {entry['carrier_hz']:g} Hz"
+        try:
+            check_gains_entry(entry, output)
+        except InputError as exc:
+            raise InputError(f"the fit{label} gives gains that 'locate/aoa --gains' would refuse ({exc.detail}); "
+                             "nothing written: check the positions against the amplitudes", path=positions,
+                             field=exc.field) from None
     write_text_atomic(output, json.dumps(doc, indent=2) + "\n")
     for car in sorted(fits, key=lambda k: -1.0 if k is None else k):
         gc = fits[car]

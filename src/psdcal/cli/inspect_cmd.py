@@ -39,11 +39,13 @@ def inspect_command(recording, rate_hz, channels, dataset, group, carriers, wind
       psdcal inspect rec.npy --rate-hz 100000 --carrier-hz 1000
     Exit status 0 when every asked carrier is where it was asked, 1 otherwise.
     """
+    import math
+
     import numpy as np
 
     from psdcal.cli.locate_cmd import _channels
     from psdcal.errors import InputError
-    from psdcal.signal.inspect import carrier_near, check_carrier, choose_tdm_window, find_carriers, read_prefix, scan_tdm
+    from psdcal.signal.inspect import check_carrier, choose_tdm_window, find_carriers, measure_carrier, read_prefix, scan_tdm
     from psdcal.signal.recording import open_recording
 
     if max_samples < 64:
@@ -70,17 +72,22 @@ def inspect_command(recording, rate_hz, channels, dataset, group, carriers, wind
             snr = "/".join(f"{v:.0f}" for v in c.snr_db)
             amp = "/".join(f"{v:.3g}" for v in c.amplitude)
             click.echo(f"  {c.freq_hz:<14.7g} {snr:<26} {amp}")
+    f0 = carriers[0] if carriers else (found[0].freq_hz if found else None)
+    scan = scan_tdm(x, rec.rate_hz, f0, min_snr=min_snr) if f0 is not None else None
+    # one carrier in bursts (time multiplexing, blinking): its spectral peak may be a keying side-band,
+    # the carrier is measured from the phase slope inside the bursts instead
+    tdm = len(carriers) == 1 and scan is not None and len(scan.segments) > 1
     bad = 0
     for f in carriers:
-        chk = check_carrier(f, carrier_near(x, rec.rate_hz, f), window_s)
+        chk = check_carrier(f, measure_carrier(x, rec.rate_hz, f, tdm=tdm, min_snr=min_snr), window_s, tdm=tdm)
+        how = " in the bursts" if chk.measured is not None and math.isfinite(chk.measured.precision_hz) else ""
         if chk.ok:
-            click.echo(f"check {f:g} Hz: ok (measured {chk.measured.freq_hz:.7g} Hz, sigma x{chk.sigma_inflation:.3g})")
+            click.echo(f"check {f:g} Hz: ok (measured{how} {chk.measured.freq_hz:.7g} Hz, "
+                       f"sigma x{chk.sigma_inflation:.3g})")
         else:
             bad += 1
             click.echo(f"check {f:g} Hz: WARNING {chk.message}")
-    f0 = carriers[0] if carriers else (found[0].freq_hz if found else None)
-    if f0 is not None:
-        scan = scan_tdm(x, rec.rate_hz, f0, min_snr=min_snr)
+    if scan is not None:
         click.echo(f"TDM preview at {f0:.7g} Hz ({scan.window_s * 1e3:.3g} ms windows): {len(scan.segments)} segments")
         for s, on in list(zip(scan.segments, scan.on_s))[:20]:
             r = s.amplitude / s.amplitude.sum() if s.amplitude.sum() != 0 else s.amplitude * np.nan

@@ -104,6 +104,10 @@ def _demod_options(f):
                                       "interleaved vx1,vx2,vy1,vy2 frames (little-endian).")
 @click.option("--raw-scale", type=float, default=1.0, show_default=True,
               help="Live input: factor applied to every sample (e.g. volts per int16 count).")
+@click.option("--raw-order", default=None, metavar="ORDER",
+              help="Live input: the frame's four channels in their order when not vx1,vx2,vy1,vy2 (e.g. "
+                   "vx1,vy1,vx2,vy2). Whatever the order, the x and y channel sums are checked on the data "
+                   "(they are equal in the right order) and a disagreement is a warning.")
 @click.option("--gains", "gains_file", type=click.Path(dir_okay=False),
               help="Gains JSON from 'psdcal gains': channel gains (per carrier when it has them) replace the "
                    "calibration's, their covariance enters the sigmas.")
@@ -113,12 +117,23 @@ def _demod_options(f):
 @click.option("--allow-no-covariance", is_flag=True, default=False,
               help="Accept a calibration without covariance or standard errors (its uncertainty is then left out "
                    "of every sigma); refused otherwise.")
+@click.option("--offset-s", "offsets", multiple=True, metavar="NAME=SECONDS",
+              help="Several sensors live: sensor NAME's first sample was taken SECONDS after the first sensor's "
+                   "(repeat per sensor; the streams are aligned to the whole sample); 'auto': estimated for "
+                   "every sensor from the arrival times of the first 0.5 s (sources sending at the real rate).")
+@click.option("--replay", type=click.Path(dir_okay=False),
+              help="With --sensors: play a session from `psdcal record` through the live path (no RECORDING).")
+@click.option("--speed", type=click.FloatRange(0.0), default=1.0, show_default=True,
+              help="--replay speed: 1 real time, 10 ten times faster, 0 as fast as possible.")
+@click.option("--record", "record_path", type=click.Path(dir_okay=False),
+              help="With --sensors and live sources: also record the session to this file (for --replay).")
 @_demod_options
 @_angles.angles_option
 def locate_command(recordings, calib, sensors, gains_file, rate_hz, carriers, emitters, distance_mm, window_s, tdm,
                    schedule, n_emitters, check_carriers, min_snr, channels, dataset, group, chunk_samples, progress,
                    output, track_path=None, track_q=None, raw_dtype="float64", raw_scale=1.0, output_format="csv",
-                   expect_sensor=None, allow_no_covariance=False, angles=None, **table_kw):
+                   expect_sensor=None, allow_no_covariance=False, raw_order=None, angles=None, offsets=(),
+                   replay=None, speed=1.0, record_path=None, **table_kw):
     """Demodulate RECORDING(s) and write angles of arrival and positions.
 
     \b
@@ -148,6 +163,12 @@ def locate_command(recordings, calib, sensors, gains_file, rate_hz, carriers, em
     Live input (one sensor): RECORDING '-' (stdin) or tcp://127.0.0.1:PORT (a local server
     sending interleaved frames, --raw-dtype, --raw-scale) or nidaqmx://Dev1/ai0:3 (psdcal[daq]);
     --rate-hz required; rows are written and flushed as windows complete.
+    \b
+    Several sensors live: --sensors with one live source per sensor, in its order (also
+    file:PATH, raw frames from a file or named pipe); --offset-s NAME=SECONDS aligns a sensor
+    that started later; --schedule for time multiplexing (one row per entry); --record SESSION
+    keeps the session; --replay SESSION --speed X plays one back through the same path (see
+    `psdcal record --help`).
     """
     from psdcal.errors import InputError
     from psdcal.measure.locate import LocateConfig, locate_multi_to_csv, locate_to_csv
@@ -164,17 +185,36 @@ def locate_command(recordings, calib, sensors, gains_file, rate_hz, carriers, em
     if (calib is None) == (sensors is None):
         raise InputError("give exactly one of --calib (one sensor) or --sensors (several)", field="calib")
     from psdcal.signal.live import is_stream_source
+    from psdcal.signal.session import is_live_source
 
+    if sensors is not None and (replay is not None or any(is_live_source(str(r)) for r in recordings)):
+        from psdcal.cli.live_cmd import live_locate_multi  # several sensors live, or a replayed session
+
+        if output_format != "csv":
+            raise InputError("--format npy is not available with --sensors (several sensors): write CSV",
+                             field="format")
+        return live_locate_multi(recordings, sensors, rate_hz, carriers, emitters, window_s, tdm, schedule,
+                                 n_emitters, min_snr, output, raw_dtype, raw_scale, track_path, track_q, offsets,
+                                 replay, speed, record_path, allow_no_covariance)
+    if replay is not None or record_path is not None or offsets:
+        raise InputError("--replay, --record and --offset-s work with several sensors live (--sensors and live "
+                         "sources)", field="replay")
     if any(is_stream_source(str(r)) for r in recordings):  # live input: see `psdcal.cli.system_cmd.live_locate`
         from psdcal.cli.system_cmd import live_locate
 
+        if channels is not None:
+            raise InputError("a live stream's frames carry no channel names: give their order with --raw-order "
+                             "(e.g. vx1,vy1,vx2,vy2), not --channels", field="channels")
         if calib is not None:
             from psdcal.measure.sensor_model import SensorModel
 
             check_sensor(SensorModel.load(calib), expect_sensor, allow_no_covariance)
 
         return live_locate(recordings, calib, rate_hz, carriers, emitters, distance_mm, window_s, tdm, schedule,
-                           n_emitters, min_snr, output, raw_dtype, raw_scale, track_path, track_q)
+                           n_emitters, min_snr, output, raw_dtype, raw_scale, track_path, track_q, raw_order)
+    if raw_order is not None:
+        raise InputError("--raw-order is for live input ('-', tcp://, nidaqmx://); name a file's channels with "
+                         "--channels", field="raw_order")
     sched = load_schedule(schedule) if schedule else None
     config = LocateConfig(
         carriers_hz=tuple(carriers),
@@ -375,7 +415,10 @@ def aoa_command(points, calib, distance_mm, sigma_d_mm, gains_file, output, expe
 @click.option("--csv", "csv_path", type=click.Path(dir_okay=False), help="Also write the grid as CSV.")
 @click.option("-o", "--output", default="errormap.png", show_default=True, type=click.Path(dir_okay=False),
               help="Output PNG.")
-def errormap_command(calib, distance_mm, mode, grid, sigma_d_mm, csv_path, output):
+@click.option("--allow-no-covariance", is_flag=True, default=False,
+              help="Draw a calibration without covariance or standard errors (its error is then zero "
+                   "everywhere, only --sigma-d-mm is left); refused otherwise.")
+def errormap_command(calib, distance_mm, mode, grid, sigma_d_mm, csv_path, output, allow_no_covariance=False):
     """Draw the AoA and position error over the field of view (the paper's Figure 9).
 
     Example: psdcal errormap --calib calib.json --distance-mm 5000 -o errormap.png
@@ -387,6 +430,7 @@ def errormap_command(calib, distance_mm, mode, grid, sigma_d_mm, csv_path, outpu
     if grid < 3:
         raise InputError(f"--grid must be at least 3, got {grid}", field="grid")
     model = SensorModel.load(calib)
+    model.require_uncertainty(allow_no_covariance)  # else a map of zeros, as if the calibration were exact
     from psdcal._limits import check_bytes
 
     check_bytes(float(grid) ** 2 * 8 * (8 * max(len(model.names), 1) + 64), f"--grid {grid}", "--grid")

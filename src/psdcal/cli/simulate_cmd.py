@@ -67,7 +67,7 @@ def simulate_command(lens, f_mm, cx_mm, cy_mm, k1, k2, k3, p1, p2, l1, l2, image
     write_template(out_dir / "template.csv", tids, s.template_mm)
     truth = s.truth_dict()
     if amplitudes:
-        from psdcal.calibration.gains import simulate_amplitudes
+        from psdcal.study.gain_sim import simulate_amplitudes
 
         amps, gains, chain = simulate_amplitudes(s.ideal_points_mm, snr_db=snr_db, r_tol=r_tol, c_tol=c_tol, seed=seed)
         from psdcal.io import write_amplitudes

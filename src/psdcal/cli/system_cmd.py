@@ -704,6 +704,11 @@ def bundle_command(located, calibs, known_csv, wands, points_out, output, angles
         missing = [k for k in files if k not in calib_paths]
         if missing:
             raise InputError(f"no --calib for sensor(s) {missing}", field="calib")
+    # the NAME=PATH inputs are plain text to click: the output policy's input check, for them
+    from psdcal._atomic import guard_outputs
+
+    guard_outputs([("LOCATED", Path(v)) for v in files.values()] + [("--calib", Path(v)) for v in calib_paths.values()],
+                  [("--output", output), ("--points-out", points_out)], force=True)
     known_names, known_P, _ = read_emitters(known_csv)
     known = dict(zip(known_names, known_P))
     sensors = sorted(files)  # the answer does not depend on the order; keep the file's stable
@@ -904,7 +909,7 @@ def plan_command(sensors_json, candidates, calib, room_m, height_m, grid_mm, sig
 
 # --------------------------------------------------------------------------- live locate (called by `locate`)
 def live_locate(recordings, calib, rate_hz, carriers, emitters, distance_mm, window_s, tdm, schedule, n_emitters,
-                min_snr, output, raw_dtype, raw_scale, track_path=None, track_q=None):
+                min_snr, output, raw_dtype, raw_scale, track_path=None, track_q=None, raw_order=None):
     """`psdcal locate` on a live source ('-', tcp://127.0.0.1:PORT, nidaqmx://...): one sensor, rows as they come."""
     from psdcal.errors import InputError
     from psdcal.measure.live import locate_stream
@@ -923,7 +928,7 @@ def live_locate(recordings, calib, rate_hz, carriers, emitters, distance_mm, win
                           distance_mm=distance_mm, emitters=tuple(emitters) or None, min_snr=min_snr,
                           tdm=bool(tdm or sched is not None), schedule=sched, n_emitters=n_emitters)
     model = SensorModel.load(calib)
-    stream = open_stream(str(recordings[0]), rate_hz, dtype=raw_dtype, scale=raw_scale)
+    stream = open_stream(str(recordings[0]), rate_hz, dtype=raw_dtype, scale=raw_scale, order=raw_order)
     summary = locate_stream(stream, model, output, config)
     msg = (f"wrote {summary.n_rows} rows to {output} ({summary.n_samples / stream.rate_hz:.6g} s of live signal, "
            f"{summary.n_windows} windows, {summary.n_skipped} below --min-snr); {summary.latency_text()}")

@@ -367,3 +367,59 @@ def rows_text(columns) -> str:
     offsets = np.concatenate(offs)
     out = join_cells(slots, lens, kind, src, codes, table, offsets, fb_table, fb_offsets)
     return out.tobytes().decode("utf-8")
+
+
+# --------------------------------------------------------------------------- writers of locate's rows
+def _write_rows(fh, cols: dict, order) -> int:
+    """Write columns (equal-length arrays) as CSV rows; floats with 10 significant digits.
+
+    The text is formatted by the compiled writer (:func:`psdcal.measure._csvtext.rows_text`, the same
+    bytes as Python's ``"%.10g"``/``"%d"``/``"%s"``), or by :func:`_rows_text` without numba.
+    """
+    n = len(cols["t_s"])
+    if n == 0:
+        return 0
+    from psdcal import _jit
+
+    if _jit.enabled():
+        fh.write(rows_text([cols[c] for c in order]))
+    else:
+        fh.write(_rows_text(cols, order))
+    return n
+
+
+def _rows_text(cols: dict, order) -> str:
+    """The CSV text of :func:`_write_rows` by Python's ``%`` formatting (the reference)."""
+    return rows_text_reference([cols[c] for c in order])
+
+
+class _NpyRows:
+    """Collects output columns and writes them as one NumPy structured array (``--format npy``)."""
+
+    def __init__(self, order):
+        self.order = tuple(order)
+        self.parts = {c: [] for c in self.order}
+
+    def write(self, cols: dict) -> int:
+        n = len(cols["t_s"])
+        for c in self.order:
+            self.parts[c].append(np.asarray(cols[c]))
+        return n
+
+    def save(self, path) -> None:
+        fields, data = [], []
+        for c in self.order:
+            a = np.concatenate(self.parts[c]) if self.parts[c] else np.zeros(0)
+            if a.dtype.kind in "OUS":
+                a = a.astype(str)
+                if a.size == 0:
+                    a = a.astype("U1")
+            elif a.dtype.kind not in "iub":
+                a = a.astype(np.float64)
+            fields.append((c, a.dtype))
+            data.append(a)
+        out = np.empty(len(data[0]) if data else 0, dtype=fields)
+        for (c, _), a in zip(fields, data):
+            out[c] = a
+        with open(path, "wb") as fh:
+            np.save(fh, out, allow_pickle=False)

@@ -14,6 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from psdcal.measure.channel_order import SumCheck
 from psdcal.measure.locate import LocateConfig, _rows_single, _write_rows, single_columns
 from psdcal.signal.stream import MultiCarrierLockin, TdmSegmenter
 
@@ -27,6 +28,9 @@ class LiveSummary:
     n_samples, n_windows, n_rows, n_skipped : int
     latency_s : (n_windows,) ndarray
         Per window: time from the arrival of its last sample to its row written and flushed, s.
+    warnings : tuple of str
+        What the self-checks found (the x and y channel sums disagree: channel order or gains,
+        :mod:`psdcal.measure.channel_order`); each was also printed on stderr when found.
     """
 
     n_samples: int
@@ -34,6 +38,7 @@ class LiveSummary:
     n_rows: int
     n_skipped: int
     latency_s: np.ndarray
+    warnings: tuple = ()
 
     def latency_text(self) -> str:
         if not len(self.latency_s):
@@ -71,8 +76,19 @@ def locate_stream(stream, model, out_path, config: LocateConfig) -> LiveSummary:
     order = single_columns(config.distance_mm is not None)
     k = len(names)
 
+    sums = SumCheck.for_model(model, str(stream.path))
+    warned: list[str] = []
+
     def make_cols(t, nm, a, v):
-        return _rows_single(t, nm, a, v, model, config.distance_mm, config.min_snr)
+        return _rows_single(t, nm, a, v, model, config.distance_mm, config.min_snr, sums)
+
+    def check_sums():
+        # said as soon as the data show it (a live run may go on for hours), once
+        if not warned:
+            w = sums.warning()
+            if w:
+                warned.append(w)
+                print(f"psdcal: warning: {w}", file=sys.stderr, flush=True)
 
     def seg_cols(segments):
         if not segments:
@@ -105,6 +121,7 @@ def locate_stream(stream, model, out_path, config: LocateConfig) -> LiveSummary:
                 n_rows += _write_rows(fh, cols, order)
             fh.flush()
             lat += [time.perf_counter() - arrived] * len(wb)
+            check_sums()
         if seg is not None:
             cols, skipped = seg_cols(seg.finish())
             n_skipped += skipped
@@ -114,4 +131,5 @@ def locate_stream(stream, model, out_path, config: LocateConfig) -> LiveSummary:
     finally:
         if fh is not sys.stdout:
             fh.close()
-    return LiveSummary(n_samples, n_windows, n_rows, n_skipped, np.array(lat))
+    check_sums()
+    return LiveSummary(n_samples, n_windows, n_rows, n_skipped, np.array(lat), tuple(warned))

@@ -28,6 +28,7 @@ estimated from all of them (:func:`locate_multi_to_csv`).
 from __future__ import annotations
 
 import csv
+import dataclasses
 import math
 from dataclasses import dataclass
 from typing import Callable
@@ -36,7 +37,9 @@ import numpy as np
 
 from psdcal._atomic import atomic_path
 from psdcal.measure.aoa import angles_from_points, impact_from_amplitudes
-from psdcal.errors import InputError, ZeroSignalError
+from psdcal.measure._csvtext import _NpyRows, _rows_text, _write_rows  # noqa: F401  (live.py, tests)
+from psdcal.measure.channel_order import SumCheck
+from psdcal.errors import InputError, PsdcalError, ZeroSignalError
 from psdcal.measure.positioning import plane_position
 from psdcal.signal.recording import DEFAULT_CHUNK, Recording
 from psdcal.measure.sensor_model import SensorModel
@@ -157,27 +160,32 @@ def prescan(recording: Recording, config: LocateConfig) -> tuple[float, list[str
     finder of :mod:`psdcal.signal.inspect`).  Only recordings in files
     (kinds npy, csv, hdf5, tdms) are scanned: a live stream is not read twice.
     """
-    from psdcal.signal.inspect import carrier_near, check_carrier, choose_tdm_window, read_prefix, scan_tdm
+    from psdcal.signal.inspect import (check_carrier, choose_tdm_window, measure_carrier, read_prefix, scan_tdm,
+                                      schedule_timing)
 
     warnings: list[str] = []
     window_s = config.window_s
     # only files can be read twice (a live stream must not lose its first chunk to the scan)
     rereadable = getattr(recording, "kind", None) in ("npy", "csv", "hdf5", "tdms")
-    need_scan = rereadable and (config.check_carriers or (window_s is None and config.tdm))
+    need_scan = rereadable and (config.check_carriers or (config.tdm and (window_s is None or config.schedule)))
     # one chunk's worth (the memory the user allowed), at least 4096 samples
     n_scan = min(max(int(config.chunk_samples), 4096), 1 << 18)
     x = read_prefix(recording, n_scan) if need_scan else None
+    scan = None
+    if config.tdm and x is not None and x.shape[1] >= 64 and (window_s is None or config.schedule):
+        scan = scan_tdm(x, recording.rate_hz, config.carriers_hz[0], min_snr=config.min_snr)
     if window_s is None:
-        if config.tdm and x is not None and x.shape[1] >= 64:
-            window_s = choose_tdm_window(scan_tdm(x, recording.rate_hz, config.carriers_hz[0],
-                                                  min_snr=config.min_snr), config.carriers_hz[0])
-        else:
-            window_s = 0.01
+        window_s = choose_tdm_window(scan, config.carriers_hz[0]) if scan is not None else 0.01
+    if scan is not None and config.schedule:
+        msg = schedule_timing(scan, config.schedule, recording.rate_hz, x.shape[1] / recording.rate_hz)
+        if msg:
+            warnings.append(f"{recording.path}: {msg}")
     if config.check_carriers and x is not None and x.shape[1] >= 64:
         cache: dict = {}  # one spectrum for all the carriers
         for f in config.carriers_hz:
-            chk = check_carrier(f, carrier_near(x, recording.rate_hz, f, spectrum_cache=cache), window_s,
-                                tdm=config.tdm)
+            measured = measure_carrier(x, recording.rate_hz, f, tdm=config.tdm, min_snr=config.min_snr,
+                                       spectrum_cache=cache)
+            chk = check_carrier(f, measured, window_s, tdm=config.tdm)
             if not chk.ok:
                 warnings.append(f"{recording.path}: {chk.message}")
     return window_s, warnings
@@ -194,78 +202,35 @@ def single_columns(with_plane: bool) -> tuple[str, ...]:
     return tuple(cols)
 
 
-def _write_rows(fh, cols: dict, order) -> int:
-    """Write columns (equal-length arrays) as CSV rows; floats with 10 significant digits.
+def _no_nan_sigmas(alpha_deg, sigma_deg, model: SensorModel) -> None:
+    """InputError when an angle is finite but its sigma is not (a calibration whose covariance or
+    distortion overflows): a NaN sigma is never written as if it were a measurement's."""
+    bad = np.all(np.isfinite(alpha_deg), axis=-1) & ~np.all(np.isfinite(sigma_deg), axis=-1)
+    if np.any(bad):
+        raise InputError(f"the calibration gives non-finite sigmas for {int(bad.sum())} finite angle(s) (its "
+                         "covariance or distortion overflows): refusing to write them", path=model.source,
+                         field="covariance")
 
-    The text is formatted by the compiled writer (:func:`psdcal.measure._csvtext.rows_text`, the same
-    bytes as Python's ``"%.10g"``/``"%d"``/``"%s"``), or by :func:`_rows_text` without numba.
+
+def _rows_single(t_s, names, a, var_a, model: SensorModel, distance_mm, min_snr, sums=None):
+    """Columns for rows (t, emitter) of amplitudes a (n, 4); drops low-SNR rows.
+
+    ``sums``: a :class:`psdcal.measure.channel_order.SumCheck` that the kept rows are added to.
     """
-    n = len(cols["t_s"])
-    if n == 0:
-        return 0
-    from psdcal import _jit
-
-    if _jit.enabled():
-        from psdcal.measure._csvtext import rows_text
-
-        fh.write(rows_text([cols[c] for c in order]))
-    else:
-        fh.write(_rows_text(cols, order))
-    return n
-
-
-def _rows_text(cols: dict, order) -> str:
-    """The CSV text of :func:`_write_rows` by Python's ``%`` formatting (the reference)."""
-    from psdcal.measure._csvtext import rows_text_reference
-
-    return rows_text_reference([cols[c] for c in order])
-
-
-class _NpyRows:
-    """Collects output columns and writes them as one NumPy structured array (``--format npy``)."""
-
-    def __init__(self, order):
-        self.order = tuple(order)
-        self.parts = {c: [] for c in self.order}
-
-    def write(self, cols: dict) -> int:
-        n = len(cols["t_s"])
-        for c in self.order:
-            self.parts[c].append(np.asarray(cols[c]))
-        return n
-
-    def save(self, path) -> None:
-        fields, data = [], []
-        for c in self.order:
-            a = np.concatenate(self.parts[c]) if self.parts[c] else np.zeros(0)
-            if a.dtype.kind in "OUS":
-                a = a.astype(str)
-                if a.size == 0:
-                    a = a.astype("U1")
-            elif a.dtype.kind not in "iub":
-                a = a.astype(np.float64)
-            fields.append((c, a.dtype))
-            data.append(a)
-        out = np.empty(len(data[0]) if data else 0, dtype=fields)
-        for (c, _), a in zip(fields, data):
-            out[c] = a
-        with open(path, "wb") as fh:
-            np.save(fh, out, allow_pickle=False)
-
-
-def _rows_single(t_s, names, a, var_a, model: SensorModel, distance_mm, min_snr):
-    """Columns for rows (t, emitter) of amplitudes a (n, 4); drops low-SNR rows."""
     total = a.sum(-1)
     sd = np.sqrt(var_a.sum(-1))
     keep = total > min_snr * sd
     keep &= np.all(np.isfinite(a), axis=-1)
     t_s, names, a, var_a = t_s[keep], names[keep], a[keep], var_a[keep]
+    if sums is not None:
+        sums.add(a, var_a)
     imp = impact_from_amplitudes(a, model, var_a, on_zero="nan")
     res = angles_from_points(imp.d_mm, model, imp.cov_d_mm2, imp.dd_dgains, derivatives=False)
     d = imp.d_mm
     res_d = np.sqrt(np.clip(np.diagonal(imp.cov_d_mm2, axis1=-2, axis2=-1), 0.0, None))
     alpha = res.alpha_rad * _DEG
     sa = res.sigma_alpha_rad * _DEG
+    _no_nan_sigmas(alpha, sa, model)
     cols = {
         "t_s": t_s,
         "emitter": names,
@@ -362,6 +327,22 @@ def _stream_single(recording: Recording, config: LocateConfig, out_path, order, 
     k = len(names)
     batch_rows = min(BATCH_ROWS, max(1, chunk // BATCH_SAMPLES_PER_ROW))
     names_arr = np.array(names, dtype=object)
+
+    if config.output_format not in ("csv", "npy"):
+        raise InputError(f"output format must be 'csv' or 'npy', got {config.output_format!r}", field="format")
+    try:
+        return _stream_rows(recording, config, out_path, order, make_cols, progress, names, window_s, warnings,
+                            lockin, seg, chunk, k, batch_rows, names_arr)
+    except PsdcalError as exc:
+        # what the pre-scan found (a carrier or a rate off) is usually the cause: said in the same line
+        if warnings:
+            exc.args = (f"{exc} (the pre-scan found: {'; '.join(warnings)})",) + exc.args[1:]
+        raise
+
+
+def _stream_rows(recording, config, out_path, order, make_cols, progress, names, window_s, warnings, lockin, seg,
+                 chunk, k, batch_rows, names_arr):
+    """The loop of :func:`_stream_single` (chunks -> rows), after its set-up."""
     n_samples = n_windows = n_rows = n_skipped = 0
 
     def segment_rows(segments):
@@ -373,8 +354,6 @@ def _stream_single(recording: Recording, config: LocateConfig, out_path, order, 
         v = np.stack([s.var_amplitude for s in segments])
         return make_cols(t, nm, a, v)
 
-    if config.output_format not in ("csv", "npy"):
-        raise InputError(f"output format must be 'csv' or 'npy', got {config.output_format!r}", field="format")
     npy = _NpyRows(order) if config.output_format == "npy" else None
     with atomic_path(out_path, suffix="." + config.output_format) as tmp:
         with open(tmp, "w", encoding="utf-8", newline="") as fh:
@@ -480,9 +459,17 @@ def locate_to_csv(recording: Recording, model: SensorModel, out_path, config: Lo
     LocateSummary
     """
 
+    # the x and y channel sums agree in the documented channel order (a wrong order or wrong gains show)
+    sums = {}
+
+    def sum_check(m):
+        if id(m) not in sums:
+            sums[id(m)] = SumCheck.for_model(m, str(recording.path))
+        return sums[id(m)]
+
     def make_cols(t, nm, a, v):
         if not models:
-            return _rows_single(t, nm, a, v, model, config.distance_mm, config.min_snr)
+            return _rows_single(t, nm, a, v, model, config.distance_mm, config.min_snr, sum_check(model))
         parts, skipped = [], 0
         order = np.argsort(t, kind="stable")
         t, nm, a, v = t[order], nm[order], a[order], v[order]
@@ -491,16 +478,19 @@ def locate_to_csv(recording: Recording, model: SensorModel, out_path, config: Lo
             groups.setdefault(name, []).append(i)
         for name, idx in groups.items():
             idx = np.array(idx)
-            cols, sk = _rows_single(t[idx], nm[idx], a[idx], v[idx], models.get(name, model), config.distance_mm,
-                                    config.min_snr)
+            m = models.get(name, model)
+            cols, sk = _rows_single(t[idx], nm[idx], a[idx], v[idx], m, config.distance_mm, config.min_snr,
+                                    sum_check(m))
             parts.append(cols)
             skipped += sk
         merged = {c: np.concatenate([p[c] for p in parts]) for c in parts[0]}
         back = np.argsort(merged["t_s"], kind="stable")
         return {c: merged[c][back] for c in merged}, skipped
 
-    return _stream_single(recording, config, out_path, single_columns(config.distance_mm is not None), make_cols,
-                          progress)
+    summary = _stream_single(recording, config, out_path, single_columns(config.distance_mm is not None), make_cols,
+                             progress)
+    extra = tuple(w for w in (c.warning() for c in sums.values()) if w)
+    return dataclasses.replace(summary, warnings=summary.warnings + extra) if extra else summary
 
 
 AMPLITUDE_COLUMNS = ("t_s", "emitter", "vx1", "vx2", "vy1", "vy2",
@@ -686,6 +676,7 @@ def _aoa_chunk(chunk, out, path, header, use, idx, sig_cols, sidx, keep_cols, ke
     res = angles_from_points(d, model, cov_d, dd_dg, derivatives=False)
     alpha = res.alpha_rad * _DEG
     sa = res.sigma_alpha_rad * _DEG
+    _no_nan_sigmas(alpha, sa, model)
     cols = {c: np.array([e[j] for e in extra], dtype=object) for j, c in enumerate(keep_cols)}
     cols.update({"x_mm": d[:, 0], "y_mm": d[:, 1], "alpha_x_deg": alpha[:, 0], "alpha_y_deg": alpha[:, 1]})
     if distance_mm is not None:

@@ -180,7 +180,7 @@ class SensorModel:
                 v = default
             try:
                 v = float(v)
-            except (TypeError, ValueError):
+            except (TypeError, ValueError, OverflowError):
                 raise bad(f"'{key}' must be a number, got {v!r}", f"{where}.{key}") from None
             if not math.isfinite(v) or (positive and v <= 0):
                 raise bad(f"'{key}' must be a finite{' positive' if positive else ''} number, got {v}", f"{where}.{key}")
@@ -211,7 +211,7 @@ class SensorModel:
         else:
             try:
                 g = np.asarray(gains, dtype=float)
-            except (TypeError, ValueError):
+            except (TypeError, ValueError, OverflowError):
                 raise bad("'gains' must be a list of 4 numbers", "gains") from None
             if g.shape != (4,) or not np.all(np.isfinite(g)) or np.any(g <= 0):
                 raise bad(f"'gains' must be 4 positive numbers [g_x1, g_x2, g_y1, g_y2], got {gains!r}", "gains")
@@ -233,7 +233,7 @@ class SensorModel:
                 raise bad("repeated parameter name", "covariance.names")
             try:
                 cov = np.asarray(cov_d["matrix"], dtype=float)
-            except (TypeError, ValueError):
+            except (TypeError, ValueError, OverflowError):
                 raise bad("'covariance.matrix' must be a square list of lists of numbers", "covariance.matrix") from None
             n = len(names)
             if n == 0 and cov.size == 0:  # no free parameter: an empty matrix, however it was written
@@ -264,6 +264,11 @@ class SensorModel:
             cov = np.diag(var) if var else np.zeros((0, 0))
         if "fy_mm" in names and intr.fy_mm is None:
             raise bad("the covariance names 'fy_mm' but 'intrinsics' has no 'fy_mm'", "covariance.names")
+        # every reader of a sensor's calibration (a calibration file, a sensors file's entries) refuses a
+        # distortion no lens has (k1 = 1e300: every sigma overflows)
+        from psdcal.io import check_plausible_distortion
+
+        check_plausible_distortion(intr.to_dict(), dist.to_dict(), {"lx_mm": lx, "ly_mm": ly}, src)
         return cls(
             intrinsics=intr,
             distortion=dist,

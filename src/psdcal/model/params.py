@@ -77,6 +77,19 @@ class Distortion:
         return {n: getattr(self, n) for n in DISTORTION_NAMES}
 
 
+def _short(v) -> str:
+    """``repr(v)``, cut to 40 characters."""
+    r = repr(v)
+    return r if len(r) <= 40 else r[:37] + "..."
+
+
+def _is_count(v, hi: int) -> bool:
+    """``v`` is a whole number 0..hi (an int, or a float with no fraction; not a bool)."""
+    if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, float, np.integer, np.floating)):
+        return False
+    return bool(0 <= v <= hi and float(v).is_integer())
+
+
 @dataclass(frozen=True)
 class ModelSpec:
     """Which parameters a calibration estimates (the model switches).
@@ -105,10 +118,19 @@ class ModelSpec:
     fit_gains: bool = False
 
     def __post_init__(self):
-        if not 0 <= int(self.radial) <= 3:
-            raise ValueError(f"radial must be 0..3, got {self.radial}")
-        if not 0 <= int(self.psd_radial) <= 2:
-            raise ValueError(f"psd_radial must be 0..2, got {self.psd_radial}")
+        from psdcal.errors import InputError
+
+        # an error a user can cause (psdcal.calibrate(radial=4), a calibration JSON's 'model'): InputError
+        for name, hi in (("radial", 3), ("psd_radial", 2)):
+            v = getattr(self, name)
+            if not _is_count(v, hi):
+                raise InputError(f"{name} must be an integer 0..{hi}, got {_short(v)}", field=name)
+            object.__setattr__(self, name, int(v))
+        for name in ("tangential", "skew", "aspect", "fit_gains"):
+            v = getattr(self, name)
+            if not (isinstance(v, (bool, np.bool_)) or (isinstance(v, (int, np.integer)) and v in (0, 1))):
+                raise InputError(f"{name} must be true or false, got {_short(v)}", field=name)
+            object.__setattr__(self, name, bool(v))
 
     @cached_attribute
     def intrinsic_names(self) -> tuple[str, ...]:

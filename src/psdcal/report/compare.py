@@ -277,6 +277,12 @@ def compare(a, b, *, n: int = 41, margin_mm: float = 0.0, distance_mm: float | N
     """
     if distance_mm is not None and not (np.isfinite(distance_mm) and distance_mm > 0):
         raise InputError(f"distance must be a positive number of mm, got {distance_mm!r}", field="distance_mm")
+    sa, sb = (tuple(float(v) for v in r.sensor_mm) for r in (a, b))
+    if not np.allclose(sa, sb, rtol=1e-9, atol=0.0):
+        # one impact point is not the same place on two sensors of different sizes (Eq 1-2 scale by L / 2)
+        raise InputError(f"the calibrations are of sensors of different sizes ({names[0]}: {sa[0]:g} x {sa[1]:g} mm, "
+                         f"{names[1]}: {sb[0]:g} x {sb[1]:g} mm): not two calibrations of one sensor",
+                         path=getattr(b, "source", None), field="sensor")
     d = sensor_grid_mm(a.sensor_mm, n, margin_mm=margin_mm)
     fa, fb = aoa_field(a, d), aoa_field(b, d)
     cross = np.linalg.norm(np.cross(fa.ray, fb.ray), axis=-1)

@@ -45,7 +45,8 @@ def print_calibration(res, truth: dict | None = None, console=None) -> None:
         f"residual RMS {res.rms_mm * 1e3:.4f} um on the sensor (implied noise {res.sigma_mm * 1e3:.4f} um per coordinate); "
         f"{res.iterations} iterations, {'converged' if res.converged else 'NOT converged'}"
     )
-    worst = int(np.nanargmax(res.per_image_rms_mm)) if len(res.per_image_rms_mm) else None
+    per = np.asarray(res.per_image_rms_mm, dtype=float)
+    worst = int(np.nanargmax(per)) if np.any(np.isfinite(per)) else None
     if worst is not None:
         console.print(f"per-image RMS {res.per_image_rms_mm.min() * 1e3:.4f}-{res.per_image_rms_mm.max() * 1e3:.4f} um "
                       f"(worst: image {res.image_ids[worst]})")

@@ -59,6 +59,10 @@ class Carrier:
         a time-multiplexed LED's amplitude times its duty cycle).
     noise_sigma : (4,) ndarray
         White-noise sigma per sample of each channel (from the median floor).
+    precision_hz : float
+        Standard error of ``freq_hz`` when the estimator gives one
+        (:func:`carrier_in_bursts`); nan for a spectral peak (whose
+        precision is taken as a tenth of ``resolution_hz``).
     """
 
     freq_hz: float
@@ -66,6 +70,7 @@ class Carrier:
     snr_db: np.ndarray
     amplitude: np.ndarray
     noise_sigma: np.ndarray
+    precision_hz: float = math.nan
 
 
 def read_prefix(recording, max_samples: int = DEFAULT_SCAN_SAMPLES) -> np.ndarray:
@@ -214,6 +219,188 @@ def carrier_near(x, rate_hz: float, asked_hz: float, *, rel: float = 0.05,
     return _carrier_at(max(k, 1), p, ptot, floor, df, wsum, w2sum)
 
 
+#: Windows of a burst (after its two edge windows are dropped) needed for a phase slope.
+MIN_BURST_WINDOWS = 3
+
+
+def carrier_in_bursts(x, rate_hz: float, asked_hz: float, *, min_snr: float = 10.0) -> Carrier | None:
+    """The carrier of a time-multiplexed or blinking record, from the phase slope inside its bursts.
+
+    The spectrum of a record whose LEDs take turns is the carrier convolved
+    with the on/off pattern: when each slot starts with its own phase (a
+    different LED, or an LED switched on again), the strongest peak near the
+    carrier is often a keying side-band, and :func:`carrier_near` would
+    report it as the carrier (the tutorial's views: 985 Hz for 1000 Hz).
+    Here the record is demodulated at ``asked_hz`` in short windows
+    (:data:`psdcal.signal.stream.MIN_PERIODS` periods, at least 32 samples);
+    the windows whose total amplitude exceeds ``min_snr`` sigmas form the
+    bursts, cut where the channel ratios or the phase jump (another LED with
+    no dark window between); windows below 0.8 of their burst's median
+    amplitude (part of the window dark) and the two edge windows of each
+    burst are dropped.  In each burst, the samples between the end of its
+    first window and the start of its last one (the LED certainly on, no
+    switching inside) are cut into sub-windows of one period; their common
+    phase drifts as ``2 pi (f - asked) t``.
+    The slope is fitted per burst (weights from the windows' own noise) and
+    the bursts are averaged, inverse-variance weighted: a phase that jumps
+    from burst to burst does not matter.
+
+    Returns
+    -------
+    Carrier or None
+        ``freq_hz = asked_hz + slope / 2 pi`` with ``precision_hz`` its
+        standard error (scaled up by the fit's reduced chi-squared when above
+        one); ``amplitude`` and ``noise_sigma`` are the medians over the
+        burst windows (an LED's amplitude while it is on, not the duty-cycle
+        average); ``resolution_hz`` is one over the longest burst; ``snr_db``
+        as :class:`Carrier` for the on-samples.  None when no burst has
+        :data:`MIN_BURST_WINDOWS` clean windows (then use :func:`carrier_near`).
+    """
+    from psdcal.signal.stream import MIN_PERIODS, MultiCarrierLockin
+
+    x = np.asarray(x, dtype=float)
+    periods = max(MIN_PERIODS, math.ceil(32 * asked_hz / rate_hz))
+    w0 = math.ceil(periods / asked_hz * rate_hz) / rate_hz
+    if x.ndim != 2 or x.shape[1] < 3 * round(w0 * rate_hz):
+        return None
+    try:
+        lk = MultiCarrierLockin(rate_hz, [asked_hz], w0)
+    except InputError:
+        return None
+    wb = lk.process(0.0, x)
+    a = wb.amplitude[:, 0, :]  # (nw, 4)
+    total = a.sum(-1)
+    var_total = wb.var_amplitude[:, 0, :].sum(-1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        on = np.isfinite(total) & (total > min_snr * np.sqrt(var_total))
+    idx = np.flatnonzero(on)
+    if idx.size == 0:
+        return None
+    ratio = a / np.where(total != 0, total, 1.0)[:, None]
+    sd_ratio = np.sqrt(wb.var_amplitude[:, 0, :].max(-1)) / np.where(total > 0, total, 1.0)
+    step = np.angle(np.exp(1j * np.diff(wb.phase_rad[:, 0])))  # wrapped phase step between windows
+    sd_step = np.sqrt(var_total[:-1] / np.maximum(total[:-1], 1e-300) ** 2
+                      + var_total[1:] / np.maximum(total[1:], 1e-300) ** 2)
+    m_step = float(np.median(step[on[:-1] & on[1:]])) if np.any(on[:-1] & on[1:]) else 0.0
+    # a burst ends where the windows stop being consecutive, or where another LED takes over with no dark
+    # window between (the channel ratios or the phase jump)
+    cut = (np.diff(idx) > 1)
+    j = idx[:-1]
+    cut |= np.max(np.abs(ratio[j + 1] - ratio[j]), axis=-1) > 0.02 + 6 * np.hypot(sd_ratio[j], sd_ratio[j + 1])
+    cut |= np.abs(np.angle(np.exp(1j * (step[j] - m_step)))) > 0.2 + 6 * sd_step[j]
+    runs = []
+    for r in np.split(idx, np.flatnonzero(cut) + 1):
+        # windows that hold only part of the on-time are weaker: dropped, and the rest split where they were
+        r = r[total[r] >= 0.8 * np.median(total[r])]
+        runs += np.split(r, np.flatnonzero(np.diff(r) > 1) + 1)
+    n_w = lk.n_window
+    period = max(4, int(round(rate_hz / asked_hz)))  # samples per sub-window: one period, at least 4 samples
+    slopes, weights, chi2, dof, spans, amps, sigmas, n_on = [], [], 0.0, 0, [], [], [], 0
+    for r in runs:
+        if r.size < 3:
+            continue
+        # the LED is on from the end of the run's first window to the start of its last one: only those
+        # samples are used (a window that holds the switching has a biased phase)
+        s0, s1 = int(r[0] + 1) * n_w, int(r[-1]) * n_w
+        k = min((s1 - s0) // period, 64)
+        if k < MIN_BURST_WINDOWS:
+            continue
+        m = (s1 - s0) // k
+        fit = _sub_window_phases(x[:, s0: s0 + k * m], rate_hz, asked_hz, s0 / rate_hz, k, m)
+        if fit is None:
+            continue
+        for piece in _phase_pieces(fit[1], fit[2], fit[5]):
+            t, ph, var_ph = fit[0][piece], fit[1][piece], fit[2][piece]
+            b, sxx, c2 = _phase_slope(t, ph, var_ph)
+            chi2 += c2
+            dof += piece.size - 2
+            slopes.append(b)
+            weights.append(sxx)
+            spans.append(piece.size * m / rate_hz)
+            amps.append(fit[3])
+            sigmas.append(fit[4])
+            n_on += piece.size * m
+    if not slopes:
+        return None
+    slopes, weights = np.array(slopes), np.array(weights)
+    b = float(np.sum(weights * slopes) / weights.sum())
+    var_b = 1.0 / weights.sum()
+    if len(slopes) > 1:
+        chi2 += float(np.sum(weights * (slopes - b) ** 2))
+        dof += len(slopes) - 1
+    if dof > 0:
+        var_b *= max(1.0, chi2 / dof)
+    amp = np.median(np.array(amps), axis=0)
+    sigma = np.median(np.array(sigmas), axis=0)
+    snr = 20 * np.log10(np.maximum(amp * n_on / 2, 1e-300) / np.maximum(sigma * math.sqrt(n_on), 1e-300))
+    return Carrier(freq_hz=asked_hz + b / (2 * math.pi), resolution_hz=float(1.0 / max(spans)), snr_db=snr,
+                   amplitude=amp, noise_sigma=sigma, precision_hz=float(math.sqrt(var_b) / (2 * math.pi)))
+
+
+def _phase_slope(t, ph, var_ph):
+    """Weighted straight-line fit ``ph ~ p0 + b (t - tm)``: ``(b, sum w (t - tm)^2, chi2)`` (``w = 1 / var_ph``)."""
+    w = 1.0 / var_ph
+    tm = np.sum(w * t) / w.sum()
+    sxx = float(np.sum(w * (t - tm) ** 2))
+    pm = np.sum(w * ph) / w.sum()
+    b = float(np.sum(w * (t - tm) * (ph - pm)) / sxx)
+    return b, sxx, float(np.sum(w * (ph - pm - b * (t - tm)) ** 2))
+
+
+def _phase_pieces(ph, var_ph, mag):
+    """Runs of sub-windows of one LED: amplitude ``mag`` at least 0.8 of the median, phase steps that
+    agree with the median step within 6 sigma.
+
+    A weaker sub-window holds a switching (part dark, or two LEDs whose phases cancel in part); a
+    step that disagrees is another LED.  The burst is cut there, the sub-windows on both sides of a
+    bad step are dropped, and runs shorter than :data:`MIN_BURST_WINDOWS` are left out.
+    """
+    full = mag >= 0.8 * np.median(mag)
+    step = np.diff(ph)
+    both = full[:-1] & full[1:]
+    med = float(np.median(step[both])) if np.any(both) else 0.0
+    sd = np.sqrt(var_ph[:-1] + var_ph[1:])
+    bad = ~both | (np.abs(np.angle(np.exp(1j * (step - med)))) > 6 * sd)
+    keep = full.copy()
+    keep[:-1] &= ~bad | ~full[1:]  # a bad step to a weak sub-window only drops the weak one
+    keep[1:] &= ~bad | ~full[:-1]
+    idx = np.flatnonzero(keep)
+    pieces = np.split(idx, np.flatnonzero(np.diff(idx) > 1) + 1) if idx.size else []
+    return [p for p in pieces if p.size >= MIN_BURST_WINDOWS]
+
+
+def _sub_window_phases(xs, rate_hz: float, f_hz: float, t0_s: float, k: int, m: int):
+    """Common phase of ``k`` consecutive sub-windows of ``m`` samples of ``xs`` (4, k m) starting at ``t0_s``.
+
+    Each sub-window is fitted by least squares with ``sin, cos`` at ``f_hz`` and an offset on its own
+    time axis; the phase is referred to the recording's time.  Returns ``(t_s, phase_rad (unwrapped),
+    var_phase, amplitude (4,), noise_sigma (4,), |sum of the complex amplitudes| (k,))`` (amplitude
+    and noise_sigma medians over the sub-windows), or None
+    when the carrier vanishes in a sub-window.
+    """
+    tau = np.arange(m) / rate_hz
+    wt = 2 * np.pi * f_hz * tau
+    basis = np.stack([np.sin(wt), np.cos(wt), np.ones(m)], axis=1)  # (m, 3)
+    gram = basis.T @ basis
+    coef = np.einsum("cjm,mp->jpc", xs.reshape(4, k, m), basis @ np.linalg.inv(gram))  # (k, 3, 4)
+    res = xs.reshape(4, k, m) - np.einsum("jpc,mp->cjm", coef, basis)
+    var_c = (res ** 2).sum(-1).T / max(m - 3, 1)  # (k, 4)
+    z = coef[:, 0, :] + 1j * coef[:, 1, :]  # x ~ i sin + q cos
+    zs = z.sum(-1)  # (k,)
+    mag = np.abs(zs)
+    if np.any(mag <= 0) or not np.all(np.isfinite(mag)):
+        return None
+    gi = np.linalg.inv(gram)[:2, :2]
+    u = zs / mag
+    # variance of the component of the summed amplitude across its phase, over |z|^2
+    perp = (u.real ** 2) * gi[1, 1] - 2 * u.real * u.imag * gi[0, 1] + (u.imag ** 2) * gi[0, 0]
+    var_ph = np.maximum(var_c.sum(-1) * perp / mag ** 2, 1e-300)
+    t_start = t0_s + np.arange(k) * m / rate_hz
+    ph = np.unwrap(np.angle(zs) - 2 * np.pi * f_hz * (t_start - t0_s))
+    amp = np.median(np.abs((z * np.conj(u)[:, None]).real), axis=0)
+    return t_start + 0.5 * (m - 1) / rate_hz, ph, var_ph, amp, np.median(np.sqrt(var_c), axis=0), mag
+
+
 @dataclass(frozen=True)
 class CarrierCheck:
     """An asked carrier against the measured one.
@@ -255,6 +442,8 @@ def check_carrier(asked_hz: float, measured: Carrier | None, window_s: float, *,
     tdm : bool
         Time multiplexing (a missing carrier may just be an LED that is off
         in the scanned part; the amplitude is then not the duty-cycle average).
+        Measure a time-multiplexed carrier with :func:`carrier_in_bursts`
+        (see :func:`measure_carrier`): the spectral peak may be a side-band.
     """
     if measured is None:
         return CarrierCheck(asked_hz, None, math.nan, math.nan, math.nan, False,
@@ -262,21 +451,36 @@ def check_carrier(asked_hz: float, measured: Carrier | None, window_s: float, *,
                             "check --carrier-hz and --rate-hz with 'psdcal inspect'")
     c = measured
     off = c.freq_hz - asked_hz
-    # the measurement's own precision: a tenth of a bin (Hann + parabolic interpolation)
-    eff = max(abs(off) - 0.1 * c.resolution_hz, 0.0)
+    # the measurement's own precision: three standard errors when the estimator gives one
+    # (carrier_in_bursts), else a tenth of a bin (Hann + parabolic interpolation)
+    tol = 3.0 * c.precision_hz if math.isfinite(c.precision_hz) else 0.1 * c.resolution_hz
+    eff = max(abs(off) - tol, 0.0)
     x = math.pi * eff * window_s
     a = float(np.max(c.amplitude))
     s = float(np.max(c.noise_sigma[np.argmax(c.amplitude)]))
-    if tdm:
-        pass  # the record-averaged amplitude underestimates an LED's: the inflation is a lower bound
+    # tdm with a spectral measurement: the record-averaged amplitude underestimates an LED's (a lower bound);
+    # with carrier_in_bursts the amplitude is the on-time one
     infl = math.sqrt(1.0 + (a * x) ** 2 / (6.0 * max(s, 1e-300) ** 2))
     loss = 1.0 - (math.sin(x) / x if x > 0 else 1.0)
     ok = infl <= MAX_SIGMA_INFLATION and loss <= MAX_AMPLITUDE_LOSS
+    prec = (f"standard error {c.precision_hz:.2g} Hz in the bursts" if math.isfinite(c.precision_hz)
+            else f"resolution {c.resolution_hz:.2g} Hz")
     msg = "" if ok else (
-        f"carrier asked at {asked_hz:g} Hz is measured at {c.freq_hz:.6g} Hz ({off:+.3g} Hz, resolution "
-        f"{c.resolution_hz:.2g} Hz): in a {window_s:g} s window this inflates the sigmas about "
+        f"carrier asked at {asked_hz:g} Hz is measured at {c.freq_hz:.6g} Hz ({off:+.3g} Hz, {prec}): in a {window_s:g} s window this inflates the sigmas about "
         f"{infl:.3g}x and loses {100 * loss:.2g} % of the amplitude (check --carrier-hz and --rate-hz)")
     return CarrierCheck(asked_hz, c, off, infl, loss, ok, msg)
+
+
+def measure_carrier(x, rate_hz: float, asked_hz: float, *, tdm: bool = False, min_snr: float = 10.0,
+                    spectrum_cache: dict | None = None) -> Carrier | None:
+    """The carrier near ``asked_hz``: from the bursts' phase slope for time multiplexing
+    (:func:`carrier_in_bursts`, falling back on the spectrum when no burst is found), else
+    the spectral peak (:func:`carrier_near`)."""
+    if tdm:
+        c = carrier_in_bursts(x, rate_hz, asked_hz, min_snr=min_snr)
+        if c is not None:
+            return c
+    return carrier_near(x, rate_hz, asked_hz, spectrum_cache=spectrum_cache)
 
 
 @dataclass(frozen=True)
@@ -343,3 +547,64 @@ def choose_tdm_window(scan: TdmScan, carrier_hz: float, *, max_window_s: float =
     w = min(on / 8.0, max_window_s)
     w = math.floor(w * carrier_hz) / carrier_hz
     return max(w, scan.window_s + 0.1 / carrier_hz)
+
+
+#: A schedule whose times the on-times found follow with a scale off by more than this (and 5 standard
+#: errors) names the sampling rate.
+MAX_TIME_SCALE_ERROR = 0.005
+
+
+def schedule_timing(scan: TdmScan, schedule, rate_hz: float, scanned_s: float) -> str | None:
+    """Whether the on-times found in the signal fall where the schedule puts them.
+
+    Times in a recording are sample numbers over ``--rate-hz``: with a wrong
+    rate every time found is scaled by ``true rate / given rate`` while the
+    schedule's times are not, so the slots drift off the LEDs (the windows of
+    one LED then hold the next one, or the dark, and the calibration sees a
+    permuted template).  The ``k``-th segment found is paired with the
+    ``k``-th schedule entry (segments ending within 2 scan windows of the end
+    of the scanned part are left out) and their centres fitted as
+    ``t_found = s t_schedule + t0``.
+
+    Parameters
+    ----------
+    scan : TdmScan
+    schedule : sequence of ScheduleEntry
+    rate_hz : float
+        The rate given.
+    scanned_s : float
+        Duration of the scanned part, s.
+
+    Returns
+    -------
+    str or None
+        A message naming the rate when ``|s - 1|`` exceeds
+        :data:`MAX_TIME_SCALE_ERROR` and 5 standard errors and the pairing is
+        consistent (residuals within a scan window); None otherwise (nothing
+        to say, or not enough segments to tell).
+    """
+    sched = sorted(schedule, key=lambda e: e.t_start_s)
+    w = scan.window_s
+    segs = [sg for sg in scan.segments if sg.t_end_s < scanned_s - 2 * w]
+    n = min(len(segs), len(sched))
+    if n < 3:
+        return None
+    c_found = np.array([0.5 * (sg.t_start_s + sg.t_end_s) for sg in segs[:n]])
+    c_sched = np.array([0.5 * (e.t_start_s + e.t_end_s) for e in sched[:n]])
+    dc = c_sched - c_sched.mean()
+    sxx = float(np.sum(dc * dc))
+    if sxx <= 0:
+        return None
+    slope = float(np.sum(dc * (c_found - c_found.mean())) / sxx)
+    res = c_found - c_found.mean() - slope * dc
+    if np.sqrt(np.mean(res ** 2)) > w:
+        return None  # LEDs missing or merged: the pairing by order does not hold
+    # a centre is known to about a window (edges found window by window)
+    se = w / math.sqrt(12.0) * math.sqrt(2.0) / math.sqrt(sxx)
+    if abs(slope - 1.0) <= max(MAX_TIME_SCALE_ERROR, 5 * se):
+        return None
+    shift_ms = float(np.max(np.abs(c_found - c_sched))) * 1e3
+    return (f"the {n} on-times found in the signal fall at {slope:.4g} x the schedule's times (the last one "
+            f"{shift_ms:.3g} ms off): --rate-hz {rate_hz:g} is probably wrong, the schedule fits "
+            f"{rate_hz * slope:.6g} Hz (a wrong rate moves every slot off its LED and the calibration then "
+            f"sees the LEDs out of order)")

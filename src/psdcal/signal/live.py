@@ -1,7 +1,10 @@
 """Live four-channel input: raw interleaved samples from stdin or a localhost TCP socket, or a NI DAQ.
 
 A raw stream is a sequence of frames, one per sample time, each holding the
-four channels ``vx1, vx2, vy1, vy2`` in that order, little-endian, as
+four channels ``vx1, vx2, vy1, vy2`` in that order (or in the order given as
+``order``, :func:`parse_order`; no frame carries names, so a stream wired in
+another order is only caught by the x/y sums check of
+:mod:`psdcal.measure.channel_order`), little-endian, as
 ``float32``, ``float64`` or ``int16`` (multiplied by ``scale``, e.g. volts per
 count).  No header: the sampling rate is given.  A stream source behaves like
 :class:`psdcal.signal.recording.Recording` for the demodulation: its
@@ -32,9 +35,31 @@ import numpy as np
 
 from psdcal.errors import InputError
 
+#: The order of the channels in a frame unless told otherwise (``--raw-order``).
+DOCUMENTED_ORDER = ("vx1", "vx2", "vy1", "vy2")
 #: Accepted sample types of a raw stream.
 DTYPES = {"float32": "<f4", "float64": "<f8", "int16": "<i2"}
 _LOCAL = ("127.0.0.1", "localhost", "::1", "[::1]")
+
+
+def parse_order(spec: str | None, *, field: str = "raw_order") -> tuple[int, ...] | None:
+    """Frame order ``"vx1,vy1,vx2,vy2"`` -> indices ``p`` with ``documented = frame[p]``.
+
+    None for None or for the documented order itself.
+
+    Raises
+    ------
+    InputError
+        Not the four names ``vx1, vx2, vy1, vy2``, each once.
+    """
+    if spec is None:
+        return None
+    names = [s.strip().lower() for s in str(spec).split(",")]
+    if sorted(names) != sorted(DOCUMENTED_ORDER):
+        raise InputError(f"the channel order must name vx1, vx2, vy1, vy2 once each (the frame's channels in "
+                         f"their order), got {spec!r}", field=field)
+    perm = tuple(names.index(n) for n in DOCUMENTED_ORDER)
+    return None if perm == (0, 1, 2, 3) else perm
 
 
 def is_stream_source(name: str) -> bool:
@@ -59,6 +84,8 @@ class RawStream:
         Unknown in advance.
     arrivals : list of (samples_received, perf_counter_s)
         When each block of frames arrived (for the latency measurement).
+    order : tuple of int or None
+        Frame positions of ``vx1, vx2, vy1, vy2`` (:func:`parse_order`); None: the documented order.
     """
 
     path: str
@@ -71,6 +98,7 @@ class RawStream:
     n_samples: None = None
     t0_s: float = 0.0
     arrivals: list = field(default_factory=list, repr=False)
+    order: tuple | None = None
 
     def chunks(self, chunk_samples: int = 0) -> Iterator[tuple[float, np.ndarray]]:
         """Yield ``(t0_s, block)`` as frames arrive (``chunk_samples`` is ignored: blocks are what came)."""
@@ -90,7 +118,7 @@ class RawStream:
                     continue
                 raw = np.frombuffer(buf[: m * frame], dtype=dt).reshape(m, 4)
                 buf = buf[m * frame :]
-                block = raw.T.astype(np.float64)
+                block = raw.T.astype(np.float64) if self.order is None else raw.T[list(self.order)].astype(np.float64)
                 if self.scale != 1.0:
                     block *= self.scale
                 if not np.all(np.isfinite(block)):
@@ -108,8 +136,12 @@ class RawStream:
 
 
 def open_stream(source: str, rate_hz: float | None, *, dtype: str = "float64", scale: float = 1.0,
-                timeout_s: float = 10.0, stdin=None) -> RawStream:
+                timeout_s: float = 10.0, stdin=None, order: str | None = None) -> RawStream:
     """Open a live source (see the module docstring).
+
+    ``order``: the frame's channels in their order when not ``vx1,vx2,vy1,vy2``
+    (``"vx1,vy1,vx2,vy2"``, :func:`parse_order`); the blocks yielded are in the
+    documented order.
 
     Raises
     ------
@@ -123,6 +155,13 @@ def open_stream(source: str, rate_hz: float | None, *, dtype: str = "float64", s
         raise InputError(f"unknown sample type {dtype!r}; use one of {sorted(DTYPES)}", field="raw_dtype")
     if not (math.isfinite(scale) and scale != 0):
         raise InputError(f"the scale must be a finite non-zero number, got {scale}", field="raw_scale")
+    perm = parse_order(order)
+    stream = _open_source(source, rate_hz, dtype, scale, timeout_s, stdin)
+    stream.order = perm
+    return stream
+
+
+def _open_source(source, rate_hz, dtype, scale, timeout_s, stdin) -> RawStream:
     if source == "-":
         fh = stdin if stdin is not None else sys.stdin.buffer
         reader = getattr(fh, "read1", None) or fh.read

@@ -30,6 +30,7 @@ name_vy2)`` (CSV columns, HDF5 datasets, TDMS channels).
 """
 from __future__ import annotations
 
+import contextlib
 import csv
 import io
 import math
@@ -40,7 +41,7 @@ from typing import Iterator
 
 import numpy as np
 
-from psdcal.errors import InputError
+from psdcal.errors import InputError, PsdcalError
 from psdcal.model.readout import CHANNELS
 
 DEFAULT_CHUNK = 1 << 16
@@ -384,6 +385,24 @@ def _chunks_csv(rec: Recording, chunk: int):
 
 
 # --------------------------------------------------------------------------- hdf5
+#: What a file-format library raises on a corrupt file (h5py: OSError, RuntimeError, KeyError; npTDMS:
+#: ValueError, KeyError, struct.error, EOFError...); turned into one InputError naming the file.
+_LIBRARY_ERRORS = (OSError, RuntimeError, KeyError, ValueError, IndexError, TypeError, EOFError, AttributeError,
+                   struct.error)
+
+
+@contextlib.contextmanager
+def _unreadable(path, what: str):
+    """A corrupt file met by a reader library (when opened or while read) is one line naming the file."""
+    try:
+        yield
+    except PsdcalError:
+        raise
+    except _LIBRARY_ERRORS as exc:
+        msg = " ".join(str(exc).split())[:200]
+        raise InputError(f"not a readable {what} file ({type(exc).__name__}: {msg})", path=path) from None
+
+
 def _import_h5py(path):
     try:
         import h5py
@@ -453,23 +472,20 @@ def _h5_locate(f, rec_path, opts):
 
 def _open_hdf5(path, opts):
     h5py = _import_h5py(path)
-    try:
-        with h5py.File(path, "r") as f:
-            dss, matrix, rate = _h5_locate(f, path, opts)
-            ds = dss[0]
-            for d in dss:
-                if not (np.issubdtype(d.dtype, np.integer) or np.issubdtype(d.dtype, np.floating)):
-                    raise InputError(f"dataset '{d.name}' holds {d.dtype}, expected real numbers", path=path,
-                                     field=d.name)
-            n = (ds.shape[0] if ds.shape[1] == 4 else ds.shape[1]) if matrix else ds.shape[0]
-    except OSError as exc:
-        raise InputError(f"not a readable HDF5 file: {exc}", path=path) from None
+    with _unreadable(path, "HDF5"), h5py.File(path, "r") as f:
+        dss, matrix, rate = _h5_locate(f, path, opts)
+        ds = dss[0]
+        for d in dss:
+            if not (np.issubdtype(d.dtype, np.integer) or np.issubdtype(d.dtype, np.floating)):
+                raise InputError(f"dataset '{d.name}' holds {d.dtype}, expected real numbers", path=path,
+                                 field=d.name)
+        n = (ds.shape[0] if ds.shape[1] == 4 else ds.shape[1]) if matrix else ds.shape[0]
     return Recording(path=str(path), rate_hz=rate, n_samples=int(n), kind="hdf5", options=opts)
 
 
 def _chunks_hdf5(rec: Recording, chunk: int):
     h5py = _import_h5py(rec.path)
-    with h5py.File(rec.path, "r") as f:
+    with _unreadable(rec.path, "HDF5"), h5py.File(rec.path, "r") as f:
         dss, matrix, _ = _h5_locate(f, rec.path, rec.options)
         n = rec.n_samples
         for start in range(0, n, chunk):
@@ -530,27 +546,22 @@ def _tdms_channels(f, path, opts):
 
 def _open_tdms(path, opts):
     nptdms = _import_nptdms(path)
-    try:
-        with nptdms.TdmsFile.open(path) as f:
-            chans = _tdms_channels(f, path, opts)
-            props = chans[0].properties
-            rate = None
-            if "wf_increment" in props and float(props["wf_increment"]) > 0:
-                rate = 1.0 / float(props["wf_increment"])
-            elif "rate_hz" in props:
-                rate = float(props["rate_hz"])
-            t0 = float(props.get("wf_start_offset", 0.0))
-            n = len(chans[0])
-    except InputError:
-        raise
-    except (OSError, ValueError, KeyError) as exc:
-        raise InputError(f"not a readable TDMS file: {exc}", path=path) from None
+    with _unreadable(path, "TDMS"), nptdms.TdmsFile.open(path) as f:
+        chans = _tdms_channels(f, path, opts)
+        props = chans[0].properties
+        rate = None
+        if "wf_increment" in props and float(props["wf_increment"]) > 0:
+            rate = 1.0 / float(props["wf_increment"])
+        elif "rate_hz" in props:
+            rate = float(props["rate_hz"])
+        t0 = float(props.get("wf_start_offset", 0.0))
+        n = len(chans[0])
     return Recording(path=str(path), rate_hz=rate, n_samples=int(n), t0_s=t0, kind="tdms", options=opts)
 
 
 def _chunks_tdms(rec: Recording, chunk: int):
     nptdms = _import_nptdms(rec.path)
-    with nptdms.TdmsFile.open(rec.path) as f:
+    with _unreadable(rec.path, "TDMS"), nptdms.TdmsFile.open(rec.path) as f:
         chans = _tdms_channels(f, rec.path, rec.options)
         n = rec.n_samples
         for start in range(0, n, chunk):

@@ -106,7 +106,7 @@ def random_case(seed: int, *, fault: str = "none", lens: str | None = None, n_im
     bad = None
     amps = None
     if fault == "gains":
-        from psdcal.calibration.gains import simulate_amplitudes
+        from psdcal.study.gain_sim import simulate_amplitudes
         from psdcal.model.readout import impact_point
 
         snr = float(rng.uniform(40.0, 60.0))
@@ -195,3 +195,54 @@ def wrong_minimum(seed: int, *, min_ratio: float = 1.001, max_tries: int = 200):
         if res.cost_rms > min_ratio * best:
             return case, res
     raise RuntimeError("no wrong minimum found")
+
+
+#: Faults planted on a real data set by :func:`plant_fault`.
+REAL_FAULTS = ("swap", "reversed", "metres", "fix_f")
+
+
+def mirror_partner(template_mm) -> np.ndarray | None:
+    """Index of each template point's mirror image across the template's vertical centre line (None when the
+    template has no such symmetry)."""
+    T = np.asarray(template_mm, dtype=float)
+    xm = T[:, 0].min() + T[:, 0].max()
+    M = np.stack([xm - T[:, 0], T[:, 1]], axis=1)
+    d = np.linalg.norm(M[:, None, :] - T[None, :, :], axis=-1)
+    j = np.argmin(d, axis=1)
+    tol = 1e-6 * max(float(np.ptp(T)), 1.0)
+    return j if np.all(d[np.arange(len(T)), j] <= tol) else None
+
+
+def plant_fault(template_mm, points_mm, fault: str, *, f_mm: float | None = None, view: int = 0):
+    """A real set with one planted fault: ``(template_mm, points_mm, calibrate kwargs, what)``.
+
+    ``swap``: two neighbouring LEDs near the template's middle swap labels in
+    every view (their template rows exchanged); ``reversed``: one view's labels
+    mirrored left-right (each point labelled as its mirror partner: a row
+    listed in reverse; reversing the whole order of a symmetric grid is a
+    180 deg turn of the board, a valid view); ``metres``: the points in metres
+    (divided by 1000); ``fix_f``: f fixed 5 % above ``f_mm`` (the clean fit's).
+    """
+    T = np.array(template_mm, dtype=float)
+    X = np.array(points_mm, dtype=float)
+    if fault == "swap":
+        c = T.mean(axis=0)
+        a = int(np.argmin(np.linalg.norm(T - c, axis=1)))
+        d = np.linalg.norm(T - T[a], axis=1)
+        d[a] = np.inf
+        b = int(np.argmin(d))
+        T[[a, b]] = T[[b, a]]
+        return T, X, {}, f"template LEDs {a} and {b} swapped"
+    if fault == "reversed":
+        j = mirror_partner(T)
+        if j is None:
+            raise ValueError("the template has no left-right mirror symmetry")
+        X[view] = X[view][j]
+        return T, X, {}, f"view {view}'s labels mirrored"
+    if fault == "metres":
+        return T, X / 1000.0, {}, "points in metres"
+    if fault == "fix_f":
+        if f_mm is None:
+            raise ValueError("fix_f needs the clean fit's f_mm")
+        return T, X, {"fix": {"f_mm": 1.05 * float(f_mm)}}, f"f fixed at {1.05 * f_mm:.4g} mm (5 % off)"
+    raise ValueError(f"unknown fault {fault!r} (one of {', '.join(REAL_FAULTS)})")

@@ -112,7 +112,10 @@ class RowParser:
         for line in lines:
             if not line.strip():
                 continue
-            cells = next(csv.reader([line]))
+            try:
+                cells = next(csv.reader([line]))
+            except csv.Error:  # a stray CR or NUL inside a line: no row of psdcal's
+                cells = [None]
             if self.header is None:
                 self.header, self.kind = cells, kind_of(cells)
                 if self.kind is None:

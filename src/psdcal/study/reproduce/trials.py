@@ -11,7 +11,8 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from psdcal.calibration.core import calibrate, implausible
-from psdcal.calibration.gains import correct_points, simulate_electrical_calibration
+from psdcal.calibration.gains import correct_points
+from psdcal.study.gain_sim import simulate_electrical_calibration
 from psdcal.errors import ConvergenceError, PsdcalError
 from psdcal.model.distortion import distort, undistort
 from psdcal.model.params import Distortion, Intrinsics

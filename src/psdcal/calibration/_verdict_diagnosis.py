@@ -1,0 +1,266 @@
+"""The calibration verdict's diagnosis: refit the alternatives a failed check suggests and name the cause.
+
+Only run when a check fails (:func:`psdcal.calibration.verdict.assess` with
+``diagnose=True``): a global re-run (a local minimum), fitted channel gains
+(raw amplitudes through unequal gains), the richer models, one view left out,
+two template LEDs swapped.
+"""
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+
+from psdcal.calibration._verdict_linear import explained as _explained
+from psdcal.calibration._verdict_rules import F_RANGE_MM
+
+
+# -- diagnosis ---------------------------------------------------------------------------
+def _refit(result, **changes):
+    """Re-run ``result``'s calibration with changed options (or a changed template); None if it fails."""
+    from psdcal.calibration.core import _calibrate_record
+
+    try:
+        return _calibrate_record(result, **changes)
+    except Exception:  # noqa: BLE001 -- a diagnosis refit that fails is just not the explanation
+        return None
+
+
+def _ssr(r) -> float:
+    q = r.residuals_mm
+    return float(np.nansum(q * q))
+
+
+def _diagnose(result, checks, lin, points_kind, bad_view):
+    """Name the likely cause of the failed checks by refitting the alternatives."""
+    by = {c.name: c for c in checks}
+    base = _ssr(result)
+
+    def better(r, factor):
+        return r is not None and _ssr(r) < base / factor
+
+    st = by.get("structure")
+    leds = by.get("leds")
+    m = result.model
+    mt = by.get("model_terms")
+    cause = None
+    extra_checks = []
+    det = by.get("held_values")
+    if by.get("scale") is not None and by["scale"].passed is False and by["scale"].severe:
+        det = by["scale"]  # points in metres: every other symptom follows from the units
+    statistical = ("structure", "model_terms", "views", "leds")
+    if det is None or det.passed is not False:
+        det = by.get("determination")
+        if any(by[n].p_value is not None and by[n].p_value < by[n].false_alarm for n in statistical if n in by):
+            det = None  # a bad view or LED also leaves f undetermined: look for it first
+    if det is not None and det.passed is False:
+        # the views do not determine the camera, or a held value is wrong: every other symptom follows from that
+        cause = det.advice
+        for name, c in by.items():
+            if c.passed is False and name != det.name:
+                by[name] = replace(c, advice=f"probably a consequence of the cause found: {cause}")
+        return [by[c.name] for c in checks]
+    # a fit that collapsed (f no lens has) or is not a camera: a bad view or a template permutation first
+    broken = (by["converged"].passed is False) or (by["focal_length"].passed is False and by["scale"].passed is not False) \
+        or (by.get("determination") is not None and by["determination"].passed is False and by["determination"].severe)
+    if broken and len(result.image_ids) >= 4:
+        cause = _view_advice(result)  # the linearisation of a collapsed fit says little: refit each view out
+    if broken and cause is None:
+        perm = _homography_hint(result) or _permutation_advice(result, lin, base)
+        if perm:
+            cause = perm
+            if leds is not None:  # verified by the refit: the result is wrong
+                by["leds"] = replace(leds, passed=False, severe=True, advice=perm)
+    if cause is None and ((st is not None and st.passed is False) or by["optical_centre"].passed is False
+                          or (mt is not None and mt.passed is False)):
+        again = _refit(result)
+        if better(again, 1.01):
+            cause = ("the fit stopped in a local minimum: re-run psdcal calibrate (it starts from several optical "
+                     "centres) or give the lens' nominal focal length with --f-guess")
+            extra_checks.append(_minimum_check(result, again, base, cause))
+        if cause is None and not m.fit_gains and points_kind != "points":
+            # the first-order effect of unequal channel gains on the readout (three ratios), off the model's columns
+            from psdcal.model.readout import gain_map
+
+            dg = gain_map(lin.pts, np.ones(4), *result.sensor_mm, jacobians=True)[2][..., 1:]  # (N, 2, 3)
+            expl_g, _ = _explained(lin, dg.reshape(-1, 3))
+            g = None if expl_g > 0.5 * base or m.skew or m.aspect or m.radial < 1 else _refit(result, fit_gains=True)
+            if expl_g > 0.5 * base or better(g, 4.0):
+                cause = ("residuals show a projective pattern: raw amplitudes through unequal channel gains; "
+                         "run with --fit-gains (or calibrate the gains electrically)")
+        if cause is None and len(result.image_ids) >= 4:
+            cause = _view_advice(result, lin)
+        if cause is None:
+            extra = []
+            for flag, ch in ((f"--radial {m.radial + 1}", {"radial": m.radial + 1}) if m.radial < 3 else (None, None),
+                             ("--tangential", {"tangential": True}) if not m.tangential else (None, None),
+                             ("--psd-radial 1", {"psd_radial": 1}) if m.psd_radial == 0 else (None, None),
+                             ("--aspect", {"aspect": True}) if not (m.aspect or m.skew) else (None, None)):
+                if flag is None:
+                    continue
+                r = _refit(result, **ch)
+                if r is not None and _ssr(r) < base / 1.05 and F_RANGE_MM[0] <= r.intrinsics.f_mm <= F_RANGE_MM[1]:
+                    extra.append((_ssr(r), flag))
+            if extra:
+                extra.sort()
+                cause = f"the model lacks terms the data need: add {extra[0][1]}" + (
+                    "" if extra[0][1] == "--aspect" else " (or try --model auto)")
+    unconverged = by.get("converged") is not None and by["converged"].passed is False
+    collapsed = by["focal_length"].passed is False and by["scale"].passed is not False
+    views_failed = by.get("views") is not None and by["views"].passed is False
+    if cause is None and views_failed and not broken and len(result.image_ids) >= 4:
+        verified = _view_advice(result, lin)
+        if verified is not None:
+            cause = verified
+            bad_view = None
+    if cause is None and not broken and leds is not None and leds.passed is False and leds.severe:
+        perm = _permutation_advice(result, lin, base)
+        if perm:
+            cause = perm
+            if leds is not None:  # verified by the refit: the result is wrong
+                by["leds"] = replace(leds, passed=False, severe=True, advice=perm)
+    verified = cause is not None
+    if cause is None and bad_view is not None and by["views"].severe:
+        cause = f"view {result.image_ids[bad_view]} disagrees with the others: check its labels or leave it out"
+    if cause is not None and cause.startswith("view ") and by.get("views") is not None:
+        # a refit without the view verified it (implied noise down 3x): the result with it is wrong
+        by["views"] = replace(by["views"], advice=cause, passed=False, severe=verified or by["views"].severe)
+    if cause is not None and collapsed:
+        by["focal_length"] = replace(by["focal_length"], advice=cause)
+    if unconverged and cause is not None:
+        by["converged"] = replace(by["converged"], advice=cause)
+    for name in ("structure", "optical_centre", "model_terms", "views", "leds"):
+        c = by.get(name)
+        if c is None or c.passed is not False:
+            continue
+        if name == "model_terms":
+            if verified and not cause.startswith("the model lacks"):
+                by[name] = replace(c, advice=f"probably a consequence of the cause found: {cause}")
+            continue
+        if cause is None:
+            if name == "structure":
+                vw = by.get("views")
+                if mt is not None and mt.passed is False:
+                    by[name] = replace(c, advice=f"probably the terms the model leaves out: {mt.advice}")
+                elif vw is not None and vw.passed is False:
+                    by[name] = replace(c, advice=f"perhaps the view that disagrees: {vw.advice}")
+                else:
+                    by[name] = replace(c, advice="a systematic misfit that no richer model, gain fit or re-start "
+                                                 "removes: check the template coordinates, the point ids and the units")
+            continue
+        if name in ("structure", "optical_centre"):
+            by[name] = replace(c, advice=cause)
+        elif name == "views" and not cause.startswith("view "):
+            by[name] = replace(c, advice=f"probably a consequence of the cause found: {cause}")
+        elif name == "leds" and not cause.startswith("a template permutation"):
+            by[name] = replace(c, advice=f"probably a consequence of the cause found: {cause}")
+    if cause is not None and by.get("determination") is not None and by["determination"].passed is False:
+        by["determination"] = replace(by["determination"], advice=f"probably a consequence of the cause found: {cause}")
+    return [by[c.name] for c in checks] + extra_checks
+
+
+def _minimum_check(result, again, base, cause):
+    """The ``global_minimum`` check: a re-run reached a lower cost; how far it moves f and C in their sigmas."""
+    from psdcal._consistency import Check
+
+    moves = []
+    for n in ("f_mm", "cx_mm", "cy_mm"):
+        sd = result.std.get(n)
+        if sd:
+            moves.append((abs(again.parameter(n) - result.parameter(n)) / sd, n))
+    E, name = max(moves) if moves else (float("inf"), "f_mm")
+    return Check("global_minimum", base / max(_ssr(again), 1e-300), 1.01, None, 0.0, False,
+                 f"a re-run reaches a cost {base / max(_ssr(again), 1e-300):.3g}x lower (f = {again.intrinsics.f_mm:.4g} mm "
+                 f"instead of {result.intrinsics.f_mm:.4g}): this is not the least-squares solution; it moves {name} by "
+                 f"{E:.3g} sigma", cause, severe=True, effect_sigma=float(E))
+
+
+def _homography_hint(result) -> str | None:
+    """The linear stage's template diagnosis (:func:`psdcal.calibration.core.template_hint`), None when it says nothing."""
+    from psdcal.calibration._homography import homographies
+    from psdcal.calibration.core import inputs_from_record, template_hint
+
+    try:
+        T, X = inputs_from_record(result.problem)
+        hint = template_hint(T, X, homographies(T, X), list(result.point_ids))
+    except Exception:  # noqa: BLE001 -- a diagnosis that cannot run says nothing
+        return None
+    return hint or None
+
+
+def _view_advice(result, lin=None) -> str | None:
+    """When leaving one view out makes the fit far better (implied noise down 3x, and no other view does), name it.
+
+    With the linearised fit ``lin`` the implied noise without each view is
+    computed from the Jacobian (no refit); only the best candidate is refitted
+    to confirm it.
+    """
+    n = len(result.image_ids)
+    if n < 2:
+        return None
+    if lin is not None and lin.gt is not None:
+        ssr, dof = float(lin.e @ lin.e), lin.dof
+        N = lin.gt.T @ lin.gt
+        sig = np.full(n, np.inf)
+        for i in range(n):
+            rows = np.repeat(lin.img == i, 2)
+            ei, gi = lin.e[rows], lin.gt[rows]
+            b = gi.T @ ei
+            from psdcal.calibration._verdict_linear import _pinv_sym
+
+            s_i = ssr - float(ei @ ei) - float(b @ _pinv_sym(N - gi.T @ gi) @ b)
+            d_i = dof - int(rows.sum()) + 6
+            if d_i > 0:
+                sig[i] = np.sqrt(max(s_i, 0.0) / d_i)
+        base = np.sqrt(ssr / max(dof, 1))
+        order = np.argsort(sig)
+        if not (np.isfinite(sig[order[0]]) and sig[order[0]] * 3 < base and sig[order[0]] * 3 < sig[order[1]]):
+            return None
+        i = int(order[0])
+        r = _refit(result, drop_image=i)
+        if r is None or not r.sigma_mm * 3 < result.sigma_mm:
+            return None
+        return (f"view {result.image_ids[i]} disagrees with the others (without it the implied noise falls "
+                f"{result.sigma_mm / r.sigma_mm:.3g}x): check its labels (two LEDs merged or shifted by the demodulator?) "
+                "or leave it out")
+    sig = []
+    for i in range(n):
+        r = _refit(result, drop_image=i)
+        sig.append(np.inf if r is None else r.sigma_mm)
+    sig = np.asarray(sig)
+    order = np.argsort(sig)
+    if not np.isfinite(sig[order[0]]):
+        return None
+    if sig[order[0]] * 3 < result.sigma_mm and sig[order[0]] * 3 < sig[order[1]]:
+        i = int(order[0])
+        return (f"view {result.image_ids[i]} disagrees with the others (without it the implied noise falls "
+                f"{result.sigma_mm / sig[i]:.3g}x): check its labels (two LEDs merged or shifted by the demodulator?) "
+                "or leave it out")
+    return None
+
+
+def _permutation_advice(result, lin, base) -> str | None:
+    """When swapping template LEDs (among the least consistent) makes the fit far better, say which."""
+
+    M = len(result.point_ids)
+    q = lin.e.reshape(-1, 2)
+    sq = np.bincount(lin.led, weights=np.sum(q * q, axis=1), minlength=M)
+    worst = list(np.argsort(-sq)[: min(5, M)])
+    T = np.asarray(result.problem["template"]["xy_mm"], dtype=float)
+    best = (base, None)
+    for a_i in range(len(worst)):
+        for b_i in range(a_i + 1, len(worst)):
+            a, b = worst[a_i], worst[b_i]
+            T2 = T.copy()
+            T2[[a, b]] = T2[[b, a]]
+            r = _refit(result, template_mm=T2, solver={**result.problem["options"].get("solver", {}),
+                                                       "max_iterations": 40})
+            if r is not None and _ssr(r) < best[0]:
+                best = (_ssr(r), (a, b))
+    if best[1] is None or best[0] > base / 50:
+        return None
+    a, b = best[1]
+    ids = result.point_ids
+    return (f"a template permutation fits: LEDs {ids[a]} and {ids[b]} look swapped (residuals fall "
+            f"{base / max(best[0], 1e-300):.3g}x): check the LED order in the template (a row listed in reverse?)")
+

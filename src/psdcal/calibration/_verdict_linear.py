@@ -1,0 +1,502 @@
+"""The calibration verdict's linear algebra: the fit linearised at its solution, and what a suspect effect moves.
+
+The verdict (:mod:`psdcal.calibration.verdict`) tests the residuals of a
+converged fit against alternatives (a smooth field over the sensor, the
+terms the model leaves out, one view or one LED on its own) and states how
+much each alternative would move what the user uses: the global parameters
+and the angles of arrival over the field of view, in units of their own
+standard errors. Both come from the Jacobian at the solution:
+
+- the residuals ``e`` (measured minus modelled, mm) and the projector
+  ``I - P`` off the Jacobian's columns (poses view by view, then the global
+  parameters);
+- the profiled global Jacobian ``Gt`` (the global columns with each view's
+  pose columns projected out, natural units: f in mm, k1 in mm^-2, ...) and
+  ``Ninv = (Gt^T Gt)^-1``, so that the covariance of the global parameters is
+  ``s^2 Ninv`` with ``s^2 = e^T e / dof``;
+- :func:`field_shift`: the linearised refit with extra columns ``B`` (a
+  systematic field, the left-out terms): coefficients ``c`` from the
+  residuals, and the shift ``-Ninv Gt^T B c`` of the global parameters;
+- :func:`group_shift`: the linearised refit without a group of rows (a view,
+  an LED): ``-(N - Gt_S^T Gt_S)^-1 Gt_S^T e_S`` (the influence of the group);
+- :func:`angle_effect`: the shift of the angles of arrival on a grid over the
+  points' extent, against their standard errors from the covariance.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from functools import cached_property
+
+import numpy as np
+
+from psdcal import _stats
+
+#: Polynomial degree of the smooth residual field of the ``structure`` check.
+FIELD_DEGREE = 3
+#: Grid of sensor points (per axis) over the points' extent on which the angles' shifts are evaluated.
+ANGLE_GRID = 7
+#: Parameters whose shift counts as an effect on their own (the distortion coefficients act through the angles).
+KEY_PARAMETERS = ("f_mm", "fy_mm", "cx_mm", "cy_mm")
+
+
+@dataclass(frozen=True)
+class Linear:
+    """The fit linearised at its solution (see the module docstring)."""
+
+    e: np.ndarray  # (m,) residuals meas - model, (x, y) per valid point, projected off the Jacobian
+    perp: object  # B (m, k) -> (I - P) B, P the projector on the Jacobian's columns
+    h: np.ndarray  # (m,) leverages
+    pts: np.ndarray  # (N, 2) modelled points of the valid observations, mm
+    img: np.ndarray  # (N,) image index
+    led: np.ndarray  # (N,) template point index
+    n: int  # rank of the Jacobian
+    extra_names: tuple = ()  # terms the model leaves out
+    extra: np.ndarray | None = None  # (m, len(extra_names)) their Jacobian columns at the solution
+    names: tuple = ()  # the free global parameters of Gt
+    g: np.ndarray | None = None  # (m, ng) global Jacobian (natural units)
+    perp_pose: object = None  # B -> B projected off each view's pose columns
+    held: dict | None = None  # fixed / prior-held parameters: name -> (data-only shift from the fit's value, its std)
+
+    @cached_property
+    def gt(self) -> np.ndarray | None:
+        """(m, ng) the profiled global Jacobian (each view's pose columns projected out), natural units."""
+        return None if self.g is None else self.perp_pose(self.g)
+
+    @cached_property
+    def ninv(self) -> np.ndarray | None:
+        """(ng, ng) ``(Gt^T Gt)^-1``."""
+        return None if self.g is None else _pinv_sym(self.gt.T @ self.gt)
+
+    @property
+    def dof(self) -> int:
+        return int(self.e.size - self.n)
+
+    @property
+    def s2(self) -> float:
+        return float(self.e @ self.e) / max(self.dof, 1)
+
+
+def linearise(result, exclude=None) -> Linear:
+    """The fit of ``result`` linearised at its solution (``exclude`` (n_images, M) bool: observations left out)."""
+    from psdcal.calibration._refine import Evaluator, Problem
+    from psdcal.calibration.checks import align_to_problem
+    from psdcal.calibration.core import inputs_from_record
+
+    res = align_to_problem(result)
+    p = res.problem
+    T, X = inputs_from_record(p)
+    gains = np.asarray(res.gains, float) if res.model.fit_gains else np.ones(4)
+    spec = res.model
+    opts = p.get("options", {}) if isinstance(p, dict) else {}
+    fixed = tuple(n for n in (opts.get("fix") or {}) if n in spec.global_names)
+    prior_names = tuple(n for q in (opts.get("priors") or []) for n in q.get("names", []) if n in spec.global_names)
+    # the richer model: the terms this one leaves out (the next radial term, tangential, PSD l1, skew, fy) at 0; its
+    # Jacobian holds this model's columns and theirs (one evaluation for both)
+    rich = replace(spec, radial=min(3, spec.radial + 1), tangential=True, psd_radial=max(spec.psd_radial, 1),
+                   skew=spec.skew or not spec.aspect, aspect=True)
+    extra_names = [n for n in rich.global_names if n not in spec.global_names]
+    prob = Problem(T, X, rich, cost="image", sensor_mm=tuple(res.sensor_mm))
+    ev = Evaluator(prob, res.intrinsics, res.distortion, gains)
+    # the compact block Jacobian: the global columns, then each row's own view's six pose columns
+    r, Jc = ev.evaluate_compact(prob.pack(res.intrinsics, res.distortion, gains, res.rvecs, res.tvecs_mm))
+    r = np.asarray(r, dtype=float)
+    Jc = np.asarray(Jc, dtype=float)
+    ng_r = prob.n_global
+    free = [n for n in spec.global_names if n not in fixed]
+    G = Jc[:, [prob.names.index(n) for n in free]]
+    Gh = Jc[:, [prob.names.index(n) for n in fixed]]
+    extra = Jc[:, [prob.names.index(n) for n in extra_names]]
+    Jpose = Jc[:, ng_r:]
+    if not spec.aspect:  # the rich model's f moves x only and fy y: this model's f moves both
+        jf = Jc[:, prob.names.index("f_mm")] + Jc[:, prob.names.index("fy_mm")]
+        for M_, nm in ((G, free), (Gh, fixed)):
+            if "f_mm" in nm:
+                M_[:, list(nm).index("f_mm")] = jf
+    img, led, d_meas = ev.img_idx, ev.pt_idx, ev.d_meas
+    if exclude is not None:
+        keep_pt = ~np.asarray(exclude, dtype=bool)[img, led]
+        rows = np.repeat(keep_pt, 2)
+        r, G, Gh, extra, Jpose = r[rows], G[rows], Gh[rows], extra[rows], Jpose[rows]
+        img, led, d_meas = img[keep_pt], led[keep_pt], d_meas[keep_pt]
+    e_raw = -r
+    perp, h, rank, perp_pose = projector(G, Jpose, np.repeat(img, 2), X.shape[0])
+    e = perp(e_raw[:, None])[:, 0]  # the solver stops within its tolerance of the stationary point
+    held = _held(free, fixed, prior_names, G, Gh, perp_pose(G), perp_pose, e_raw, e, rank) if (fixed or prior_names) \
+        else None
+    # the modelled points (noise-free up to the fitted parameters): fields evaluated at the measured ones would carry
+    # the noise's own gradient into the test and correlate with it
+    return Linear(e, perp, h, d_meas + r.reshape(-1, 2), img, led, rank, tuple(extra_names), extra,
+                  tuple(free), G, perp_pose, held)
+
+
+def _pinv_sym(N) -> np.ndarray:
+    """Pseudo-inverse of a symmetric positive semi-definite matrix, scaled for conditioning."""
+    d = np.sqrt(np.maximum(np.diag(N), 1e-300))
+    Ns = N / np.outer(d, d)
+    return np.linalg.pinv(Ns, rcond=1e-12, hermitian=True) / np.outer(d, d)
+
+
+def _held(free, fixed, prior_names, G, Gh, gt, perp_pose, e_raw, e, rank):
+    """What the data alone say about the held parameters: name -> (shift from the fit's value, its std).
+
+    Fixed parameters: the linearised free fit (their columns added); parameters under a prior: the fit without
+    the prior rows (the data-only estimate around the MAP one, whose residuals the prior pulls off stationarity).
+    """
+    out = {}
+    dof = max(e.size - rank - len(fixed), 1)
+    if fixed:
+        gall = np.concatenate([gt, perp_pose(Gh)], axis=1)
+        ninv_all = _pinv_sym(gall.T @ gall)
+        shift = ninv_all @ (gall.T @ e_raw)
+        fit = gall @ shift
+        r_free = e_raw - fit
+        s2 = float(r_free @ r_free) / dof
+        for k, n in enumerate(fixed):
+            j = len(free) + k
+            out[n] = (float(shift[j]), float(np.sqrt(max(s2 * ninv_all[j, j], 0.0))))
+    if prior_names:
+        ninv = _pinv_sym(gt.T @ gt)
+        shift = ninv @ (gt.T @ e_raw)
+        s2 = float(e @ e) / max(e.size - rank, 1)
+        for n in prior_names:
+            if n in free:
+                j = free.index(n)
+                out[n] = (float(shift[j]), float(np.sqrt(max(s2 * ninv[j, j], 0.0))))
+    return out
+
+
+def projector(G, Jpose, row_img, n_img):
+    """The projector off the Jacobian's columns, from its block structure.
+
+    The pose columns of a view touch only that view's rows: a batched QR of the
+    (rows x 6) blocks projects them out view by view; then a QR of the global
+    columns so projected. ``Jpose`` is (m, 6): each row's own view's pose
+    columns (the compact form). Returns ``(perp, leverages, rank, perp_pose)``
+    where ``perp(B)`` is ``(I - P) B`` for B (m, k) and ``perp_pose(B)`` projects
+    off the pose columns only.
+    """
+    m = row_img.size
+    counts = np.bincount(row_img, minlength=n_img)
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    pos = np.arange(m) - starts[row_img]
+    nr = int(counts.max()) if m else 0
+    blocks = np.zeros((n_img, nr, 6))
+    blocks[row_img, pos] = Jpose
+    blocks /= np.maximum(np.linalg.norm(blocks, axis=1, keepdims=True), 1e-300)
+    Qb, Rb = np.linalg.qr(blocks)
+    dq = np.abs(np.diagonal(Rb, axis1=1, axis2=2))
+    rank = int(np.sum(dq > 1e-10 * max(float(dq.max()), 1e-300)))
+    Qrows = Qb[row_img, pos]  # (m, 6): each row's part of its view's basis
+
+    Qbt = np.ascontiguousarray(Qb.transpose(0, 2, 1))
+
+    def perp_pose(B):
+        B = np.asarray(B, dtype=float)
+        Bb = np.zeros((n_img, nr, B.shape[1]))
+        Bb[row_img, pos] = B
+        # each view's part of B minus its projection on the view's pose basis (batched matrix products:
+        # no (rows, 6, k) temporary)
+        return B - np.matmul(Qb, np.matmul(Qbt, Bb))[row_img, pos]
+
+    Gn = G / np.maximum(np.linalg.norm(G, axis=0), 1e-300)
+    Gp = perp_pose(Gn)
+    if Gp.shape[1]:
+        Qg, Rg = np.linalg.qr(Gp)
+        dg = np.abs(np.diag(Rg))
+        keep = dg > 1e-8 * max(float(dg.max()), 1e-300)
+        if not keep.all():
+            U, sv, _ = np.linalg.svd(Gp, full_matrices=False)
+            Qg = U[:, sv > 1e-8 * sv[0]]
+    else:
+        Qg = np.zeros((m, 0))
+    rank += Qg.shape[1]
+
+    def perp(B):
+        Bp = perp_pose(np.asarray(B, dtype=float))
+        return Bp - Qg @ (Qg.T @ Bp)
+
+    h = np.sum(Qrows * Qrows, axis=1) + np.sum(Qg * Qg, axis=1)
+    return perp, h, rank, perp_pose
+
+
+def field_basis(pts, c_mm, half_mm) -> np.ndarray:
+    """(2N, p) smooth vector fields over the sensor at ``pts`` (N, 2), rows (x0, y0, x1, y1, ...)."""
+    u = pts / half_mm
+    cols = []
+    for i in range(FIELD_DEGREE + 1):
+        for j in range(FIELD_DEGREE + 1 - i):
+            m = u[:, 0] ** i * u[:, 1] ** j
+            z = np.zeros_like(m)
+            cols.append(np.stack([m, z], 1).ravel())
+            cols.append(np.stack([z, m], 1).ravel())
+    d = (pts - np.asarray(c_mm)) / half_mm
+    r2 = np.sum(d * d, axis=1)
+    for k in (2, 3):
+        cols.append((d * r2[:, None] ** k).ravel())
+    return np.stack(cols, axis=1)
+
+
+def _basis(lin: Linear, B):
+    """Orthonormal basis U of span((I - P) B) (the fields the parameters do not absorb), and the map from the
+    residuals' coordinates in U to coefficients of B's columns: ``c = W (U^T e)``."""
+    scale = np.maximum(np.linalg.norm(B, axis=0), 1e-300)
+    Bn = B / scale
+    Bp = lin.perp(Bn)
+    nb = np.linalg.norm(Bp, axis=0)
+    use = nb > 1e-4  # fields the model's parameters absorb (to 1e-4) test nothing
+    if not use.any():
+        return np.zeros((B.shape[0], 0)), np.zeros((B.shape[1], 0))
+    U, s, Vt = np.linalg.svd(Bp[:, use], full_matrices=False)
+    keep = s > 1e-2 * s[0]
+    U, s, Vt = U[:, keep], s[keep], Vt[keep]
+    W = np.zeros((B.shape[1], U.shape[1]))
+    W[use] = (Vt.T / s) / scale[use, None]
+    # U spans (I - P) B: orthogonal to the Jacobian up to the projector's round-off, which meets the residuals
+    # (themselves projected) only at round-off
+    return U, W
+
+
+def explained(lin: Linear, B) -> tuple[float, int]:
+    """Sum of squares of the residuals along span(B) minus the Jacobian's span, and its dimension."""
+    U, _ = _basis(lin, B)
+    if U.shape[1] == 0:
+        return 0.0, 0
+    return float(np.sum((U.T @ lin.e) ** 2)), int(U.shape[1])
+
+
+def f_test(lin: Linear, B) -> tuple[float, float, int, float]:
+    """(F, p, dim, explained sum of squares) of the nested test of the fields ``B`` (m, k) on the residuals;
+    (nan, 1, 0, 0) when none is testable."""
+    expl, p_dim = explained(lin, B)
+    dof = lin.dof
+    if p_dim == 0 or dof - p_dim <= 0:
+        return float("nan"), 1.0, 0, 0.0
+    ssr = float(lin.e @ lin.e)
+    F = (expl / p_dim) / max((ssr - expl) / (dof - p_dim), 1e-300)
+    return float(F), float(_stats.f_sf(F, p_dim, dof - p_dim)), int(p_dim), float(expl)
+
+
+def field_shift(lin: Linear, B, *, min_visible: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """The linearised refit with the extra columns ``B`` (m, k): (their coefficients c (k,), the shift of the
+    global parameters (ng,)), both in natural units (B's columns are d(model)/d(coefficient)).
+
+    ``min_visible`` > 0 keeps only the combinations of B's columns whose part
+    off the Jacobian's span is at least that fraction of their norm: a field
+    the parameters absorb almost wholly is seen only through its small visible
+    part, and extrapolating that part to the whole field multiplies the noise
+    (a generic field has no model linking the two parts; a model term has).
+    """
+    if lin.gt is None or B.shape[1] == 0:
+        return np.zeros(B.shape[1]), np.zeros(len(lin.names))
+    if min_visible <= 0:
+        U, W = _basis(lin, B)
+        if U.shape[1] == 0:
+            return np.zeros(B.shape[1]), np.zeros(len(lin.names))
+        c = W @ (U.T @ lin.e)
+        return c, -lin.ninv @ (lin.gt.T @ (B @ c))
+    scale = np.maximum(np.linalg.norm(B, axis=0), 1e-300)
+    Qb, Rb = np.linalg.qr(B / scale)
+    d = np.abs(np.diag(Rb))
+    keep = d > 1e-8 * max(float(d.max()), 1e-300)
+    Qb, Rb = Qb[:, keep], Rb[keep]
+    U, s, Vt = np.linalg.svd(lin.perp(Qb), full_matrices=False)  # s: the visible fraction of each combination
+    use = s > min_visible
+    if not use.any():
+        return np.zeros(B.shape[1]), np.zeros(len(lin.names))
+    a = Vt[use].T @ ((U[:, use].T @ lin.e) / s[use])  # coefficients on Qb
+    c = (np.linalg.pinv(Rb) @ a) / scale
+    return c, -lin.ninv @ (lin.gt.T @ (Qb @ a))
+
+
+def group_shift(lin: Linear, rows) -> np.ndarray:
+    """The linearised shift of the global parameters (ng,) when the residual rows ``rows`` (bool (m,)) are left out."""
+    gs = lin.gt[rows]
+    Nm = lin.gt.T @ lin.gt - gs.T @ gs
+    return -_pinv_sym(Nm) @ (gs.T @ lin.e[rows])
+
+
+def group_f(lin: Linear, groups, n_groups, ssr, dof):
+    """Per-group F statistics of the residual variance against the other groups', and the p-value of the
+    largest (``pv`` is NaN for the other groups)."""
+    q = lin.e.reshape(-1, 2)
+    lev = np.bincount(groups, weights=(1.0 - lin.h).reshape(-1, 2).sum(axis=1), minlength=n_groups)
+    sq = np.bincount(groups, weights=np.sum(q * q, axis=1), minlength=n_groups)
+    usable = (lev >= 0.5) & (dof - lev >= 0.5)
+    d_g = np.where(usable, lev, 1.0)
+    d_r = np.where(usable, dof - lev, 1.0)
+    F = np.where(usable, (sq / d_g) / (np.maximum(ssr - sq, 1e-300) / d_r), np.nan)
+    # the checks test the worst group only (largest F): its p-value is the one computed (the others are NaN)
+    worst = int(np.argmax(np.where(np.isfinite(F), F, -np.inf)))
+    pv = np.full(n_groups, np.nan)
+    pv[worst] = _stats.f_sf(F[worst], d_g[worst], d_r[worst]) if usable[worst] else 1.0
+    return F, pv
+
+
+def terms_test(lin: Linear):
+    """(F, p, dim, most significant term) of the nested-model test of the left-out terms, None without any."""
+    if lin.extra is None or lin.extra.shape[1] == 0:
+        return None
+    dof = lin.dof
+    ssr = float(lin.e @ lin.e)
+    F, p, p_dim, _ = f_test(lin, lin.extra)
+    if p_dim == 0:
+        return None
+    # each term alone too (one degree of freedom: more power for a single missing term); Bonferroni over all tests
+    single = []
+    Bn = lin.extra / np.maximum(np.linalg.norm(lin.extra, axis=0), 1e-300)
+    Bp = lin.perp(Bn)  # all columns projected at once
+    nb = np.linalg.norm(Bp, axis=0)
+    for k, name in enumerate(lin.extra_names):
+        if nb[k] > 1e-4:  # as in explained(): a column the model absorbs tests nothing
+            ek = float((Bp[:, k] @ lin.e / nb[k]) ** 2)
+            Fk = ek / max((ssr - ek) / (dof - 1), 1e-300)
+            single.append((float(_stats.f_sf(Fk, 1, dof - 1)), Fk, name))
+    n_tests = 1 + len(single)
+    if single and min(single)[0] < p:
+        pk, Fk, _ = min(single)
+        return float(Fk), float(min(1.0, n_tests * pk)), 1, min(single)[2]
+    best = min(single)[2] if single else lin.extra_names[0]
+    return float(F), float(min(1.0, n_tests * p)), p_dim, best
+
+
+# -- consequences -------------------------------------------------------------------------
+def _angles(values: dict, result, d_mm) -> np.ndarray:
+    """Angles of arrival (K, 2) rad of sensor points ``d_mm`` (K, 2) under parameter ``values`` (name -> value)."""
+    from psdcal.model.distortion import undistort
+    from psdcal.model.params import Distortion, Intrinsics
+
+    intr = result.intrinsics
+    fy = values.get("fy_mm", intr.fy_mm)
+    I2 = Intrinsics(f_mm=values.get("f_mm", intr.f_mm), cx_mm=values.get("cx_mm", intr.cx_mm),
+                    cy_mm=values.get("cy_mm", intr.cy_mm), skew=values.get("skew", intr.skew), fy_mm=fy)
+    dist = Distortion(**{**result.distortion.to_dict(), **{k: v for k, v in values.items() if k in
+                                                             result.distortion.to_dict()}})
+    x = undistort(d_mm, dist, I2.c)
+    # the ray of the ideal point (inverse of x = f X/Z + skew Y/Z + cx, y = fy Y/Z + cy)
+    ty = (x[:, 1] - I2.cy_mm) / I2.fy
+    tx = (x[:, 0] - I2.cx_mm - I2.skew * ty) / I2.f_mm
+    return np.stack([np.arctan(tx), np.arctan(ty)], axis=1)
+
+
+def angle_grid(lin: Linear) -> np.ndarray:
+    """(K, 2) sensor points on a grid over the observed points' extent, mm."""
+    lo, hi = np.min(lin.pts, axis=0), np.max(lin.pts, axis=0)
+    g = np.linspace(0.0, 1.0, ANGLE_GRID)
+    gx, gy = np.meshgrid(lo[0] + g * (hi[0] - lo[0]), lo[1] + g * (hi[1] - lo[1]))
+    return np.stack([gx.ravel(), gy.ravel()], axis=1)
+
+
+@dataclass(frozen=True)
+class Consequences:
+    """The angles' sensitivities on the grid: ``A`` (2K, n) d(angle)/d(parameter) for ``names``,
+    ``D`` (K, 2, 2) d(angle)/d(sensor point), ``sd`` (2K,) the angles' standard errors, ``cov`` (ng, ng) the
+    free parameters' covariance, ``grid`` (K, 2)."""
+
+    names: tuple
+    A: np.ndarray
+    D: np.ndarray
+    sd: np.ndarray
+    cov: np.ndarray
+    grid: np.ndarray
+
+
+def consequences(lin: Linear, result, cov=None) -> Consequences:
+    """The angles' sensitivities (finite differences) and standard errors over the field of view.
+
+    ``cov`` is the covariance of ``lin.names`` (default ``s^2 Ninv``); the extra
+    terms' sensitivities are included (``names`` = free parameters then extra terms).
+    """
+    grid = angle_grid(lin)
+    names = tuple(lin.names) + tuple(lin.extra_names)
+    vals = {**result.intrinsics.to_dict(), **result.distortion.to_dict()}
+    if "fy_mm" not in vals:
+        vals["fy_mm"] = result.intrinsics.fy
+    cov = lin.s2 * lin.ninv if cov is None else np.asarray(cov, dtype=float)
+    sdp = np.sqrt(np.maximum(np.diag(cov), 0.0))
+    a0 = _angles({}, result, grid).ravel()
+    A = np.zeros((a0.size, len(names)))
+    for k, n in enumerate(names):
+        if n not in vals:  # gains: the angles of impact points do not depend on them
+            continue
+        # one-sided steps of a hundredth of a standard error: the angles are linear in the parameters to far better
+        # than the precision an effect is quoted to
+        step = sdp[k] * 1e-2 if k < len(sdp) and sdp[k] > 0 else 1e-6 * max(abs(vals[n]), 1e-3)
+        A[:, k] = (_angles({n: vals[n] + step}, result, grid).ravel() - a0) / step
+    D = np.zeros((grid.shape[0], 2, 2))
+    h = 1e-4
+    b0 = a0.reshape(-1, 2)
+    for j in range(2):
+        dg = np.zeros(2)
+        dg[j] = h
+        D[:, :, j] = (_angles({}, result, grid + dg) - b0) / h
+    Af = A[:, : len(lin.names)]
+    sd = np.sqrt(np.maximum(np.einsum("ij,jk,ik->i", Af, cov, Af), 0.0))
+    return Consequences(names, A, D, sd, cov, grid)
+
+
+@dataclass(frozen=True)
+class Effect:
+    """How much an alternative moves the result: ``sigma`` the largest shift of a key parameter or an angle over
+    the field of view in its own standard errors, ``what`` which, ``angle_rad`` the largest angle shift (rad),
+    ``angle_sigma`` the largest angle shift in sigmas, ``params`` name -> shift in sigmas."""
+
+    sigma: float
+    what: str
+    angle_rad: float
+    angle_sigma: float
+    params: dict
+
+    def words(self) -> str:
+        """The effect in words ("moves f_mm by 0.3 sigma, the angles by at most 0.4 sigma (12 urad)")."""
+        key = {k: v for k, v in self.params.items() if k in KEY_PARAMETERS}
+        worst = max(key, key=key.get) if key else None
+        parts = []
+        if worst is not None:
+            parts.append(f"{worst} by {_sig(key[worst])}")
+        a = self.angle_rad
+        size = (f"{a * 1e3:.3g} mrad" if a < 1.0 else "more than 1 rad") if a >= 1e-3 else f"{a * 1e6:.3g} urad"
+        parts.append(f"the angles by at most {_sig(self.angle_sigma)} ({size})")
+        return "moves " + ", ".join(parts)
+
+
+def _sig(x: float) -> str:
+    return f"{x:.2g} sigma" if x < 1e3 else "more than 1000 sigma"
+
+
+def effect(cons: Consequences, dtheta, *, dextra=None, field_at_grid=None) -> Effect:
+    """The effect of a parameter shift ``dtheta`` (free parameters), with the extra terms' values ``dextra`` and
+    an additive field on the sensor ``field_at_grid`` (K, 2) mm removed from the measured points."""
+    n_free = len(dtheta)
+    sdp = np.sqrt(np.maximum(np.diag(cons.cov), 0.0))
+    full = np.zeros(len(cons.names))
+    full[:n_free] = dtheta
+    if dextra is not None:
+        full[n_free:] = dextra
+    da = cons.A @ full
+    if field_at_grid is not None:
+        da = da - np.einsum("kij,kj->ki", cons.D, field_at_grid).ravel()
+    ok = cons.sd > 0
+    z = np.abs(da[ok]) / cons.sd[ok] if ok.any() else np.zeros(1)
+    ang_sig = float(np.max(z)) if z.size else 0.0
+    ang_rad = float(np.max(np.abs(da))) if da.size else 0.0
+    params = {n: float(abs(dtheta[k]) / sdp[k]) for k, n in enumerate(cons.names[:n_free]) if sdp[k] > 0}
+    key = {k: v for k, v in params.items() if k in KEY_PARAMETERS}
+    what, sig = "the angles", ang_sig
+    if key:
+        kmax = max(key, key=key.get)
+        if key[kmax] > sig:
+            what, sig = kmax, key[kmax]
+    return Effect(float(sig), what, ang_rad, ang_sig, params)
+
+
+def structure_test(result, exclude=None) -> tuple[float, float]:
+    """(F, p-value) of the verdict's structure check on ``result``'s residuals, ``exclude`` (n_images, M)
+    observations left out (the same function the verdict calls: :func:`structure_fields`)."""
+    lin = linearise(result, exclude)
+    F, p, _, _ = f_test(lin, structure_fields(lin, result))
+    return F, p
+
+
+def structure_fields(lin: Linear, result) -> np.ndarray:
+    """The structure check's fields (m, p) at the modelled points."""
+    return field_basis(lin.pts, result.intrinsics.c, np.asarray(result.sensor_mm, float) / 2)
