@@ -101,6 +101,8 @@ def locate_angles(angles, sensors, output, *, recordings=(), calib=None, carrier
                f"{len(set(res.emitter.tolist()))} emitters, {res.n_skipped} seen by one sensor only; "
                f"convention {table.convention}; chi2 {c.statistic:.4g} for {c.dof:g} dof)")
     _warn(c)
+    for w in res.warnings:  # a sensor left out as a reflection, or rays that cannot tell which
+        click.echo(f"psdcal: warning: {w}", err=True)
     if track_path:
         from psdcal._atomic import staged
         from psdcal.measure.tracking import summary_line, track_csv
@@ -131,6 +133,8 @@ def track_angles(angles, sensors, output, table_kw, **kw) -> None:
         raise InputError("no emitter is seen by two sensors at the same time step (sensors that do not sample "
                          "together: --align-to SENSOR)", path=angles, field="t_s")
     _warn(res.check)
+    for w in res.warnings:  # a sensor left out as a reflection, or rays that cannot tell which
+        click.echo(f"psdcal: warning: {w}", err=True)
     with tempfile.TemporaryDirectory() as tmp:
         xyz = Path(tmp) / "xyz.csv"
         with immediate():  # a scratch file read back at once; the track joins the command's outputs

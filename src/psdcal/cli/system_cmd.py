@@ -160,11 +160,15 @@ def simulate_template_command(lens, psd_l1, views, mux, fmt, rate_hz, carrier_hz
 @click.option("--gain-imbalance", type=click.FloatRange(0.0, 0.5), default=0.0, show_default=True,
               help="Each sensor's channel gains drawn in 1 +- this.")
 @click.option("--seed", type=int, default=0, show_default=True, help="Random seed.")
+@click.option("--reflection", "reflections", multiple=True, metavar="AXIS=V:ATT[:SENSORS[:EMITTERS]]",
+              help="Add a reflected path off the plane AXIS=V (metres; e.g. z=0, the floor) with power attenuation "
+                   "ATT, for the comma-separated SENSORS and EMITTERS (default all); repeatable. The PSD sees the "
+                   "power-weighted centroid of the direct and reflected spots.")
 @click.option("-o", "--out-dir", type=click.Path(file_okay=False, path_type=Path), required=True,
               help="Output folder.")
 def simulate_room_command(lens, psd_l1, calib, room_m, n_sensors, anchors, sensors_in, emitters_in, moving, speed_mm_s, radius_mm, duration_s,
                           survey_s, mux, slot_s, fmt, rate_hz, carrier_hz, carrier_step_hz, snr_db, gain_imbalance, seed,
-                          out_dir):
+                          reflections, out_dir):
     """Recordings of emitters (fixed and moving) seen by sensors placed in a room.
 
     \b
@@ -227,8 +231,11 @@ def simulate_room_command(lens, psd_l1, calib, room_m, n_sensors, anchors, senso
 
     check_bytes(max(duration_s, 0.0) * rate_hz * 8 * 4 * 4 * max(len(sensors), 1), f"--duration-s {duration_s:g}",
                 "--duration-s")
+    from psdcal.study.reflections import parse_reflection
+
+    mirrors = [parse_reflection(r, np.array(room_m) * 1000.0) for r in reflections]
     rr = simulate_room(sensors, emitters, duration_s=duration_s, rate_hz=rate_hz, snr_db=snr_db, mux=mux,
-                       slot_s=slot_s, gain_imbalance=gain_imbalance, seed=seed)
+                       slot_s=slot_s, gain_imbalance=gain_imbalance, seed=seed, reflections=mirrors)
     out_dir.mkdir(parents=True, exist_ok=True)
     if calib is None:
         calib_name = "calib_truth.json"

@@ -31,6 +31,8 @@ from psdcal.measure.angles_table import AnglesTable
 #: (:data:`psdcal.measure.locate.MULTI_COLUMNS`), so that ``track`` and the dashboard read them alike.
 ANGLES_LOCATE_COLUMNS = ("t_s", "emitter", "X_mm", "Y_mm", "Z_mm", "sigma_X_mm", "sigma_Y_mm", "sigma_Z_mm",
                          "n_sensors", "chi2")
+#: Appended: the sensor left out as a reflection and the flag (:mod:`psdcal.measure.reflections`), as ``locate``.
+ANGLES_LOCATE_COLUMNS = ANGLES_LOCATE_COLUMNS + ("left_out", "reflection")
 #: What a failed check of the table's rays points to.
 ANGLES_ADVICE = ("the stated angle sigmas are too small, the sensors' poses are off, the sensors do not sample "
                  "together (--align-to, --time-offset), or a ray is a reflection")
@@ -115,6 +117,9 @@ class AnglePositions:
     n_sensors: np.ndarray
     n_skipped: int
     check: Check
+    left_out: np.ndarray | None = None
+    reflection: np.ndarray | None = None
+    warnings: tuple = ()
 
     def __len__(self) -> int:
         return len(self.t_s)
@@ -128,7 +133,9 @@ class AnglePositions:
         s = self.sigma_p_mm
         return {"t_s": self.t_s, "emitter": self.emitter, "X_mm": self.p_w_mm[:, 0], "Y_mm": self.p_w_mm[:, 1],
                 "Z_mm": self.p_w_mm[:, 2], "sigma_X_mm": s[:, 0], "sigma_Y_mm": s[:, 1], "sigma_Z_mm": s[:, 2],
-                "n_sensors": self.n_sensors, "chi2": self.chi2}
+                "n_sensors": self.n_sensors, "chi2": self.chi2,
+                "left_out": np.full(len(self), "", dtype=object) if self.left_out is None else self.left_out,
+                "reflection": np.full(len(self), "", dtype=object) if self.reflection is None else self.reflection}
 
 
 def triangulate_table(table: AnglesTable, sensors, *, sensors_path=None, chunk_steps: int = CHUNK_STEPS,
@@ -151,10 +158,18 @@ def triangulate_table(table: AnglesTable, sensors, *, sensors_path=None, chunk_s
     """
     from psdcal.measure.locate_multi import _RowPool
     from psdcal.measure.positioning import extra_noise_check, triangulate
+    from psdcal.measure.reflections import (
+        left_out_names,
+        reflection_warnings,
+        noise_scale,
+        screen_rays,
+        screen_with_noise_scale,
+    )
 
     check_sensors_known(table, sensors, sensors_path)
     used = [s for s in sensors if s.name in set(table.sensors)]
     k = len(used)
+    names = [s.name for s in used]
     sidx = {s.name: j for j, s in enumerate(used)}
     si = np.array([sidx[s] for s in table.sensor.tolist()], dtype=int)
     tu, ti = np.unique(table.t_s, return_inverse=True)
@@ -166,7 +181,7 @@ def triangulate_table(table: AnglesTable, sensors, *, sensors_path=None, chunk_s
     cp = None
     if any(s.cov_pose is not None for s in used):
         cp = np.stack([np.zeros((6, 6)) if s.cov_pose is None else np.asarray(s.cov_pose, float) for s in used])
-    parts, tris = [], []
+    parts, tris, refl, rays = [], [], [], []
     pool = _RowPool() if alpha is None else _RowPool(alpha)
     order = np.argsort(gi, kind="stable")
     bounds = np.searchsorted(gi[order], np.arange(0, len(groups) + chunk_steps, chunk_steps))
@@ -177,10 +192,27 @@ def triangulate_table(table: AnglesTable, sensors, *, sensors_path=None, chunk_s
         cov = np.full((k, G, 2, 2), np.nan)
         n[si[rows], gi[rows] - a] = table.n[rows]
         cov[si[rows], gi[rows] - a] = table.cov_n[rows]
-        tri = triangulate(n, cov, R, t, cov_pose=cp, inflate=False)  # the file's rule below, as locate's
+        tri0 = triangulate(n, cov, R, t, cov_pose=cp, inflate=False)  # the file's rule below, as locate's
+        scr = screen_rays(n, cov, R, t, tri0, cov_pose=cp, inflate=False,
+                          **({} if alpha is None else {"alpha": alpha}))
+        tri = scr.tri  # a sensor whose ray disagrees with the others left out
+        refl.append((left_out_names(scr, names), scr.flag))
         pool.add(tri)
         tris.append(tri)
+        rays.append((n, cov, tri0.chi2, tri0.dof))
     check, s2 = pool.result()
+    if s2 > 0:  # rays noisier than stated: screen again against that noise, then the file's rule as before
+        # every ray's chi2 (before any was left out): its median is robust to a minority of reflections
+        scale = noise_scale(np.concatenate([x[2] for x in rays]), np.concatenate([x[3] for x in rays]))
+        pool = _RowPool() if alpha is None else _RowPool(alpha)
+        tris, refl = [], []
+        for n, cov, _, _ in rays:
+            scr, tri = screen_with_noise_scale(n, cov, R, t, scale, cov_pose=cp,
+                                               **({} if alpha is None else {"alpha": alpha}))
+            refl.append((left_out_names(scr, names), scr.flag))
+            pool.add(tri)
+            tris.append(tri)
+        check, s2 = pool.result()
     for tri in tris:
         parts.append((tri.p_w_mm, tri.cov_p_stated_mm2 + s2 * tri.dcov_dextra_mm2, tri.chi2, tri.n_sensors))
     if s2 > 0:  # the check's message and inflation: the extra noise and the sigmas' growth over all points
@@ -192,11 +224,15 @@ def triangulate_table(table: AnglesTable, sensors, *, sensors_path=None, chunk_s
     C = np.concatenate([x[1] for x in parts])
     chi2 = np.concatenate([x[2] for x in parts])
     ns = np.concatenate([x[3] for x in parts])
+    lo = np.concatenate([x[0] for x in refl])
+    fl = np.concatenate([x[1] for x in refl])
     ok = ns >= 2
     g = groups[ok]
     tt = tu[g // len(eu)]
     ee = eu[g % len(eu)].astype(object)
-    return AnglePositions(tt, ee, p[ok], C[ok], chi2[ok], ns[ok].astype(int), int((~ok).sum()), check)
+    kw = {} if alpha is None else {"alpha": alpha}
+    return AnglePositions(tt, ee, p[ok], C[ok], chi2[ok], ns[ok].astype(int), int((~ok).sum()), check,
+                          lo[ok], fl[ok], tuple(reflection_warnings(lo[ok], fl[ok], **kw)))
 
 
 def write_positions_csv(path, res: AnglePositions) -> int:

@@ -128,6 +128,12 @@ def window_columns(amps, vars_, t_s, sensors, names_arr, min_snr: float, R, t_mm
     if _TRI_INFLATES:  # rows as the file path writes them: no per-call inflation (the file's rule is not live)
         kw["inflate"] = False
     tri = triangulate(ns, covs, R, t_mm, **kw)
+    scr = None
+    if "left_out" in MULTI_COLUMNS:  # a disagreeing sensor left out, as the file path (psdcal.measure.reflections)
+        from psdcal.measure.reflections import screen_rays
+
+        scr = screen_rays(ns, covs, R, t_mm, tri, **kw)
+        tri = scr.tri
     ok = tri.n_sensors >= 2
     sig = tri.sigma_p_mm
     cols = {
@@ -149,6 +155,11 @@ def window_columns(amps, vars_, t_s, sensors, names_arr, min_snr: float, R, t_mm
         cols["dof"] = dof
         thr = {d: chi2_isf(1e-3, float(d)) for d in np.unique(dof) if d > 0}
         cols["flagged"] = np.array([int(d > 0 and c > thr[d]) for d, c in zip(dof, cols["chi2"])], dtype=int)
+    if scr is not None:
+        from psdcal.measure.reflections import left_out_names
+
+        cols["left_out"] = left_out_names(scr, [sp.name for sp in sensors])[ok]
+        cols["reflection"] = scr.flag[ok]
     return cols, int((~ok).sum())
 
 

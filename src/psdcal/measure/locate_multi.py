@@ -2,7 +2,7 @@
 
 Split from :mod:`psdcal.measure.locate` (which re-exports these names).  Columns::
 
-    t_s,emitter,X_mm,Y_mm,Z_mm,sigma_X_mm,sigma_Y_mm,sigma_Z_mm,n_sensors,chi2,dof,flagged
+    t_s,emitter,X_mm,Y_mm,Z_mm,sigma_X_mm,sigma_Y_mm,sigma_Z_mm,n_sensors,chi2,dof,flagged,left_out,reflection
 """
 from __future__ import annotations
 
@@ -23,6 +23,7 @@ from psdcal.measure.positioning import (
     ray_inputs,
     triangulate,
 )
+from psdcal.measure.reflections import FLAGS, reflection_warnings, screen_rays
 from psdcal.signal.stream import MultiCarrierLockin
 
 if TYPE_CHECKING:
@@ -30,10 +31,13 @@ if TYPE_CHECKING:
 
 MULTI_COLUMNS = ("t_s", "emitter", "X_mm", "Y_mm", "Z_mm", "sigma_X_mm", "sigma_Y_mm", "sigma_Z_mm", "n_sensors", "chi2",
                  "dof", "flagged")
+#: Appended: the sensor left out as a reflection and the flag (:mod:`psdcal.measure.reflections`).
+MULTI_COLUMNS = MULTI_COLUMNS + ("left_out", "reflection")
 #: Grid of extra ray variances (normalised coordinates^2) on which the file's residual sums are pooled.
 EXTRA_GRID = np.logspace(-20.0, 2.0, 441)
-#: Per-row record of the first pass (float64): t, emitter index, X, Y, Z, cov (6), d cov / d s2 (6), n_sensors, chi2, dof.
-_REC = 20
+#: Per-row record of the first pass (float64): t, emitter index, X, Y, Z, cov (6), d cov / d s2 (6), n_sensors, chi2, dof,
+#: then the sensor left out (-1: none) and the reflection flag's index in :data:`psdcal.measure.reflections.FLAGS`.
+_REC = 22
 _TRIU = (np.array([0, 1, 2, 0, 0, 1]), np.array([0, 1, 2, 1, 2, 2]))
 
 
@@ -97,6 +101,7 @@ def locate_multi_to_csv(recordings, sensors, out_path, config: LocateConfig,
     names_arr = np.array(names, dtype=object)
     n_samples = n_windows = n_rows = n_skipped = 0
     pool = _RowPool()
+    refl_codes: list = []
     with atomic_path(out_path, suffix=".csv") as tmp, tempfile.TemporaryFile() as rec_fh:
         iters = [r.chunks(chunk) for r in recordings]
         while True:
@@ -120,6 +125,8 @@ def locate_multi_to_csv(recordings, sensors, out_path, config: LocateConfig,
                 # the rays with their covariance; poses from `psdcal pose` add theirs (ray_inputs)
                 ns, covs, kw = ray_inputs(results, sensors, seens)
                 tri = triangulate(ns, covs, R, t, inflate=False, **kw)
+                scr = screen_rays(ns, covs, R, t, tri, inflate=False, **kw)  # a disagreeing sensor left out
+                tri = scr.tri
                 ok = tri.n_sensors >= 2
                 n_skipped += int((~ok).sum())
                 rec = np.empty((int(ok.sum()), _REC))
@@ -131,6 +138,9 @@ def locate_multi_to_csv(recordings, sensors, out_path, config: LocateConfig,
                 rec[:, 17] = tri.n_sensors[ok]
                 rec[:, 18] = tri.chi2[ok]
                 rec[:, 19] = tri.dof[ok]
+                rec[:, 20] = scr.left_out[ok]
+                rec[:, 21] = [FLAGS.index(f) for f in scr.flag[ok]]
+                refl_codes.append(rec[:, 20:22].astype(np.int8))
                 rec_fh.write(np.ascontiguousarray(rec).tobytes())
                 pool.add(tri)
                 n_rows += len(rec)
@@ -144,11 +154,20 @@ def locate_multi_to_csv(recordings, sensors, out_path, config: LocateConfig,
                 f"--min-snr {config.min_snr:g}"
             )
         check, s2 = pool.result()
-        n_flagged, tr0, tr1 = _write_multi_rows(tmp, rec_fh, n_rows, names_arr, s2)
+        snames = [sp.name for sp in sensors]
+        n_flagged, tr0, tr1 = _write_multi_rows(tmp, rec_fh, n_rows, names_arr, s2, sensor_names=snames)
         if s2 > 0:
             check = extra_noise_check(check, s2, tr0, tr1)
         if check.passed is False:
             warnings.append(f"{out_path}: {check.line()} ({n_flagged} of {n_rows} rows flagged individually)")
+    codes = np.concatenate(refl_codes) if refl_codes else np.zeros((0, 2), np.int8)
+    lut = np.array([*snames, ""], dtype=object)
+    warnings += reflection_warnings(lut[codes[:, 0]], np.array(FLAGS, dtype=object)[codes[:, 1]])
+    n_left = int((codes[:, 0] >= 0).sum())
+    if s2 > 0 and n_left:  # the test of each sensor used the stated ray noise, which the file's rule found too small
+        warnings.append(f"{out_path}: the rays are noisier than stated, and the reflection test used the stated "
+                        f"noise: some of the {n_left} rows with a sensor left out may be noise, not reflections "
+                        "(the calibration or a pose is off?); 'locate --angles' screens again with the grown noise")
     return LocateSummary(n_samples, n_windows, n_rows, n_skipped, n_samples / rate, MULTI_COLUMNS,
                          warnings=tuple(warnings), window_s=window_s, n_flagged=n_flagged, checks=(check,),
                          extra_var_n=s2)
@@ -179,7 +198,8 @@ class _RowPool:
         return check, extra_variance_on_grid(EXTRA_GRID, self.sums, self.dof)
 
 
-def _write_multi_rows(path, rec_fh, n_rows: int, names_arr, s2: float, chunk_rows: int = 65536) -> int:
+def _write_multi_rows(path, rec_fh, n_rows: int, names_arr, s2: float, chunk_rows: int = 65536,
+                      sensor_names=()) -> int:
     """Second pass: the first pass's records as CSV rows with the sigmas of extra ray variance ``s2``.
 
     Returns ``(flagged rows, trace of each row's covariance before, after)``."""
@@ -222,6 +242,8 @@ def _write_multi_rows(path, rec_fh, n_rows: int, names_arr, s2: float, chunk_row
                 "chi2": rec[:, 18],
                 "dof": dof,
                 "flagged": flag,
+                "left_out": np.array([*sensor_names, ""], dtype=object)[rec[:, 20].astype(int)],
+                "reflection": np.array(FLAGS, dtype=object)[rec[:, 21].astype(int)],
             }
             _write_rows(fh, cols, MULTI_COLUMNS)
     cat = lambda a: np.concatenate(a) if a else np.zeros(0)

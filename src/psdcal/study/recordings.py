@@ -415,7 +415,7 @@ class RoomRecording:
 def simulate_room(sensors, emitters, *, duration_s: float = 1.0, rate_hz: float = 20_000.0,
                   snr_db: float | None = 60.0, mux: str = "fdm", slot_s: float = 0.02, gap_s: float = 0.0,
                   total: float = 1.0, gain_imbalance: float = 0.0, seed: int = 0,
-                  grid_s: float = 5e-4) -> RoomRecording:
+                  grid_s: float = 5e-4, reflections=()) -> RoomRecording:
     """Four-channel signals of ``emitters`` seen by ``sensors`` over ``duration_s``.
 
     Moving emitters: the amplitudes are computed on a grid of ``grid_s`` and
@@ -478,6 +478,9 @@ def simulate_room(sensors, emitters, *, duration_s: float = 1.0, rate_hz: float 
             ok = np.all(np.isfinite(d), -1) & (np.abs(d[:, 0]) < m.lx_mm / 2) & (np.abs(d[:, 1]) < m.ly_mm / 2)
             vis[si, j] = bool(np.all(ok))
             a = amplitudes(m, np.where(ok[:, None], d, 0.0), total) * ok[:, None]
+            for rf in reflections:  # image sources: their light adds on the PSD (centroid of the spots)
+                if rf.applies(s.name, e.name):
+                    a = a + _reflected_amplitudes(m, rf, P, s, total)
             amp = np.stack([np.interp(t, tg, a[:, c]) for c in range(4)])
             f = e.carrier_hz if mux == "fdm" else emitters[0].carrier_hz
             x += amp * on[j][None] * np.sin(2 * np.pi * f * t + rng.uniform(0, 2 * np.pi))[None]
@@ -491,7 +494,21 @@ def simulate_room(sensors, emitters, *, duration_s: float = 1.0, rate_hz: float 
                      "gains": g} for s, g in zip(sensors, used_gains)],
         "visible": vis.tolist(), "seed": seed,
     }
+    if reflections:
+        truth["reflections"] = [rf.to_dict() for rf in reflections]
     return RoomRecording(xs, float(rate_hz), list(sensors), list(emitters), sched, vis, truth)
+
+
+def _reflected_amplitudes(m: SensorModel, rf, P_mm, s, total: float) -> np.ndarray:
+    """Channel amplitudes (n, 4) of the image of the points ``P_mm`` (n, 3) in reflector ``rf`` seen by sensor ``s``."""
+    from psdcal.study.reflections import sensor_centre_mm
+
+    w = rf.weight(P_mm, sensor_centre_mm(s.rvec, s.tvec_mm))
+    nrm, z = project_world(rf.mirror(P_mm), s.rvec, s.tvec_mm)
+    d = spot_for_normalised(m, np.where((z > 0)[:, None], nrm, np.nan))
+    with np.errstate(invalid="ignore"):
+        ok = np.all(np.isfinite(d), -1) & (np.abs(d[:, 0]) < m.lx_mm / 2) & (np.abs(d[:, 1]) < m.ly_mm / 2) & (w > 0)
+    return amplitudes(m, np.where(ok[:, None], d, 0.0), total) * (w * ok)[:, None]
 
 
 def _in_view(m: SensorModel, P_mm, rvec, tvec_mm, margin: float = 0.9) -> np.ndarray:
