@@ -46,8 +46,12 @@ def test_no_dof_is_not_applicable_and_nan_is_severe():
 
 
 def test_round_trip_json():
+    import json
+
     c = cons.chi2_check(400.0, 10, name="pose_chi2", advice="a reflection")
     d = c.to_dict()
+    numpy_typed = cons.Check("x", np.float64(1.0), None, np.float64(0.5), 0.0, np.bool_(True), "m", severe=np.bool_(False))
+    assert json.loads(json.dumps(numpy_typed.to_dict()))["passed"] is True
     assert cons.Check.from_dict(d) == c
     assert cons.Check.from_dict({**d, "unknown": 1}) == c
 

@@ -104,6 +104,9 @@ class Check:
         for k in ("statistic", "threshold", "p_value", "dof", "effect_sigma", "inflation"):
             if d[k] is not None:
                 d[k] = float(d[k])
+        for k in ("passed", "severe"):  # numpy's bool_ is not JSON
+            if d[k] is not None:
+                d[k] = bool(d[k])
         return d
 
     @classmethod

@@ -37,6 +37,8 @@ def test_kill_at_every_write_of_other_writers(tmp_path, name):
 
 
 @pytest.mark.slow
-def test_sixty_kills_over_every_scenario(tmp_path):
-    out = run_kills(tmp_path, 60, scenarios=list(SCENARIOS), seed=2)
-    assert sum(out.values()) == 60
+def test_random_kills_over_every_scenario(tmp_path):
+    """Random kill times over every scenario (the deterministic tests above kill at every write event;
+    the 60-kill campaign is benchmarks/kill9.py)."""
+    out = run_kills(tmp_path, 12, scenarios=list(SCENARIOS), seed=2)
+    assert sum(out.values()) == 12

@@ -49,19 +49,27 @@ def _diagnose(result, checks, lin, points_kind, bad_view):
     if by.get("scale") is not None and by["scale"].passed is False and by["scale"].severe:
         det = by["scale"]  # points in metres: every other symptom follows from the units
     statistical = ("structure", "model_terms", "views", "leds")
+    undetermined = None
+    collapsed_fit = (by["converged"].passed is False) or (by["focal_length"].passed is False
+                                                          and by["scale"].passed is not False)
     if det is None or det.passed is not False:
         det = by.get("determination")
         if any(by[n].p_value is not None and by[n].p_value < by[n].false_alarm for n in statistical if n in by):
             det = None  # a bad view or LED also leaves f undetermined: look for it first
-    if det is not None and det.passed is False:
+        elif det is not None and det.passed is False and collapsed_fit:
+            undetermined, det = det, None  # a collapsed fit: a bad view or a permutation first, then the views
+
+    def blame(det):
         # the views do not determine the camera, or a held value is wrong: every other symptom follows from that
-        cause = det.advice
         for name, c in by.items():
             if c.passed is False and name != det.name:
-                by[name] = replace(c, advice=f"probably a consequence of the cause found: {cause}")
+                by[name] = replace(c, advice=f"probably a consequence of the cause found: {det.advice}")
         return [by[c.name] for c in checks]
+
+    if det is not None and det.passed is False:
+        return blame(det)
     # a fit that collapsed (f no lens has) or is not a camera: a bad view or a template permutation first
-    broken = (by["converged"].passed is False) or (by["focal_length"].passed is False and by["scale"].passed is not False) \
+    broken = collapsed_fit \
         or (by.get("determination") is not None and by["determination"].passed is False and by["determination"].severe)
     if broken and len(result.image_ids) >= 4:
         cause = _view_advice(result)  # the linearisation of a collapsed fit says little: refit each view out
@@ -71,6 +79,8 @@ def _diagnose(result, checks, lin, points_kind, bad_view):
             cause = perm
             if leds is not None:  # verified by the refit: the result is wrong
                 by["leds"] = replace(leds, passed=False, severe=True, advice=perm)
+    if cause is None and undetermined is not None:
+        return blame(undetermined)
     if cause is None and ((st is not None and st.passed is False) or by["optical_centre"].passed is False
                           or (mt is not None and mt.passed is False)):
         again = _refit(result)
