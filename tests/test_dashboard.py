@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from _dashboard_room import BAD_T, read_rows, write_room
+from _dashboard_room import BAD_T, REFLECTION, read_rows, write_room
 from psdcal.cli import main
 from psdcal.errors import InputError
 from psdcal.report.dashboard.follow import FileFollower
@@ -457,14 +457,18 @@ def test_dashboard_in_a_browser(tmp_path):
             text = b.evaluate("document.getElementById('warnings').textContent")
             assert "a1: chi2" in text and f"t = {BAD_T[-1] + 0.005:.3f} s" in text
             # each sensor's health: its calibration's verdict, the emitters it sees, its SNR, its chi2 against the others
-            health = json.loads(b.evaluate(
-                "JSON.stringify(Array.from(document.querySelectorAll('#sensors tbody tr')).map(function (r) {"
-                " return Array.from(r.cells).map(function (c) { return c.textContent; }); }))"))
+            view_t, health = json.loads(b.evaluate(
+                "JSON.stringify([parseFloat(document.body.dataset.viewT), "
+                "Array.from(document.querySelectorAll('#sensors tbody tr')).map(function (r) {"
+                " return Array.from(r.cells).map(function (c) { return c.textContent; }); })])"))
             assert [h[0] for h in health] == ["s1", "s2", "s3"] and all(h[1] == "good" for h in health)
             assert all(h[2] == "a1 tag" for h in health)
             snr = [float(h[3]) for h in health]  # written as 4 / (2 * noise): 400, 250, 80
             assert 360 < snr[0] < 440 and 225 < snr[1] < 275 and 70 < snr[2] < 90
-            assert all(0.1 < float(h[4]) < 1.5 for h in health)
+            # chi2 against the others near its correct-data value; s2's only before its reflection (t >= 2.0 s),
+            # which a slow machine may have reached by now
+            clean = [h for h in health if h[0] != REFLECTION[0] or view_t < REFLECTION[2]]
+            assert all(0.1 < float(h[4]) < 1.5 for h in clean), (view_t, health)
             wait_for(b, "parseFloat(document.body.dataset.viewT) > 2.2")
             assert "sensor s2: its angles disagree" in b.evaluate("document.getElementById('warnings').textContent")
             # a warning a command prints (the --events log) appears too
