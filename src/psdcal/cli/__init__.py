@@ -171,6 +171,7 @@ def cli(ctx, events):
 # Command modules: each one adds its commands to `cli` when imported.
 _COMMANDS = (
     "system_cmd",
+    "simrec_cmd",
     "calibrate_cmd",
     "simulate_cmd",
     "signal_cmd",
