@@ -405,8 +405,10 @@ def test_focal_kernel_equals_core(rng, monkeypatch):
         np.testing.assert_allclose(got, ref, rtol=1e-13)
     assert np.isnan(got[3]) and np.isnan(got[4])
     monkeypatch.undo()
-    if psdcal._jit.enabled():  # and core dispatches to the kernel
+    if psdcal._jit.use_compiled(len(Hs)):  # and core dispatches to the kernel (when the dispatch would)
         np.testing.assert_array_equal(focal_from_homographies(Hs, (0.3, -0.2)), got)
+    monkeypatch.setattr(psdcal._jit, "use_compiled", lambda n: True)
+    np.testing.assert_array_equal(focal_from_homographies(Hs, (0.3, -0.2)), got)
 
 
 def test_calibrate_same_solution_with_the_compiled_linear_stage(monkeypatch):
