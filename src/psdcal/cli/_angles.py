@@ -207,7 +207,6 @@ def bundle_angles(angles, *, located=(), calibs=(), known_csv, wands=(), points_
     """``psdcal bundle --angles ANGLES.csv --known known.csv [--wand NAME] -o sensors.json``."""
     import numpy as np
 
-    from psdcal._atomic import write_text_atomic
     from psdcal._consistency import chi2_check
     from psdcal.errors import InputError
     from psdcal.io import write_json
@@ -240,12 +239,9 @@ def bundle_angles(angles, *, located=(), calibs=(), known_csv, wands=(), points_
         })
     write_json(output, {"sensors": entries})
     if points_out is not None:
-        lines = ["emitter,X_m,Y_m,Z_m,sigma_X_mm,sigma_Y_mm,sigma_Z_mm"]
-        for k, p in enumerate(br.points):
-            s = np.sqrt(np.clip(np.diag(br.cov_points[k]), 0, None))
-            X = br.points_mm[k] / 1000.0
-            lines.append(f"{p},{X[0]:.9g},{X[1]:.9g},{X[2]:.9g},{s[0]:.6g},{s[1]:.6g},{s[2]:.6g}")
-        write_text_atomic(points_out, "\n".join(lines) + "\n")
+        from psdcal.measure.bundle import write_points_csv
+
+        write_points_csv(points_out, br)
     n_unknown = int((~br.known).sum())
     click.echo(f"bundle: {len(br.sensors)} sensors, {len(br.points)} points ({n_unknown} unknown), chi2 "
                f"{br.chi2:.4g} for {br.dof} dof, {br.iterations} iterations (angles, convention "

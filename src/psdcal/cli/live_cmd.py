@@ -134,15 +134,9 @@ def live_locate_multi(recordings, sensors_path, rate_hz, carriers, emitters, win
         click.echo(f"psdcal: warning: the sources ended at different times ({per}): rows up to the shortest",
                    err=True)
     if track_path:
-        from psdcal._atomic import staged
-        from psdcal.measure.tracking import summary_line, track_csv
+        from psdcal.cli.system_cmd import track_live_rows
 
-        if str(output) == "-":
-            raise InputError("--track needs -o FILE (not stdout) with live input", field="track")
-        info = track_csv(staged(output), track_path, q=track_q)
-        click.echo(summary_line(info, track_path))
-        for w in info["warnings"]:
-            click.echo(f"psdcal: warning: {w}", err=True)
+        track_live_rows(output, track_path, track_q)
 
 
 @cli.command("record")

@@ -414,7 +414,6 @@ def bundle_command(located, calibs, known_csv, wands, points_out, output, angles
 
     import numpy as np
 
-    from psdcal._atomic import write_text_atomic
     from psdcal.errors import InputError
     from psdcal.io import write_json
     from psdcal.measure.aoa import angles_from_points
@@ -526,12 +525,9 @@ def bundle_command(located, calibs, known_csv, wands, points_out, output, angles
         })
     write_json(output, {"sensors": entries})
     if points_out is not None:
-        lines = ["emitter,X_m,Y_m,Z_m,sigma_X_mm,sigma_Y_mm,sigma_Z_mm"]
-        for k, p in enumerate(br.points):
-            s = np.sqrt(np.clip(np.diag(br.cov_points[k]), 0, None))
-            X = br.points_mm[k] / 1000.0
-            lines.append(f"{p},{X[0]:.9g},{X[1]:.9g},{X[2]:.9g},{s[0]:.6g},{s[1]:.6g},{s[2]:.6g}")
-        write_text_atomic(points_out, "\n".join(lines) + "\n")
+        from psdcal.measure.bundle import write_points_csv
+
+        write_points_csv(points_out, br)
     n_unknown = int((~br.known).sum())
     click.echo(f"bundle: {len(sensors)} sensors, {len(br.points)} points ({n_unknown} unknown), chi2 {br.chi2:.4g} "
                f"for {br.dof} dof, {br.iterations} iterations; wrote {output}"
@@ -670,13 +666,18 @@ def live_locate(recordings, calib, rate_hz, carriers, emitters, distance_mm, win
            f"{summary.n_windows} windows, {summary.n_skipped} below --min-snr); {summary.latency_text()}")
     click.echo(msg, err=str(output) == "-")
     if track_path:
-        from psdcal.measure.tracking import summary_line, track_csv
+        track_live_rows(output, track_path, track_q)
 
-        if str(output) == "-":
-            raise InputError("--track needs -o FILE (not stdout) with live input", field="track")
-        from psdcal._atomic import staged
 
-        info = track_csv(staged(output), track_path, q=track_q)
-        click.echo(summary_line(info, track_path))
-        for w in info["warnings"]:
-            click.echo(f"psdcal: warning: {w}", err=True)
+def track_live_rows(output, track_path, track_q) -> None:
+    """``--track`` after a live run: the rows just written (staged with them), tracked, the summary printed."""
+    from psdcal._atomic import staged
+    from psdcal.errors import InputError
+    from psdcal.measure.tracking import summary_line, track_csv
+
+    if str(output) == "-":
+        raise InputError("--track needs -o FILE (not stdout) with live input", field="track")
+    info = track_csv(staged(output), track_path, q=track_q)
+    click.echo(summary_line(info, track_path))
+    for w in info["warnings"]:
+        click.echo(f"psdcal: warning: {w}", err=True)

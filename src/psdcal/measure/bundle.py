@@ -349,3 +349,15 @@ def _triangulate_points(Rs, cs, js, ii, n, W, M):
     ok = np.linalg.matrix_rank(A) == 3
     X[ok] = np.linalg.solve(A[ok], b[ok][..., None])[..., 0]
     return X
+
+
+def write_points_csv(path, br: "BundleResult") -> None:
+    """Write the bundle's points as ``emitter,X_m,Y_m,Z_m,sigma_X_mm,sigma_Y_mm,sigma_Z_mm`` (atomically)."""
+    from psdcal._atomic import write_text_atomic
+
+    lines = ["emitter,X_m,Y_m,Z_m,sigma_X_mm,sigma_Y_mm,sigma_Z_mm"]
+    for k, p in enumerate(br.points):
+        s = np.sqrt(np.clip(np.diag(br.cov_points[k]), 0, None))
+        X = br.points_mm[k] / 1000.0
+        lines.append(f"{p},{X[0]:.9g},{X[1]:.9g},{X[2]:.9g},{s[0]:.6g},{s[1]:.6g},{s[2]:.6g}")
+    write_text_atomic(path, "\n".join(lines) + "\n")
