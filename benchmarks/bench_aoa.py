@@ -89,7 +89,7 @@ def main(argv=None) -> int:
          _chunked(lambda dd, cc: angles_from_points(dd, m, cc, derivatives=False), d, cov), a.points),
         ("angles only (kernel, no parameters)",
          _chunked(lambda dd: angles_kernel(dd, vals, True, coef, np.zeros(0, np.int64), np.zeros((0, 0)), True,
-                                           np.zeros((0, 2, 2)), np.zeros((0, 2, 3)), False), d), a.points),
+                                           np.zeros((0, 2, 2)), np.zeros((0, 2, 3)), False, np.zeros(0)), d), a.points),
         ("angles_from_points (default), all points in one call", lambda: angles_from_points(d, m, cov), a.points),
         ("numpy reference (angles_from_points_reference)",
          lambda: angles_from_points_reference(d[:nref], m, cov[:nref]), nref),

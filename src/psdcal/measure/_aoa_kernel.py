@@ -82,7 +82,7 @@ BLOCK = 128
 
 
 @njit
-def angles_kernel(d, intr, separate_fy, coef, codes, B, lower, cov_d, dd_dg, derivatives):
+def angles_kernel(d, intr, separate_fy, coef, codes, B, lower, cov_d, dd_dg, derivatives, out_buf):
     """Angles, normalised coordinates and covariances of impact points.
 
     Parameters
@@ -96,6 +96,9 @@ def angles_kernel(d, intr, separate_fy, coef, codes, B, lower, cov_d, dd_dg, der
     cov_d : (N, 2, 2) impact-point noise covariance, or (0, 2, 2) for none
     dd_dg : (N, 2, 3) derivative of d by (g_x2, g_y1, g_y2), or (0, 2, 3) for none
     derivatives : bool, also return dn/dp (else an empty (0, 2, P) array: the covariances do not need it)
+    out_buf : (18 N + 2 N P,) or (18 N,) without derivatives: the outputs' memory, allocated by the caller
+        (numpy asks the kernel for huge pages on large arrays, numba's allocator does not: a million points in
+        one call spent more time in first-touch page faults than computing), or any other size to allocate here
 
     Returns
     -------
@@ -111,7 +114,7 @@ def angles_kernel(d, intr, separate_fy, coef, codes, B, lower, cov_d, dd_dg, der
     # gives their memory back to the system after a call and page-faults it in again at the next one
     # (streaming calls of 65536 points spent more time in those faults than computing)
     nd = N * 2 * P if derivatives else 0
-    buf = np.empty(18 * N + nd)
+    buf = out_buf if out_buf.shape[0] == 18 * N + nd else np.empty(18 * N + nd)
     x = buf[:2 * N].reshape((N, 2))
     n = buf[2 * N:4 * N].reshape((N, 2))
     alpha = buf[4 * N:6 * N].reshape((N, 2))

@@ -237,9 +237,11 @@ def _angles_compiled(d, model: SensorModel, cov_d_mm2, dd_dgains, derivatives: b
     else:
         ddg = np.ascontiguousarray(np.broadcast_to(np.asarray(dd_dgains, dtype=float), shape + (2, 3)).reshape(N, 2, 3))
     vals = np.array([intr.f_mm, intr.cx_mm, intr.cy_mm, intr.skew, intr.fy], dtype=float)
+    # the outputs' memory from numpy (huge pages for large calls: fewer first-touch faults than numba's allocator)
+    buf = np.empty(18 * N + (2 * N * len(names) if derivatives else 0))
     x, n, alpha, covc, covn, dn_dp, dn_dd = angles_kernel(
         dd, vals, intr.fy_mm is not None, np.ascontiguousarray(model.distortion.as_array(), dtype=float), codes,
-        *_factor_of(model, covariance_factor), cov_d, ddg, bool(derivatives))
+        *_factor_of(model, covariance_factor), cov_d, ddg, bool(derivatives), buf)
     return AoAResult(
         x_mm=x.reshape(shape + (2,)),
         n=n.reshape(shape + (2,)),
