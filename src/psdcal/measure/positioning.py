@@ -93,6 +93,21 @@ class SensorPose:
         return -self.R.T @ np.asarray(self.tvec_mm, dtype=float)
 
 
+def pose_vectors(item: dict, path, where: str) -> dict:
+    """``{"rvec": (3,), "tvec_mm": (3,)}`` of one sensors-file entry; InputError naming the field otherwise."""
+    out = {}
+    for key in ("rvec", "tvec_mm"):
+        try:
+            vec = np.asarray(item.get(key), dtype=float)
+        except (TypeError, ValueError):
+            vec = np.zeros(0)
+        if vec.shape != (3,) or not np.all(np.isfinite(vec)):
+            raise InputError(f"'{key}' must be 3 finite numbers, got {item.get(key)!r}", path=path,
+                             field=f"{where}.{key}")
+        out[key] = vec
+    return out
+
+
 def load_sensors(path) -> list[SensorPose]:
     """Read SENSORS.json: a list of ``{name, calib, rvec, tvec_mm[, recording]}``.
 
@@ -125,15 +140,7 @@ def load_sensors(path) -> list[SensorPose]:
         if name in names:
             raise InputError(f"repeated sensor name {name!r}", path=path, field=f"{where}.name")
         names.add(name)
-        vecs = {}
-        for key in ("rvec", "tvec_mm"):
-            try:
-                vec = np.asarray(item[key], dtype=float)
-            except (TypeError, ValueError):
-                vec = np.zeros(0)
-            if vec.shape != (3,) or not np.all(np.isfinite(vec)):
-                raise InputError(f"'{key}' must be 3 finite numbers, got {item[key]!r}", path=path, field=f"{where}.{key}")
-            vecs[key] = vec
+        vecs = pose_vectors(item, path, where)
         calib = path.parent / str(item["calib"])
         model = SensorModel.load(calib)
         rec = item.get("recording")

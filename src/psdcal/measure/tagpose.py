@@ -30,6 +30,7 @@ from psdcal.measure._rigid import (
     whiteners,
 )
 from psdcal.measure.angles_table import AnglesTable
+from psdcal.measure.positioning import pose_vectors
 from psdcal.model.projection import R_from_r, r_from_R_batch
 
 
@@ -137,15 +138,7 @@ def load_sensor_poses(path) -> list[KnownSensor]:
         if name in seen:
             raise InputError(f"repeated sensor name {name!r}", path=path, field=f"{where}.name")
         seen.add(name)
-        vec = {}
-        for key in ("rvec", "tvec_mm"):
-            try:
-                v = np.asarray(item.get(key), dtype=float)
-            except (TypeError, ValueError):
-                v = np.zeros(0)
-            if v.shape != (3,) or not np.all(np.isfinite(v)):
-                raise InputError(f"'{key}' must be 3 finite numbers", path=path, field=f"{where}.{key}")
-            vec[key] = v
+        vec = pose_vectors(item, path, where)
         R = R_from_r(vec["rvec"])
         c = -R.T @ vec["tvec_mm"]
         cov = None

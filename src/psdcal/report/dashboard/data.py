@@ -319,7 +319,7 @@ def read_sensors(path, reach_mm: float = 8000.0) -> list:
 def _single_sensor(path):
     """A sensors file of ONE sensor (live input is one sensor; `load_sensors` wants two to triangulate), or None."""
     from psdcal.io import read_json
-    from psdcal.measure.positioning import SensorPose
+    from psdcal.measure.positioning import SensorPose, pose_vectors
     from psdcal.measure.sensor_model import SensorModel
 
     path = Path(path)
@@ -328,18 +328,10 @@ def _single_sensor(path):
     if not isinstance(items, list) or len(items) != 1 or not isinstance(items[0], dict):
         return None
     item = items[0]
-    vecs = {}
     for key in ("calib", "rvec", "tvec_mm"):
         if key not in item:
             raise InputError(f"missing key '{key}'", path=path, field=f"sensors[0].{key}")
-    for key in ("rvec", "tvec_mm"):
-        try:
-            v = np.asarray(item[key], dtype=float)
-        except (TypeError, ValueError):
-            v = np.zeros(0)
-        if v.shape != (3,) or not np.all(np.isfinite(v)):
-            raise InputError(f"'{key}' must be 3 finite numbers", path=path, field=f"sensors[0].{key}")
-        vecs[key] = v
+    vecs = pose_vectors(item, path, "sensors[0]")
     model = SensorModel.load(path.parent / str(item["calib"]))
     return [SensorPose(name=str(item.get("name", "s1")), model=model, rvec=vecs["rvec"], tvec_mm=vecs["tvec_mm"])]
 
