@@ -184,3 +184,47 @@ def test_big_endian_npy_gives_the_same_rows(tmp_path):
     rec = open_recording(tmp_path / "be.npy", RATE)
     got = np.concatenate([b.copy() for _, b in rec.chunks(3_000, rows=True, reuse_buffer=True)])
     np.testing.assert_array_equal(got, native)
+
+
+@pytest.mark.parametrize("carriers", [(1000.0,), (1000.0, 1300.0), (1000.0, 1300.0, 1700.0),
+                                      (1000.0, 1300.0, 1700.0, 2100.0), (1000.0, 1300.0, 1700.0, 2100.0, 2500.0)])
+def test_compiled_window_sums_equal_numpy(carriers):
+    """The compiled window sums (one pass, reassociated) equal numpy's product and sum of squares to
+    rounding: |coef - ref| <= 1e-13 sum_t |P| |x| (a few ulps of the sum's terms), for 1 to 5 carriers
+    (the kernel's groups of five and three rows, zero-padded), on rows with any strides."""
+    from psdcal import _jit
+
+    if not _jit.enabled():
+        pytest.skip("numba disabled")
+    rng = np.random.default_rng(3)
+    t = np.arange(30_000) / RATE
+    x = 0.05 + 1e-3 * rng.standard_normal((4, t.size))
+    for f in carriers:
+        x += rng.uniform(0.1, 1.0, (4, 1)) * np.sin(2 * np.pi * f * t + rng.uniform(0, 6))
+    a = MultiCarrierLockin(RATE, carriers, 0.01, compiled=False)
+    b = MultiCarrierLockin(RATE, carriers, 0.01, compiled=True)
+    rows = np.asfortranarray(x.T)  # not C-contiguous: the kernel reads any strides
+    j0a, ca, xa = a.fit_rows(0.0, rows)
+    j0b, cb, xb = b.fit_rows(0.0, rows)
+    assert j0a == j0b == 0 and ca.shape == cb.shape == (rows.shape[0] // a.n_window, 2 * len(carriers) + 1, 4)
+    n = a.n_window
+    xr = np.abs(rows[: ca.shape[0] * n]).reshape(-1, n, 4)
+    bound = 1e-13 * np.matmul(np.abs(a._proj_t), xr)  # (nw, J, 4)
+    assert np.all(np.abs(cb - ca) <= bound)
+    assert np.all(np.abs(xb - xa) <= 1e-13 * xa)
+
+
+def test_compiled_window_sums_not_finite_on_a_bad_sample():
+    """A NaN or inf sample makes its window's sum of squares non-finite on the compiled path too (the
+    kernel's fastmath flags exclude nnan/ninf): the fast path's finiteness check relies on it."""
+    from psdcal import _jit
+
+    if not _jit.enabled():
+        pytest.skip("numba disabled")
+    _, x = _sig(12_500)
+    rows = np.ascontiguousarray(x.T)
+    rows[3 * 1250 + 17, 2] = np.nan
+    rows[7 * 1250 + 5, 0] = np.inf
+    _, coef, xx = MultiCarrierLockin(RATE, (1000.0, 1300.0), 0.01, compiled=True).fit_rows(0.0, rows)
+    bad = ~np.isfinite(xx)
+    assert bad[3, 2] and bad[7, 0] and bad.sum() == 2

@@ -138,6 +138,27 @@ def _sum_squares(xr: np.ndarray) -> np.ndarray:
     return _VECDOT(xr, xr, axis=1)
 
 
+#: Samples (per channel) from which a command-line run (``psdcal._jit`` in ``"auto"`` mode) uses the
+#: compiled window sums even before numba is loaded: below it, loading the kernel costs more than it saves.
+LOCKIN_AUTO_MIN_SAMPLES = 1 << 22
+
+
+def use_compiled_lockin(n_samples: int = 0) -> bool:
+    """Whether a lock-in over ``n_samples`` samples (0: unknown) uses the compiled window sums.
+
+    Always where the library compiles by default (``psdcal._jit`` mode ``"always"``); on the command
+    line (``"auto"``) when numba is already loaded or the recording has at least
+    :data:`LOCKIN_AUTO_MIN_SAMPLES` samples.  Never without numba (``PSDCAL_JIT=0``).
+    """
+    import sys
+
+    from psdcal import _jit
+
+    if not _jit.enabled():
+        return False
+    return bool(_jit.use_compiled(0) or "numba" in sys.modules or n_samples >= LOCKIN_AUTO_MIN_SAMPLES)
+
+
 class MultiCarrierLockin:
     """Windowed joint lock-in over a stream of chunks (frequency multiplexing).
 
@@ -151,6 +172,9 @@ class MultiCarrierLockin:
         One carrier per emitter.
     window_s : float
         Window length, s (rounded to a whole number of samples).
+    compiled : bool or None
+        Window sums by the compiled kernel (:mod:`psdcal.signal._lockin_kernel`, equal to the numpy
+        product to rounding) or by numpy; None: :func:`use_compiled_lockin` decides at the first chunk.
 
     Examples
     --------
@@ -159,8 +183,11 @@ class MultiCarrierLockin:
     ...     windows = lk.process(t0, block)
     """
 
-    def __init__(self, rate_hz: float, carriers_hz, window_s: float):
+    def __init__(self, rate_hz: float, carriers_hz, window_s: float, *, compiled: bool | None = None):
         n, carriers = check_carriers(rate_hz, carriers_hz, window_s)
+        #: the compiled window sums (:mod:`psdcal.signal._lockin_kernel`): True, False, or None (decided at
+        #: the first chunk by :func:`use_compiled_lockin`)
+        self.compiled = compiled
         self.rate_hz = float(rate_hz)
         self.carriers_hz = carriers
         self.n_window = n
@@ -245,8 +272,25 @@ class MultiCarrierLockin:
         self._next_window += xr.shape[0]
         if xr.shape[0] == 0:
             return j0, np.zeros((0, self._proj_t.shape[0], 4)), np.zeros((0, 4))
+        if self.compiled is None:
+            self.compiled = use_compiled_lockin()
+        if self.compiled:
+            return j0, *self._fit_compiled(xr)
         coef = np.matmul(self._proj_t, xr)  # (nw, 2k+1, 4): the least-squares fit of every window and channel
         return j0, coef, _sum_squares(xr)
+
+    def _fit_compiled(self, xr: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(coef, xx)`` of :meth:`_fit` by the compiled kernel (one pass per window; numpy's to rounding)."""
+        from psdcal.signal import _lockin_kernel as kern
+
+        if getattr(self, "_kern_table", None) is None:
+            self._kern_table = kern.padded_table(self._proj_t)
+            self._kern_scratch = np.empty((4, self.n_window))
+        nw, n = xr.shape[0], self.n_window
+        coef = np.empty((nw, self._proj_t.shape[0], 4))
+        xx = np.empty((nw, 4))
+        kern.window_sums(self._kern_table, xr.reshape(nw * n, 4), n, coef, xx, self._kern_scratch)
+        return coef, xx
 
     def _demodulate_rows(self, xr: np.ndarray) -> WindowBlock:
         """Windows ``xr`` (nw, n, 4) -> amplitudes (:meth:`_fit`, then :meth:`windows`).

@@ -1,0 +1,143 @@
+"""Compiled window sums of the joint lock-in: one pass over each window's samples.
+
+:meth:`psdcal.signal.stream.MultiCarrierLockin._fit` needs, per window of
+``n`` samples and per channel, the least-squares coefficients
+``coef = P x`` (``P`` the ``(2k + 1, n)`` projection table: ``sin, cos`` of
+each carrier and the offset) and the sum of squares ``|x|^2`` (the residual
+and the finiteness check).  numpy does that as one small matrix product per
+window plus a strided reduction (two passes over the samples, and BLAS's
+per-call overhead on a 3 x 1250 x 4 product).
+
+:func:`window_sums` does it in one compiled loop per window: the window's
+rows ``(n, 4)`` are first copied channel-major into a scratch ``(4, n)``
+array (in the first-level cache), then each channel is one pass over its
+contiguous samples with up to five projection rows and the sum of squares
+accumulated together.  The sums are reassociated (``fastmath`` reassoc and
+contract only: no assumption about NaN or infinities, so a non-finite sample
+still gives a non-finite sum), which lets the compiler use SIMD lanes: the
+result differs from numpy's by rounding (relative 1e-15 of ``|P| |x|``),
+which the tests bound (``tests/test_locate_fastpath.py``).  The numpy code
+in :mod:`psdcal.signal.stream` stays the reference.
+
+numba is imported at the first call (:func:`window_sums` is lazy).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+#: fastmath flags of the kernel: reassociation (SIMD sums) and fused multiply-add only; never
+#: ``nnan``/``ninf`` (a non-finite sample must still give a non-finite sum).
+FASTMATH = frozenset({"reassoc", "contract"})
+
+
+def padded_table(proj_t: np.ndarray) -> np.ndarray:
+    """The projection table ``(J, n)`` padded with zero rows to the kernel's groups (5 rows, then 3)."""
+    J, n = proj_t.shape
+    n5, n3 = _groups(J)
+    out = np.zeros((5 * n5 + 3 * n3, n))
+    out[:J] = proj_t
+    return out
+
+
+def _groups(J: int) -> tuple[int, int]:
+    """Passes of five and of three rows covering ``J`` rows: (J // 5, 0, 1 or 2 passes of three)."""
+    n5, r = divmod(int(J), 5)
+    return n5, (0 if r == 0 else (2 if r == 4 else 1))
+
+
+def _window_sums(P, x, n, coef, xx, xt):  # pragma: no cover - compiled
+    """``coef[w] = P[:J] @ x[w n:(w + 1) n]`` (J, 4) and ``xx[w] = sum x^2`` (4,) for each window ``w``.
+
+    ``P`` (5 n5 + 3 n3, n): the table padded by :func:`padded_table`; ``x`` (nw n, 4) the
+    windows' rows (any strides); ``coef`` (nw, J, 4), ``xx`` (nw, 4) written; ``xt`` (4, n) scratch.
+    """
+    nw = x.shape[0] // n
+    J = coef.shape[1]
+    n5 = J // 5
+    r = J - 5 * n5
+    n3 = 0
+    if r > 0:
+        n3 = 1
+    if r == 4:
+        n3 = 2
+    for w in range(nw):
+        b = w * n
+        for t in range(n):
+            xt[0, t] = x[b + t, 0]
+            xt[1, t] = x[b + t, 1]
+            xt[2, t] = x[b + t, 2]
+            xt[3, t] = x[b + t, 3]
+        for c in range(4):
+            xc = xt[c]
+            first = True
+            s = 0.0
+            for g in range(n5):
+                j = 5 * g
+                p0 = P[j]
+                p1 = P[j + 1]
+                p2 = P[j + 2]
+                p3 = P[j + 3]
+                p4 = P[j + 4]
+                a0 = a1 = a2 = a3 = a4 = 0.0
+                if first:
+                    for t in range(n):
+                        v = xc[t]
+                        a0 += p0[t] * v
+                        a1 += p1[t] * v
+                        a2 += p2[t] * v
+                        a3 += p3[t] * v
+                        a4 += p4[t] * v
+                        s += v * v
+                    first = False
+                else:
+                    for t in range(n):
+                        v = xc[t]
+                        a0 += p0[t] * v
+                        a1 += p1[t] * v
+                        a2 += p2[t] * v
+                        a3 += p3[t] * v
+                        a4 += p4[t] * v
+                coef[w, j, c] = a0
+                coef[w, j + 1, c] = a1
+                coef[w, j + 2, c] = a2
+                coef[w, j + 3, c] = a3
+                coef[w, j + 4, c] = a4
+            for g in range(n3):
+                j = 5 * n5 + 3 * g
+                p0 = P[j]
+                p1 = P[j + 1]
+                p2 = P[j + 2]
+                a0 = a1 = a2 = 0.0
+                if first:
+                    for t in range(n):
+                        v = xc[t]
+                        a0 += p0[t] * v
+                        a1 += p1[t] * v
+                        a2 += p2[t] * v
+                        s += v * v
+                    first = False
+                else:
+                    for t in range(n):
+                        v = xc[t]
+                        a0 += p0[t] * v
+                        a1 += p1[t] * v
+                        a2 += p2[t] * v
+                coef[w, j, c] = a0
+                if j + 1 < J:
+                    coef[w, j + 1, c] = a1
+                if j + 2 < J:
+                    coef[w, j + 2, c] = a2
+            xx[w, c] = s
+
+
+_compiled = None
+
+
+def window_sums(P, x, n, coef, xx, xt) -> None:
+    """:func:`_window_sums`, compiled at the first call (numba imported then)."""
+    global _compiled
+    if _compiled is None:
+        from psdcal import _jit
+
+        _compiled = _jit._compile(_window_sums, fastmath=set(FASTMATH))
+    _compiled(P, x, n, coef, xx, xt)
