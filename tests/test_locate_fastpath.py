@@ -137,7 +137,7 @@ def test_locate_csv_text_equals_python_formatting(tmp_path, monkeypatch):
     rec = open_recording(tmp_path / "r.npy", RATE)
     cfg = LocateConfig(carriers_hz=(1000.0, 1300.0), window_s=0.01, distance_mm=5000.0)
     locate_to_csv(rec, m, tmp_path / "fast.csv", cfg)
-    monkeypatch.setattr(ct, "rows_text", ct.rows_text_reference)
+    monkeypatch.setattr(ct, "rows_bytes", lambda cols: ct.rows_text_reference(cols).encode("utf-8"))
     locate_to_csv(rec, m, tmp_path / "ref.csv", cfg)
     fast, ref = (tmp_path / "fast.csv").read_bytes(), (tmp_path / "ref.csv").read_bytes()
     assert fast.count(b"\n") == 1 + 2 * (60_000 // 1250)

@@ -70,174 +70,137 @@ def _fmt_int(v, out, b):  # pragma: no cover - compiled
     return p + nd
 
 
-@njit
-def format_cells(F, I, kind, src, slots, lens):  # pragma: no cover - compiled
-    """Format the numeric cells of a block of rows.
-
-    ``kind[j]``: 0 float (column ``src[j]`` of ``F``), 1 integer (of ``I``),
-    2 text (not formatted here).  ``slots`` (n, ncol, SLOT) uint8 receives
-    the text, ``lens`` (n, ncol) its length (-1: left to Python).  The float
-    formatting is written out in the loop (a helper taking the array costs
-    more than the formatting).
-    """
-    n, ncol = lens.shape
-    out = slots.reshape(n * ncol * SLOT)  # one index per byte (cheaper than three)
-    FB = F.view(np.int64)  # the bits of the floats
-    for r in range(n):
-        for j in range(ncol):
-            kd = kind[j]
-            b = (r * ncol + j) * SLOT
-            if kd == 1:
-                lens[r, j] = _fmt_int(I[r, src[j]], out, b)
-                continue
-            if kd != 0:
-                lens[r, j] = 0
-                continue
-            x = F[r, src[j]]
-            if x != x:
-                out[b + 0], out[b + 1], out[b + 2] = 110, 97, 110  # nan
-                lens[r, j] = 3
-                continue
-            p = 0
-            if FB[r, src[j]] < 0:  # the sign bit (also of -0.0)
-                out[b + 0] = 45  # '-'
-                p = 1
-            ax = abs(x)
-            if ax == math.inf:
-                out[b + p], out[b + p + 1], out[b + p + 2] = 105, 110, 102  # inf
-                lens[r, j] = p + 3
-                continue
-            if ax == 0.0:
-                out[b + p] = 48
-                lens[r, j] = p + 1
-                continue
-            if ax < 1e-280 or ax > 1e290:
-                lens[r, j] = -1
-                continue
-            # decimal exponent from the binary one (libm's log10 costs more than all the rest):
-            # floor((e2 - 1) log10 2) <= log10|x| < that + 2; the check below moves it up by one
-            e2 = ((FB[r, src[j]] >> 52) & 2047) - 1022  # |x| = mantissa 2^e2, mantissa in [0.5, 1)
-            e = ((e2 - 1) * 78913) >> 18  # floor((e2 - 1) log10 2) for |e2| < 1700
-            k = 9 - e
-            if 0 <= k <= 22:
-                y = ax * _P10[k]
-            elif -22 <= k < 0:
-                y = ax / _P10[-k]
-            else:
-                y = _scaled(ax, k)
-            if y >= 1e10:  # the estimate one low: rescale from |x| itself
-                e += 1
-                y = _scaled(ax, 9 - e)
-            elif y < 1e9:  # (not expected; kept for safety)
-                e -= 1
-                y = _scaled(ax, 9 - e)
-            if not (1e9 <= y < 1e10):
-                lens[r, j] = -1
-                continue
-            fl = math.floor(y)
-            frac = y - fl
-            if abs(frac - 0.5) < 1e-4:  # too near a tie for the scaling's rounding: Python decides
-                lens[r, j] = -1
-                continue
-            m = np.int64(fl)
-            if frac > 0.5:
-                m += 1
-            if m == 10_000_000_000:
-                m = 1_000_000_000
-                e += 1
-            # ten digits without integer division (slow here): two halves of five,
-            # each by (v * 1374389535) >> 37 == v // 100
-            hi = np.int64(m * 1e-5)
-            lo = m - hi * 100000
-            if lo < 0:
-                hi -= 1
-                lo += 100000
-            elif lo >= 100000:
-                hi += 1
-                lo -= 100000
-            d0 = b + _SCRATCH  # the digits, in the slot's last bytes (never reached by the text)
-            for h in range(2):  # five digits of each half
-                v = hi if h == 0 else lo
-                at = d0 + 5 * h
-                q1 = (v * 1374389535) >> 37  # v // 100 for 0 <= v < 2^32
-                t2 = (v - q1 * 100) * 2
-                out[at + 3] = _LUT[t2]
-                out[at + 4] = _LUT[t2 + 1]
-                q2 = (q1 * 1374389535) >> 37
-                t2 = (q1 - q2 * 100) * 2
-                out[at + 1] = _LUT[t2]
-                out[at + 2] = _LUT[t2 + 1]
-                out[at] = 48 + q2
-            nd = 10
-            while nd > 1 and out[d0 + nd - 1] == 48:
-                nd -= 1
-            if -4 <= e < 10:  # %g: fixed notation
-                if e >= 0:
-                    for i in range(e + 1):
-                        out[b + p] = out[d0 + i]
-                        p += 1
-                    if nd > e + 1:
-                        out[b + p] = 46  # '.'
-                        p += 1
-                        for i in range(e + 1, nd):
-                            out[b + p] = out[d0 + i]
-                            p += 1
-                else:
-                    out[b + p], out[b + p + 1] = 48, 46  # "0."
-                    p += 2
-                    for _ in range(-e - 1):
-                        out[b + p] = 48
-                        p += 1
-                    for i in range(nd):
-                        out[b + p] = out[d0 + i]
-                        p += 1
-                lens[r, j] = p
-                continue
-            out[b + p] = out[d0 + 0]
-            p += 1
-            if nd > 1:
-                out[b + p] = 46
+@njit_inline
+def _fmt_float(x, bits, out, b):  # pragma: no cover - compiled
+    """Write ``"%.10g" % x`` into ``out[b:]`` (``out`` has SLOT bytes of room after ``b``: the ten digits
+    are worked out in ``out[b + _SCRATCH:b + SLOT]`` first); its length, or -1 (left to Python)."""
+    if x != x:
+        out[b + 0], out[b + 1], out[b + 2] = 110, 97, 110  # nan
+        return 3
+    p = 0
+    if bits < 0:  # the sign bit (also of -0.0)
+        out[b + 0] = 45  # '-'
+        p = 1
+    ax = abs(x)
+    if ax == math.inf:
+        out[b + p], out[b + p + 1], out[b + p + 2] = 105, 110, 102  # inf
+        return p + 3
+    if ax == 0.0:
+        out[b + p] = 48
+        return p + 1
+    if ax < 1e-280 or ax > 1e290:
+        return -1
+    # decimal exponent from the binary one (libm's log10 costs more than all the rest):
+    # floor((e2 - 1) log10 2) <= log10|x| < that + 2; the check below moves it up by one
+    e2 = ((bits >> 52) & 2047) - 1022  # |x| = mantissa 2^e2, mantissa in [0.5, 1)
+    e = ((e2 - 1) * 78913) >> 18  # floor((e2 - 1) log10 2) for |e2| < 1700
+    k = 9 - e
+    if 0 <= k <= 22:
+        y = ax * _P10[k]
+    elif -22 <= k < 0:
+        y = ax / _P10[-k]
+    else:
+        y = _scaled(ax, k)
+    if y >= 1e10:  # the estimate one low: rescale from |x| itself
+        e += 1
+        y = _scaled(ax, 9 - e)
+    elif y < 1e9:  # (not expected; kept for safety)
+        e -= 1
+        y = _scaled(ax, 9 - e)
+    if not (1e9 <= y < 1e10):
+        return -1
+    fl = math.floor(y)
+    frac = y - fl
+    if abs(frac - 0.5) < 1e-4:  # too near a tie for the scaling's rounding: Python decides
+        return -1
+    m = np.int64(fl)
+    if frac > 0.5:
+        m += 1
+    if m == 10_000_000_000:
+        m = 1_000_000_000
+        e += 1
+    # ten digits without integer division (slow here): two halves of five,
+    # each by (v * 1374389535) >> 37 == v // 100
+    hi = np.int64(m * 1e-5)
+    lo = m - hi * 100000
+    if lo < 0:
+        hi -= 1
+        lo += 100000
+    elif lo >= 100000:
+        hi += 1
+        lo -= 100000
+    d0 = b + _SCRATCH  # the digits, in the slot's last bytes (never reached by the text)
+    for h in range(2):  # five digits of each half
+        v = hi if h == 0 else lo
+        at = d0 + 5 * h
+        q1 = (v * 1374389535) >> 37  # v // 100 for 0 <= v < 2^32
+        t2 = (v - q1 * 100) * 2
+        out[at + 3] = _LUT[t2]
+        out[at + 4] = _LUT[t2 + 1]
+        q2 = (q1 * 1374389535) >> 37
+        t2 = (q1 - q2 * 100) * 2
+        out[at + 1] = _LUT[t2]
+        out[at + 2] = _LUT[t2 + 1]
+        out[at] = 48 + q2
+    nd = 10
+    while nd > 1 and out[d0 + nd - 1] == 48:
+        nd -= 1
+    if -4 <= e < 10:  # %g: fixed notation
+        if e >= 0:
+            for i in range(e + 1):
+                out[b + p] = out[d0 + i]
                 p += 1
-                for i in range(1, nd):
+            if nd > e + 1:
+                out[b + p] = 46  # '.'
+                p += 1
+                for i in range(e + 1, nd):
                     out[b + p] = out[d0 + i]
                     p += 1
-            out[b + p] = 101  # 'e'
-            out[b + p + 1] = 45 if e < 0 else 43
+        else:
+            out[b + p], out[b + p + 1] = 48, 46  # "0."
             p += 2
-            ae = -e if e < 0 else e
-            if ae >= 100:
-                out[b + p] = 48 + ae // 100
+            for _ in range(-e - 1):
+                out[b + p] = 48
                 p += 1
-            out[b + p] = 48 + (ae // 10) % 10
-            out[b + p + 1] = 48 + ae % 10
-            lens[r, j] = p + 2
-            continue
+            for i in range(nd):
+                out[b + p] = out[d0 + i]
+                p += 1
+        return p
+    out[b + p] = out[d0 + 0]
+    p += 1
+    if nd > 1:
+        out[b + p] = 46
+        p += 1
+        for i in range(1, nd):
+            out[b + p] = out[d0 + i]
+            p += 1
+    out[b + p] = 101  # 'e'
+    out[b + p + 1] = 45 if e < 0 else 43
+    p += 2
+    ae = -e if e < 0 else e
+    if ae >= 100:
+        out[b + p] = 48 + ae // 100
+        p += 1
+    out[b + p] = 48 + (ae // 10) % 10
+    out[b + p + 1] = 48 + ae % 10
+    return p + 2
 
 
 @njit
-def join_cells(slots, lens, kind, src, codes, table, offsets, fb_table, fb_offsets):  # pragma: no cover - compiled
-    """The CSV text (uint8) of formatted cells: ``,`` between cells, ``\n`` after each row.
+def format_rows(F, I, kind, src, codes, table, offsets, out, fb_pos, fb_cell):  # pragma: no cover - compiled
+    """The CSV text (uint8) of a block of rows, written straight into ``out``; returns ``(length, n_left)``.
 
-    Text cells (``kind == 2``) are ``table[offsets[c]:offsets[c + 1]]`` with
-    ``c = codes[row, src[j]]``; cells left to Python (``lens < 0``) are the
-    successive strings of ``fb_table`` (row-major order).
+    ``kind[j]``: 0 float (column ``src[j]`` of ``F``), 1 integer (of ``I``), 2 text
+    (``table[offsets[c]:offsets[c + 1]]`` with ``c = codes[row, src[j]]``); ``,`` between cells,
+    ``\n`` after each row.  ``out`` must hold the longest possible text plus SLOT bytes.  A cell
+    left to Python (a float near a rounding tie or with an extreme exponent, int64's minimum) is
+    written as nothing: its place in the text goes to ``fb_pos``, its ``row * ncol + column`` to
+    ``fb_cell`` (``n_left`` of them; when there are more than ``fb_pos`` holds, ``n_left`` is
+    ``-1`` and the text is incomplete).
     """
-    n, ncol = lens.shape
-    total = 0
-    nfb = 0
-    for r in range(n):
-        for j in range(ncol):
-            if kind[j] == 2:
-                c = codes[r, src[j]]
-                total += offsets[c + 1] - offsets[c]
-            elif lens[r, j] < 0:
-                total += fb_offsets[nfb + 1] - fb_offsets[nfb]
-                nfb += 1
-            else:
-                total += lens[r, j]
-        total += ncol  # ncol - 1 commas and a newline
-    out = np.empty(total, dtype=np.uint8)
-    flat = slots.reshape(slots.size)
+    n = F.shape[0]
+    ncol = kind.shape[0]
+    FB = F.view(np.int64)  # the bits of the floats
     p = 0
     nfb = 0
     for r in range(n):
@@ -245,24 +208,29 @@ def join_cells(slots, lens, kind, src, codes, table, offsets, fb_table, fb_offse
             if j > 0:
                 out[p] = 44
                 p += 1
-            if kind[j] == 2:
+            kd = kind[j]
+            if kd == 2:
                 c = codes[r, src[j]]
                 for i in range(offsets[c], offsets[c + 1]):
                     out[p] = table[i]
                     p += 1
-            elif lens[r, j] < 0:
-                for i in range(fb_offsets[nfb], fb_offsets[nfb + 1]):
-                    out[p] = fb_table[i]
-                    p += 1
-                nfb += 1
+                continue
+            if kd == 1:
+                ln = _fmt_int(I[r, src[j]], out, p)
             else:
-                b = (r * ncol + j) * SLOT
-                for i in range(lens[r, j]):
-                    out[p] = flat[b + i]
-                    p += 1
+                ln = _fmt_float(F[r, src[j]], FB[r, src[j]], out, p)
+            if ln < 0:
+                if nfb < fb_pos.shape[0]:
+                    fb_pos[nfb] = p
+                    fb_cell[nfb] = r * ncol + j
+                    nfb += 1
+                else:
+                    return p, -1
+            else:
+                p += ln
         out[p] = 10
         p += 1
-    return out
+    return p, nfb
 
 
 # --------------------------------------------------------------------------- Python side
@@ -319,14 +287,19 @@ def rows_text(columns) -> str:
     Floats (any float dtype) as ``"%.10g"``, integers and booleans as
     ``"%d"``, strings and objects as ``"%s"``; rows end with ``\\n``.
     """
+    return rows_bytes(columns).decode("utf-8")
+
+
+def rows_bytes(columns) -> bytes:
+    """:func:`rows_text` as UTF-8 bytes (what the file receives: no decoding and encoding again)."""
     cols = [np.asarray(a) for a in columns]
     n = cols[0].shape[0]
     if n == 0:
-        return ""
+        return b""
     kinds = [_kind_of(a) for a in cols]
     if any(a.ndim != 1 for a in cols) or any(a.dtype == np.uint64 for a in cols) or any(
             a.dtype.kind == "O" and set(map(type, a.tolist())) != {str} for a in cols):
-        return rows_text_reference(cols)  # what the compiled path does not cover: Python's own formatting
+        return rows_text_reference(cols).encode("utf-8")  # what the compiled path does not cover: Python's own
     fcols = [a for a, k in zip(cols, kinds) if k == "g"]
     icols = [a for a, k in zip(cols, kinds) if k == "d"]
     scols = [a for a, k in zip(cols, kinds) if k == "s"]
@@ -342,20 +315,10 @@ def rows_text(columns) -> str:
     for j, k in enumerate(kinds):
         src[j] = count[k]
         count[k] += 1
-    slots = np.empty((n, len(cols), SLOT), dtype=np.uint8)
-    lens = np.empty((n, len(cols)), dtype=np.int64)
-    format_cells(F, I, kind, src, slots, lens)
-    bad = np.argwhere(lens < 0)  # rare: values near a rounding tie, extreme exponents
-    fb_table, fb_offsets = _table([])
-    if len(bad):  # Python's text for them, in row-major order (the order join_cells meets them)
-        rr, jj = bad[:, 0], bad[:, 1]
-        fv = F[rr, src[jj]].tolist()
-        iv = I[rr, np.minimum(src[jj], I.shape[1] - 1)].tolist()
-        fb_table, fb_offsets = _table([("%.10g" % f) if kind[j] == 0 else ("%d" % i)
-                                       for j, f, i in zip(jj.tolist(), fv, iv)])
     codes = np.zeros((n, max(1, len(scols))), dtype=np.int64)
     tables, offs, base = [], [np.zeros(1, dtype=np.int64)], 0
     n_codes = 0
+    longest_text = 0
     for j, a in enumerate(scols):
         c, table, offsets = _codes(a)
         codes[:, j] = c + n_codes
@@ -363,10 +326,28 @@ def rows_text(columns) -> str:
         tables.append(table[: offsets[-1]])
         offs.append(offsets[1:] + base)
         base += int(offsets[-1])
+        longest_text += int(np.diff(offsets).max(initial=0))
     table = np.concatenate(tables) if tables and base else np.zeros(1, dtype=np.uint8)
     offsets = np.concatenate(offs)
-    out = join_cells(slots, lens, kind, src, codes, table, offsets, fb_table, fb_offsets)
-    return out.tobytes().decode("utf-8")
+    # the longest text: 24 bytes a number ("-1.234567891e-100" is 17, an int64 20) and a separator
+    out = np.empty(n * (25 * (len(fcols) + len(icols)) + len(scols) + longest_text) + SLOT, dtype=np.uint8)
+    fb_cap = 64 + (n * len(cols)) // 64
+    fb_pos = np.empty(fb_cap, dtype=np.int64)
+    fb_cell = np.empty(fb_cap, dtype=np.int64)
+    length, n_left = format_rows(F, I, kind, src, codes, table, offsets, out, fb_pos, fb_cell)
+    if n_left < 0:  # (not expected: a 64th of the cells near a rounding tie) Python's formatting throughout
+        return rows_text_reference(cols).encode("utf-8")
+    if n_left == 0:
+        return out[:length].tobytes()
+    # the cells left to Python (rare: values near a rounding tie, extreme exponents), spliced in
+    rr, jj = np.divmod(fb_cell[:n_left], len(cols))
+    parts, at = [], 0
+    for pos, r, j in zip(fb_pos[:n_left].tolist(), rr.tolist(), jj.tolist()):
+        parts.append(out[at:pos].tobytes())
+        parts.append((("%.10g" % F[r, src[j]]) if kind[j] == 0 else ("%d" % I[r, src[j]])).encode())
+        at = pos
+    parts.append(out[at:length].tobytes())
+    return b"".join(parts)
 
 
 # --------------------------------------------------------------------------- writers of locate's rows
@@ -382,7 +363,13 @@ def _write_rows(fh, cols: dict, order) -> int:
     from psdcal import _jit
 
     if _jit.enabled():
-        fh.write(rows_text([cols[c] for c in order]))
+        text = rows_bytes([cols[c] for c in order])
+        raw = getattr(fh, "buffer", None)
+        if raw is not None and getattr(fh, "encoding", "").lower().replace("-", "") == "utf8":
+            fh.flush()  # the text written so far (the header) first
+            raw.write(text)
+        else:
+            fh.write(text.decode("utf-8"))
     else:
         fh.write(_rows_text(cols, order))
     return n

@@ -282,7 +282,7 @@ def _demodulated(recording, lockin: MultiCarrierLockin, chunk: int, batch_window
     acc_c = np.empty((cap, 2 * len(lockin.carriers_hz) + 1, 4))
     acc_x = np.empty((cap, 4))
     fill, j_first = 0, 0
-    for t0, rows in recording.chunks(chunk, rows=True, check_finite=False, reuse_buffer=True):
+    for t0, rows in recording.chunks(chunk, rows=True, check_finite=False, reuse_buffer=True, mapped=True):
         j0, coef, xx = lockin.fit_rows(t0, rows)
         if lockin.pending_samples or not np.isfinite(xx).all():
             recording.check_block(rows, n_done, rows=True)

@@ -20,6 +20,7 @@ All functions read a bounded prefix of the recording
 """
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -76,14 +77,27 @@ class Carrier:
 def read_prefix(recording, max_samples: int = DEFAULT_SCAN_SAMPLES) -> np.ndarray:
     """The first ``max_samples`` samples (4, n) of a :class:`~psdcal.signal.recording.Recording`."""
     parts, n = [], 0
-    for _, block in recording.chunks(min(int(max_samples), 1 << 16)):
-        parts.append(block[:, : max_samples - n])
+    # as rows: a (n, 4) .npy is then read without a transposing copy (the same checked samples)
+    for _, block in recording.chunks(min(int(max_samples), 1 << 16), rows=True):
+        parts.append(block[: max_samples - n].T)
         n += parts[-1].shape[1]
         if n >= max_samples:
             break
     if not parts:
         return np.zeros((4, 0))
     return np.concatenate(parts, axis=1)
+
+
+@functools.lru_cache(maxsize=8)
+def _hann_cached(n: int) -> np.ndarray:
+    w = np.hanning(n)
+    w.flags.writeable = False
+    return w
+
+
+def _hann(n: int) -> np.ndarray:
+    """``np.hanning(n)``, computed once per length (read-only)."""
+    return _hann_cached(int(n))
 
 
 def spectrum(x, rate_hz: float):
@@ -104,7 +118,7 @@ def spectrum(x, rate_hz: float):
     """
     x = np.asarray(x, dtype=float)
     n = x.shape[1]
-    w = np.hanning(n)
+    w = _hann(n)
     p = np.empty((x.shape[0], n // 2 + 1))
     for c in range(x.shape[0]):  # one channel at a time: bounded memory
         p[c] = np.abs(np.fft.rfft((x[c] - x[c].mean()) * w)) ** 2

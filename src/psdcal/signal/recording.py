@@ -34,6 +34,7 @@ import contextlib
 import csv
 import io
 import math
+import os
 import struct
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -100,7 +101,7 @@ class Recording:
         return None if self.n_samples is None else self.n_samples / self.rate_hz
 
     def chunks(self, chunk_samples: int = DEFAULT_CHUNK, *, rows: bool = False, check_finite: bool = True,
-               reuse_buffer: bool = False) -> Iterator[tuple[float, np.ndarray]]:
+               reuse_buffer: bool = False, mapped: bool = False) -> Iterator[tuple[float, np.ndarray]]:
         """Yield ``(t0_s, block)``, ``block`` float64 (4, <= chunk_samples).
 
         Parameters
@@ -124,6 +125,14 @@ class Recording:
             ``rows`` blocks of ``.npy`` recordings: fill one buffer again for
             every chunk (no allocation per chunk); a block is then valid only
             until the next one is asked for: copy what must be kept.
+        mapped : bool
+            ``rows`` blocks of a ``(n, 4)`` float64 ``.npy`` file (native byte
+            order, C order): read-only views of a memory map of the file, no
+            copy at all (``psdcal locate``: mapping the page cache costs less
+            than copying it, 10 ms of 40 for 60 s of 4 x 125 kS/s).  The
+            file's size is checked before each block (a file truncated after
+            opening is named as such); a block is valid until the next one is
+            asked for.  Other layouts: as without it.
 
         Raises
         ------
@@ -135,7 +144,7 @@ class Recording:
         if chunk_samples < 1:
             raise InputError(f"chunk size must be positive, got {chunk_samples}", field="chunk_samples")
         if rows and self.kind == "npy":
-            yield from _rows_npy(self, chunk_samples, check_finite, reuse_buffer)
+            yield from _rows_npy(self, chunk_samples, check_finite, reuse_buffer, mapped)
             return
         reader = {"npy": _chunks_npy, "csv": _chunks_csv, "hdf5": _chunks_hdf5, "tdms": _chunks_tdms}[self.kind]
         for t0, block in reader(self, chunk_samples):
@@ -265,7 +274,7 @@ def _chunks_npy(rec: Recording, chunk: int):
         yield rec.t0_s + start / rec.rate_hz, block
 
 
-def _rows_npy(rec: Recording, chunk: int, check: bool, reuse: bool):
+def _rows_npy(rec: Recording, chunk: int, check: bool, reuse: bool, mapped: bool = False):
     """(m, 4) float64 blocks of a ``.npy`` recording.
 
     A ``(n, 4)`` float64 file (native byte order, C order) is read with ``readinto``
@@ -289,6 +298,9 @@ def _rows_npy(rec: Recording, chunk: int, check: bool, reuse: bool):
             yield rec.t0_s + start / rec.rate_hz, block
         return
     del arr
+    if mapped:
+        yield from _rows_mapped(rec, chunk, check, offset)
+        return
     buf = np.empty((min(chunk, n), 4)) if reuse else None
     with open(rec.path, "rb") as fh:
         fh.seek(offset)
@@ -302,6 +314,43 @@ def _rows_npy(rec: Recording, chunk: int, check: bool, reuse: bool):
             if check:
                 _check_finite(block.T, rec.path, start)
             yield rec.t0_s + start / rec.rate_hz, block
+
+
+def _rows_mapped(rec: Recording, chunk: int, check: bool, offset: int):
+    """(m, 4) read-only views of a memory map of a ``(n, 4)`` float64 C-order ``.npy`` (see ``chunks(mapped=)``)."""
+    import mmap
+
+    n = rec.n_samples
+    with open(rec.path, "rb") as fh:
+        size = os.fstat(fh.fileno()).st_size
+        if n == 0:
+            return
+        if size < offset + 32 * n:  # (checked again before each block: touching a truncated map is a crash)
+            got = max(0, size - offset) // 32
+            raise InputError(f"the file ends after {got} of its {n} samples: a truncated recording", path=rec.path)
+        mm = mmap.mmap(fh.fileno(), offset + 32 * n, access=mmap.ACCESS_READ)
+    try:
+        arr = np.frombuffer(mm, dtype=np.float64, count=4 * n, offset=offset).reshape(n, 4)
+        for start in range(0, n, chunk):
+            m = min(n, start + chunk) - start
+            try:
+                size = os.stat(rec.path).st_size
+            except OSError:
+                size = -1
+            if size < offset + 32 * (start + m):
+                got = max(0, size - offset) // 32
+                raise InputError(f"the file ends after {got} of its {n} samples: a truncated recording",
+                                 path=rec.path)
+            block = arr[start: start + m]
+            if check:
+                _check_finite(block.T, rec.path, start)
+            yield rec.t0_s + start / rec.rate_hz, block
+    finally:
+        arr = block = None  # noqa: F841  (no view may outlive the map)
+        try:
+            mm.close()
+        except BufferError:  # a caller still holds a block: the map closes when it is dropped
+            pass
 
 
 # --------------------------------------------------------------------------- csv
