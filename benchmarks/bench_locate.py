@@ -15,7 +15,17 @@ tables, ``hypot`` of the pairs; no offset, no noise estimate, no finiteness
 check, no angles, no output), the file read into one reused buffer or
 memory-mapped, whichever is faster: the ceiling of a lock-in in numpy.
 
-Prints, per case (carriers x output format):
+The same recordings also go through ``psdcal amplitudes`` (carrier
+amplitudes only, CSV and npy) and through the live path (the recording's raw
+frames read as a stream, as ``psdcal locate -`` reads standard input; rows
+written and flushed as they come).
+
+Each repeat runs the bare lock-in (both ways) and every case once, in turn;
+a case's fraction of the bare lock-in is the median over the repeats of the
+ratio within a repeat (runs made under the same load: the machine may be
+shared).
+
+Prints, per case (command x carriers x output format):
 * throughput in samples per second per core (all 4 channels counted), as a
   multiple of real time for 4 x 125 kS/s, and as a fraction of the bare
   lock-in's speed (1.0 = as fast as the bare lock-in);
@@ -46,9 +56,11 @@ import numpy as np  # noqa: E402
 
 from psdcal.measure.aoa import angles_from_amplitudes  # noqa: E402
 from psdcal.model.distortion import distort  # noqa: E402
-from psdcal.measure.locate import LocateConfig, locate_to_csv  # noqa: E402
+from psdcal.measure.live import locate_stream  # noqa: E402
+from psdcal.measure.locate import LocateConfig, amplitudes_to_csv, locate_to_csv  # noqa: E402
 from psdcal.measure.positioning import plane_position  # noqa: E402
 from psdcal.model.readout import photocurrents  # noqa: E402
+from psdcal.signal.live import open_stream  # noqa: E402
 from psdcal.signal.recording import DEFAULT_CHUNK, open_recording  # noqa: E402
 from psdcal.measure.sensor_model import SensorModel  # noqa: E402
 from psdcal.signal.stream import MultiCarrierLockin  # noqa: E402
@@ -133,6 +145,23 @@ def run_pipeline(path: Path, model: SensorModel, out: Path, carriers=CARRIERS_HZ
     return locate_to_csv(rec, model, out, cfg)
 
 
+def run_amplitudes(path: Path, out: Path, carriers=CARRIERS_HZ, output_format: str = "csv"):
+    """``psdcal amplitudes``: the same recording to carrier amplitudes (no calibration)."""
+    rec = open_recording(path, RATE_HZ)
+    cfg = LocateConfig(carriers_hz=tuple(carriers), window_s=WINDOW_S, output_format=output_format)
+    return amplitudes_to_csv(rec, out, cfg)
+
+
+def run_live(path: Path, model: SensorModel, out: Path, carriers=CARRIERS_HZ):
+    """The live path (``psdcal locate -`` / a live source): the recording's raw frames (the ``.npy``'s data
+    after its header, little-endian float64) read as a stream, rows written and flushed as they come."""
+    offset = np.load(path, mmap_mode="r").offset
+    cfg = LocateConfig(carriers_hz=tuple(carriers), window_s=WINDOW_S, distance_mm=5000.0)
+    with open(path, "rb") as fh:
+        fh.seek(offset)
+        return locate_stream(open_stream("-", RATE_HZ, stdin=fh), model, out, cfg)
+
+
 def run_in_memory(model: SensorModel, seconds: float):
     n = int(seconds * RATE_HZ)
     rng = np.random.default_rng(1)
@@ -179,22 +208,40 @@ def main(argv=None) -> dict:
         for carriers in (CARRIERS_HZ[:1], CARRIERS_HZ):
             path = tmp / f"rec{len(carriers)}.npy"
             n = make_recording(path, long_s, model, carriers)
-            bare_read_s = _cpu(lambda: bare_lockin(path, carriers, "readinto"), reps)
-            bare_mmap_s = _cpu(lambda: bare_lockin(path, carriers, "mmap"), reps)
-            bare_s = min(bare_read_s, bare_mmap_s)  # the faster of the two
-            for fmt in ("csv", "npy"):
-                out = tmp / f"out{len(carriers)}.{fmt}"
-                cpu_s = _cpu(lambda: run_pipeline(path, model, out, carriers, fmt), reps)
+            runs = {("locate", fmt): (lambda fmt=fmt: run_pipeline(path, model, tmp / f"out.{fmt}", carriers, fmt))
+                    for fmt in ("csv", "npy")}
+            runs.update({("amplitudes", fmt): (lambda fmt=fmt: run_amplitudes(path, tmp / f"amp.{fmt}", carriers, fmt))
+                         for fmt in ("csv", "npy")})
+            runs[("live", "csv")] = lambda: run_live(path, model, tmp / "live.csv", carriers)
+            bare = {"readinto": lambda: bare_lockin(path, carriers, "readinto"),
+                    "mmap": lambda: bare_lockin(path, carriers, "mmap")}
+            # paired: every repeat runs the bare lock-in (both ways) and each case once, in turn, so that the
+            # ratios compare runs made under the same load (the machine may be shared); the medians are reported
+            t = {k: [] for k in (*bare, *runs)}
+            for f in (*bare.values(), *runs.values()):
+                f()  # warm-up (compiled kernels loaded, file in the page cache)
+            for _ in range(reps):
+                for k, f in (*bare.items(), *runs.items()):
+                    c0 = time.process_time()
+                    f()
+                    t[k].append(time.process_time() - c0)
+            t = {k: np.array(v) for k, v in t.items()}
+            bare_each = np.minimum(t["readinto"], t["mmap"])  # the faster of the two, each repeat
+            bare_s = float(np.median(bare_each))
+            for (what, fmt), f in runs.items():
+                cpu_s = float(np.median(t[(what, fmt)]))
                 w0 = time.perf_counter()
-                summary = run_pipeline(path, model, out, carriers, fmt)
+                summary = f()
                 wall_s = time.perf_counter() - w0
+                out = {"locate": tmp / f"out.{fmt}", "amplitudes": tmp / f"amp.{fmt}", "live": tmp / "live.csv"}[what]
                 cases.append({
-                    "carriers": len(carriers), "format": fmt, "cpu_s": cpu_s, "wall_s": wall_s,
+                    "what": what, "carriers": len(carriers), "format": fmt, "cpu_s": cpu_s, "wall_s": wall_s,
                     "samples_per_s_per_core": 4 * n / cpu_s, "x_real_time": (n / RATE_HZ) / cpu_s,
                     "x_real_time_wall": (n / RATE_HZ) / wall_s, "bare_lockin_cpu_s": bare_s,
-                    "bare_lockin_x_real_time": (n / RATE_HZ) / bare_s, "fraction_of_bare_lockin": bare_s / cpu_s,
-                    "bare_lockin_readinto_x_real_time": (n / RATE_HZ) / bare_read_s,
-                    "bare_lockin_mmap_x_real_time": (n / RATE_HZ) / bare_mmap_s,
+                    "bare_lockin_x_real_time": (n / RATE_HZ) / bare_s,
+                    "fraction_of_bare_lockin": float(np.median(bare_each / t[(what, fmt)])),
+                    "bare_lockin_readinto_x_real_time": (n / RATE_HZ) / float(np.median(t["readinto"])),
+                    "bare_lockin_mmap_x_real_time": (n / RATE_HZ) / float(np.median(t["mmap"])),
                     "rows": summary.n_rows, "output_bytes_per_signal_s": out.stat().st_size / (n / RATE_HZ),
                 })
         make_recording(tmp / "short.npy", short_s, model)
@@ -202,7 +249,7 @@ def main(argv=None) -> dict:
         peak_short = traced_peak(tmp / "short.npy", model, tmp / "o1.csv")
         peak_long = traced_peak(tmp / "rec2.npy", model, tmp / "o2.csv")
     signal_s = n / RATE_HZ
-    two_csv = next(c for c in cases if c["carriers"] == 2 and c["format"] == "csv")
+    two_csv = next(c for c in cases if c["what"] == "locate" and c["carriers"] == 2 and c["format"] == "csv")
     res = {
         "signal_s": signal_s,
         "channels": 4,
@@ -220,6 +267,7 @@ def main(argv=None) -> dict:
         "pipeline_x_real_time": two_csv["x_real_time"],
         "pipeline_x_real_time_wall": two_csv["x_real_time_wall"],
         "min_x_real_time": min(c["x_real_time"] for c in cases),
+        "min_fraction_of_bare_lockin": min(c["fraction_of_bare_lockin"] for c in cases),
         "demod_aoa_samples_per_s_per_core": 4 * n_mem / cpu_mem,
         "demod_aoa_x_real_time": (n_mem / RATE_HZ) / cpu_mem,
         "peak_working_memory_bytes": peak_long,
@@ -230,7 +278,7 @@ def main(argv=None) -> dict:
     print(f"psdcal locate benchmark: {signal_s:g} s of 4 x {RATE_HZ / 1e3:g} kS/s, {WINDOW_S * 1e3:g} ms windows, "
           f"1 core, CPU time, median of {reps}")
     for c in cases:
-        print(f"  {c['carriers']} carrier(s), .npy -> {c['format']:3s}: {c['samples_per_s_per_core'] / 1e6:6.1f} MS/s "
+        print(f"  {c['what']:10s} {c['carriers']} carrier(s), -> {c['format']:3s}: {c['samples_per_s_per_core'] / 1e6:6.1f} MS/s "
               f"per core = {c['x_real_time']:5.0f} x real time = {c['fraction_of_bare_lockin']:.2f} x the bare "
               f"lock-in ({c['bare_lockin_x_real_time']:.0f} x real time; read {c['bare_lockin_readinto_x_real_time']:.0f}, "
               f"mmap {c['bare_lockin_mmap_x_real_time']:.0f}); wall {c['x_real_time_wall']:.0f} x")
@@ -242,11 +290,11 @@ def main(argv=None) -> dict:
           f"(input {4 * 8 * RATE_HZ / 1e6:g} MB per s as float64)")
     if args.markdown:
         print()
-        print("| carriers | output | x real time | / bare lock-in | bare lock-in x real time |")
-        print("|---|---|---|---|---|")
+        print("| command | carriers | output | x real time | / bare lock-in | bare lock-in x real time |")
+        print("|---|---|---|---|---|---|")
         for c in cases:
-            print(f"| {c['carriers']} | {c['format']} | {c['x_real_time']:.0f} | {c['fraction_of_bare_lockin']:.2f} | "
-                  f"{c['bare_lockin_x_real_time']:.0f} |")
+            print(f"| {c['what']} | {c['carriers']} | {c['format']} | {c['x_real_time']:.0f} | "
+                  f"{c['fraction_of_bare_lockin']:.2f} | {c['bare_lockin_x_real_time']:.0f} |")
     if args.json:
         print(json.dumps(res))
     return res

@@ -77,9 +77,10 @@ class Carrier:
 def read_prefix(recording, max_samples: int = DEFAULT_SCAN_SAMPLES) -> np.ndarray:
     """The first ``max_samples`` samples (4, n) of a :class:`~psdcal.signal.recording.Recording`."""
     parts, n = [], 0
-    # as rows: a (n, 4) .npy is then read without a transposing copy (the same checked samples)
-    for _, block in recording.chunks(min(int(max_samples), 1 << 16), rows=True):
-        parts.append(block[: max_samples - n].T)
+    # a .npy as rows: a (n, 4) file is then read without a transposing copy (the same checked samples)
+    rows = getattr(recording, "kind", None) == "npy"
+    for _, block in recording.chunks(min(int(max_samples), 1 << 16), **({"rows": True} if rows else {})):
+        parts.append(block[: max_samples - n].T if rows else block[:, : max_samples - n])
         n += parts[-1].shape[1]
         if n >= max_samples:
             break
