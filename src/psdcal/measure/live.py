@@ -104,10 +104,26 @@ def locate_stream(stream, model, out_path, config: LocateConfig) -> LiveSummary:
     try:
         fh.write(",".join(order) + "\n")
         fh.flush()
-        for t0, block in stream.chunks():
+        # rows read into one reused buffer, as large as what has arrived (a backlog in large blocks), checked
+        # through the lock-in's sums (below); a stream without that reader: (4, m) blocks, checked on arrival
+        as_rows = hasattr(stream, "check_rows")
+        for t0, block in (stream.chunks(rows=True, check_finite=False) if as_rows else stream.chunks()):
             arrived = stream.arrivals[-1][1] if stream.arrivals else time.perf_counter()
-            n_samples += block.shape[1]
-            wb = lockin.process(t0, block)
+            if as_rows:
+                first, m = n_samples, block.shape[0]
+                n_samples += m
+                j0, coef, xx = lockin.fit_rows(t0, block)
+                # the windows' sums are finite only when every sample is; the tail held for the next window
+                # is checked now (an error names the sample before any row of this block is written)
+                if not np.isfinite(xx).all():
+                    stream.check_rows(block, first)
+                tail = min(lockin.pending_samples, m)
+                if tail:
+                    stream.check_rows(block[m - tail:], first + m - tail)
+                wb = lockin.windows(j0, coef, xx)
+            else:
+                n_samples += block.shape[1]
+                wb = lockin.process(t0, block)
             if not len(wb):
                 continue
             n_windows += len(wb)

@@ -99,9 +99,23 @@ class RawStream:
     t0_s: float = 0.0
     arrivals: list = field(default_factory=list, repr=False)
     order: tuple | None = None
+    #: ``readinto``-like reader (``readinto1`` of a file, ``recv_into`` of a socket), or None
+    _readinto: object = field(default=None, repr=False)
 
-    def chunks(self, chunk_samples: int = 0) -> Iterator[tuple[float, np.ndarray]]:
-        """Yield ``(t0_s, block)`` as frames arrive (``chunk_samples`` is ignored: blocks are what came)."""
+    def chunks(self, chunk_samples: int = 0, *, rows: bool = False,
+               check_finite: bool = True) -> Iterator[tuple[float, np.ndarray]]:
+        """Yield ``(t0_s, block)`` as frames arrive (``chunk_samples`` is ignored: blocks are what came).
+
+        ``rows``: yield ``(m, 4)`` float64 blocks (one frame a row, the documented channel order)
+        read into one buffer reused from block to block (a block is valid until the next one is
+        asked for), as large as what has arrived, up to :data:`ROWS_READ_BYTES` (a backlog is
+        taken in large blocks; frames arriving in real time are yielded as they come, as without
+        it).  ``check_finite=False`` (with ``rows``) leaves the finiteness check to the caller
+        (:meth:`check_rows`, same message).
+        """
+        if rows:
+            yield from self._rows(check_finite)
+            return
         dt = np.dtype(DTYPES[self.dtype])
         frame = 4 * dt.itemsize
         buf = b""
@@ -135,6 +149,70 @@ class RawStream:
                   file=sys.stderr)
 
 
+    def check_rows(self, rows: np.ndarray, first_sample: int) -> None:
+        """Raise :class:`InputError` naming the first non-finite sample of ``rows`` (m, 4), if any: the
+        message of :meth:`chunks`' own check (``first_sample``: the index of the first row in the stream)."""
+        bad = ~np.isfinite(np.asarray(rows).T)
+        if np.any(bad):
+            ch, i = np.argwhere(bad)[0]
+            raise InputError(f"sample {first_sample + int(i)} of channel {ch + 1} is not a finite number",
+                             path=self.path)
+
+    def _rows(self, check: bool) -> Iterator[tuple[float, np.ndarray]]:
+        """The ``rows=True`` blocks of :meth:`chunks`."""
+        dt = np.dtype(DTYPES[self.dtype])
+        frame = 4 * dt.itemsize
+        cap = max(frame, (max(int(self.read_bytes), ROWS_READ_BYTES) // frame) * frame)
+        ring = bytearray(cap + frame)
+        mv = memoryview(ring)
+        readinto = self._readinto
+        direct = dt == np.dtype(np.float64) and self.order is None and self.scale == 1.0
+        carry = 0
+        n = 0
+        try:
+            while True:
+                if readinto is not None:
+                    got = readinto(mv[carry: carry + cap])
+                else:  # a reader of bytes (the NI DAQ's): copied in
+                    data = self._reader(cap)
+                    got = len(data) if data else 0
+                    if got:
+                        ring[carry: carry + got] = data
+                if not got:
+                    break
+                now = time.perf_counter()
+                size = carry + got
+                m = size // frame
+                if m:
+                    raw = np.frombuffer(ring, dtype=dt, count=4 * m).reshape(m, 4)
+                    if direct:
+                        block = raw
+                    else:
+                        block = raw if self.order is None else raw[:, list(self.order)]
+                        block = block.astype(np.float64)
+                        if self.scale != 1.0:
+                            block *= self.scale
+                    if check:
+                        self.check_rows(block, n)
+                    self.arrivals.append((n + m, now))
+                    yield self.t0_s + n / self.rate_hz, block
+                    n += m
+                    del raw, block
+                carry = size - m * frame
+                if carry and m:
+                    ring[:carry] = ring[m * frame: size]
+        finally:
+            if self._close is not None:
+                self._close()
+        if carry:
+            print(f"psdcal: warning: {self.path}: the stream ended inside a frame ({carry} bytes dropped)",
+                  file=sys.stderr)
+
+
+#: Bytes a ``rows`` read of a live stream asks for at most (4 MB: 131072 frames of float64).
+ROWS_READ_BYTES = 1 << 22
+
+
 def open_stream(source: str, rate_hz: float | None, *, dtype: str = "float64", scale: float = 1.0,
                 timeout_s: float = 10.0, stdin=None, order: str | None = None) -> RawStream:
     """Open a live source (see the module docstring).
@@ -165,7 +243,8 @@ def _open_source(source, rate_hz, dtype, scale, timeout_s, stdin) -> RawStream:
     if source == "-":
         fh = stdin if stdin is not None else sys.stdin.buffer
         reader = getattr(fh, "read1", None) or fh.read
-        return RawStream(source, float(rate_hz), dtype, float(scale), _reader=reader)
+        return RawStream(source, float(rate_hz), dtype, float(scale), _reader=reader,
+                         _readinto=getattr(fh, "readinto1", None))
     if source.startswith("tcp://"):
         import socket
 
@@ -184,7 +263,8 @@ def _open_source(source, rate_hz, dtype, scale, timeout_s, stdin) -> RawStream:
         except OSError as exc:
             raise InputError(f"cannot connect: {exc.strerror or exc}", path=source) from None
         sock.settimeout(None)
-        return RawStream(source, float(rate_hz), dtype, float(scale), _reader=sock.recv, _close=sock.close)
+        return RawStream(source, float(rate_hz), dtype, float(scale), _reader=sock.recv, _close=sock.close,
+                         _readinto=sock.recv_into)
     if source.startswith("nidaqmx://"):
         return _open_nidaqmx(source, float(rate_hz), scale)
     raise InputError("not a live source ('-', tcp://127.0.0.1:PORT or nidaqmx://DEVICE/ai0:3)", path=source)
