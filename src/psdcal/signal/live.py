@@ -209,8 +209,8 @@ class RawStream:
                   file=sys.stderr)
 
 
-#: Bytes a ``rows`` read of a live stream asks for at most (4 MB: 131072 frames of float64).
-ROWS_READ_BYTES = 1 << 22
+#: Bytes a ``rows`` read of a live stream asks for at most (8 MB: 262144 frames of float64).
+ROWS_READ_BYTES = 1 << 23
 
 
 def open_stream(source: str, rate_hz: float | None, *, dtype: str = "float64", scale: float = 1.0,

@@ -254,8 +254,22 @@ class MultiCarrierLockin:
             if abs(float(t0_s) - expected) > 0.5 / self.rate_hz:
                 raise InputError(f"gap in the recording: chunk at {t0_s:.9g} s, expected {expected:.9g} s")
         self._consumed += rows.shape[0]
-        x = rows if self._buf.shape[0] == 0 else np.concatenate([self._buf, rows], axis=0)
         n = self.n_window
+        held = self._buf.shape[0]
+        if held and held + rows.shape[0] >= n:
+            # the window begun in the previous chunk is completed alone (the rest of the chunk is not
+            # copied to join it); every window's sums are computed alike, whatever the chunking
+            head = np.concatenate([self._buf, rows[: n - held]], axis=0)
+            self._buf = np.empty((0, 4))
+            j0, c1, x1 = self._fit(head.reshape(1, n, 4))
+            _, c2, x2 = self._fit_rows_rest(rows[n - held:])
+            return j0, np.concatenate([c1, c2]), np.concatenate([x1, x2])
+        return self._fit_rows_rest(rows)
+
+    def _fit_rows_rest(self, rows) -> tuple[int, np.ndarray, np.ndarray]:
+        """:meth:`fit_rows` of rows that follow what is held (checked and counted by the caller)."""
+        n = self.n_window
+        x = rows if self._buf.shape[0] == 0 else np.concatenate([self._buf, rows], axis=0)
         nw = x.shape[0] // n
         used = nw * n
         self._buf = x[used:].copy() if used < x.shape[0] else np.empty((0, 4))
