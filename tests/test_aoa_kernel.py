@@ -151,3 +151,39 @@ def test_arctangent_equals_numpy():
     some = np.concatenate([x[::60], special])  # and the compiled function itself
     np.testing.assert_allclose([_atan(v) for v in some], np.arctan(some), rtol=2e-15, atol=0)
     assert np.isnan(_atan(np.nan)) and np.isnan(plain(float("nan")))
+
+
+def test_large_call_output_memory_kept_and_never_shared(monkeypatch):
+    """A large call's output memory is kept for the next call (fresh memory costs its page faults), but
+    only once no result of the earlier call is alive: results are never overwritten by a later call."""
+    import psdcal.measure.aoa as aoa
+
+    monkeypatch.setattr(aoa, "SPARE_MIN", 1000)  # "large" from 56 points (the kept memory: a small test)
+    monkeypatch.setattr(aoa, "_spare", [])
+    m = model()
+    rng = np.random.default_rng(5)
+    d1, d2 = rng.uniform(-3, 3, (2, 3000, 2))
+    cov = np.broadcast_to(np.diag([1e-6, 2e-6]), (3000, 2, 2))
+    r1 = aoa.angles_from_points(d1, m, cov, derivatives=False)
+    alpha1 = r1.alpha_rad.copy()
+    r2 = aoa.angles_from_points(d2, m, cov, derivatives=False)  # r1 alive: fresh memory
+    assert not np.shares_memory(r1.alpha_rad, r2.alpha_rad)
+    np.testing.assert_array_equal(r1.alpha_rad, alpha1)
+    ref2 = angles_from_points_reference(d2, m, cov, derivatives=False)
+    _check(r2.alpha_rad, ref2.alpha_rad, "alpha")
+    _check(r2.cov_n_calib, ref2.cov_n_calib, "cov_calib")
+    del r1
+    kept = aoa._spare[0]
+    r3 = aoa.angles_from_points(d1, m, cov, derivatives=False)  # r2 alive: fresh memory again (kept in place of r2's)
+    assert not np.shares_memory(r3.alpha_rad, r2.alpha_rad)
+    del r2
+    r4 = aoa.angles_from_points(d2, m, cov, derivatives=False)  # r3 holds the kept buffer: still not shared
+    assert not np.shares_memory(r4.alpha_rad, r3.alpha_rad)
+    np.testing.assert_array_equal(r3.alpha_rad, alpha1)
+    del r3, r4
+    r5 = aoa.angles_from_points(d1, m, cov, derivatives=False)  # nothing alive: the kept memory reused
+    assert np.shares_memory(r5.alpha_rad, aoa._spare[0])
+    np.testing.assert_array_equal(r5.alpha_rad, alpha1)
+    del kept
+    aoa.release_output_buffers()
+    assert aoa._spare == []

@@ -120,3 +120,24 @@ def test_distort_keeps_shape_and_does_not_mutate(rng):
     res = distort(x, MODELS["lens2"], C)
     assert res.d_mm.shape == x.shape and res.converged.shape == (3, 4)
     np.testing.assert_array_equal(x, x0)
+
+
+@pytest.mark.parametrize("jac", [False, "d", True])
+def test_large_undistort_in_blocks_equals_one_pass(monkeypatch, jac):
+    """A large call goes in blocks of BLOCK_POINTS points (temporaries in cache): the same numbers, bit for
+    bit, as one pass over all the points (per point the same arithmetic), whatever the leading shape."""
+    import psdcal.model.distortion as dm
+
+    rng = np.random.default_rng(8)
+    d = rng.uniform(-4, 4, (3, 701, 2))
+    coef = np.array([1e-2, 3e-5, 1e-7, 2e-4, -1e-4, -1.3e-3, 2e-6])
+    c = np.array([0.3, -0.2])
+    whole = dm.undistort(d, coef, c, jacobians=jac)  # 2103 points: below the threshold, one pass
+    monkeypatch.setattr(dm, "BLOCK_POINTS", 100)  # 2103 points in 22 blocks, the last one partial
+    blocked = dm.undistort(d, coef, c, jacobians=jac)
+    whole = whole if isinstance(whole, tuple) else (whole,)
+    blocked = blocked if isinstance(blocked, tuple) else (blocked,)
+    assert len(whole) == len(blocked)
+    for a, b in zip(whole, blocked):
+        assert a.shape == b.shape and a.shape[:2] == (3, 701)
+        np.testing.assert_array_equal(a, b)

@@ -20,6 +20,8 @@ covariance is propagated instead.
 """
 from __future__ import annotations
 
+import sys
+import threading
 from dataclasses import dataclass
 
 import numpy as np
@@ -218,6 +220,42 @@ def _factor_of(model: SensorModel, covariance_factor):
     return got
 
 
+#: Output memory (float64 count, 32 MB) from which a call's buffer is kept for the next call: fresh memory
+#: costs its first-touch page faults (the system zeroing it), a fifth of the time of a million points in one
+#: call, which calls of 65536 points do not pay (below 32 MB the C allocator reuses freed memory itself).
+SPARE_MIN = 1 << 22
+#: At most this much (float64 count: 2 GB) is kept.
+SPARE_MAX = 1 << 28
+_spare: list = []  # at most one buffer, kept between calls
+_spare_lock = threading.Lock()
+
+
+def _output_buffer(size: int) -> np.ndarray:
+    """``np.empty(size)``, or a part of the kept buffer of an earlier large call once no result uses it.
+
+    The results of a call are views of its buffer: while any is alive the buffer's reference count says
+    so and it is not reused (a later call gets fresh memory, which it keeps instead). The check and the
+    claim (taking the view) are made under a lock. :func:`release_output_buffers` drops the kept memory.
+    """
+    if not (SPARE_MIN <= size <= SPARE_MAX):
+        return np.empty(size)
+    with _spare_lock:
+        if _spare:
+            b = _spare[0]
+            # references: the list, ``b`` and getrefcount's argument; more: a result still uses it
+            if sys.getrefcount(b) == 3 and size <= b.shape[0] <= 2 * size:
+                return b[:size]
+        b = np.empty(size)
+        _spare[:] = [b]
+        return b[:size]
+
+
+def release_output_buffers() -> None:
+    """Drop the output memory kept by :func:`angles_from_points` for its next large call."""
+    with _spare_lock:
+        _spare.clear()
+
+
 def _angles_compiled(d, model: SensorModel, cov_d_mm2, dd_dgains, derivatives: bool = True) -> AoAResult:
     """:func:`angles_from_points` by the compiled kernel (psdcal.measure._aoa_kernel)."""
     from psdcal.measure._aoa_kernel import PARAM_CODES, angles_kernel, covariance_factor
@@ -237,8 +275,9 @@ def _angles_compiled(d, model: SensorModel, cov_d_mm2, dd_dgains, derivatives: b
     else:
         ddg = np.ascontiguousarray(np.broadcast_to(np.asarray(dd_dgains, dtype=float), shape + (2, 3)).reshape(N, 2, 3))
     vals = np.array([intr.f_mm, intr.cx_mm, intr.cy_mm, intr.skew, intr.fy], dtype=float)
-    # the outputs' memory from numpy (huge pages for large calls: fewer first-touch faults than numba's allocator)
-    buf = np.empty(18 * N + (2 * N * len(names) if derivatives else 0))
+    # the outputs' memory from numpy (huge pages for large calls: fewer first-touch faults than numba's allocator),
+    # that of an earlier large call when its results are gone (_output_buffer)
+    buf = _output_buffer(18 * N + (2 * N * len(names) if derivatives else 0))
     x, n, alpha, covc, covn, dn_dp, dn_dd = angles_kernel(
         dd, vals, intr.fy_mm is not None, np.ascontiguousarray(model.distortion.as_array(), dtype=float), codes,
         *_factor_of(model, covariance_factor), cov_d, ddg, bool(derivatives), buf)

@@ -25,6 +25,29 @@ def _as_coeffs(dist) -> np.ndarray:
     return a
 
 
+#: Points per block of a large :func:`undistort` call: its dozen temporaries per block stay in the cache
+#: (a million points in one call ran at 0.8 of the rate of calls of 65536; per point the same arithmetic).
+BLOCK_POINTS = 32768
+
+
+def _in_blocks(fn, d: np.ndarray, *args, **kwargs):
+    """``fn(d, ...)`` over blocks of :data:`BLOCK_POINTS` points of ``d`` (..., 2), the outputs (arrays
+    with the points first, or a tuple of them) assembled in arrays allocated once."""
+    lead = d.shape[:-1]
+    flat = d.reshape(-1, 2)
+    n = flat.shape[0]
+    outs = None
+    for s in range(0, n, BLOCK_POINTS):
+        r = fn(flat[s: s + BLOCK_POINTS], *args, **kwargs)
+        parts = r if isinstance(r, tuple) else (r,)
+        if outs is None:
+            outs = [np.empty((n,) + p.shape[1:], dtype=p.dtype) for p in parts]
+        for o, p in zip(outs, parts):
+            o[s: s + p.shape[0]] = p
+    outs = [o.reshape(lead + o.shape[1:]) for o in outs]
+    return tuple(outs) if isinstance(r, tuple) else outs[0]
+
+
 def undistort(d_mm, dist, c_mm, *, jacobians: bool = False):
     """Ideal pinhole point from a measured impact point (Eq 7-16, docs/model.md#distortion).
 
@@ -47,8 +70,17 @@ def undistort(d_mm, dist, c_mm, *, jacobians: bool = False):
     -------
     x : (..., 2) ndarray, ideal points in mm (and the Jacobians if asked).
     """
-    k1, k2, k3, p1, p2, l1, l2 = _as_coeffs(dist)
     d = np.asarray(d_mm, dtype=float)
+    # (blocks only with one centre and one set of coefficients: per-point ones would need slicing too)
+    if (d.ndim >= 2 and d.shape[-1] == 2 and d.size > 4 * BLOCK_POINTS and np.shape(c_mm) == (2,)
+            and np.shape(_as_coeffs(dist)) == (7,)):
+        return _in_blocks(_undistort, d, dist, c_mm, jacobians=jacobians)
+    return _undistort(d, dist, c_mm, jacobians=jacobians)
+
+
+def _undistort(d, dist, c_mm, *, jacobians=False):
+    """:func:`undistort` of one block of points."""
+    k1, k2, k3, p1, p2, l1, l2 = _as_coeffs(dist)
     c = np.asarray(c_mm, dtype=float)
     h2 = np.einsum("...i,...i->...", d, d)
     s = 1.0 + l1 * h2 + l2 * h2 * h2
