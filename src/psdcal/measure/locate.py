@@ -254,8 +254,8 @@ def _rows_single(t_s, names, a, var_a, model: SensorModel, distance_mm, min_snr,
 #: Rows computed at once (angles, CSV text), at most: the windows of several chunks are batched
 #: (fewer calls), up to ``chunk_samples / BATCH_SAMPLES_PER_ROW`` rows so that the memory stays
 #: bounded by the chunk size.
-BATCH_ROWS = 4096
-BATCH_SAMPLES_PER_ROW = 16
+BATCH_ROWS = 2048
+BATCH_SAMPLES_PER_ROW = 32
 
 
 def _demodulated(recording, lockin: MultiCarrierLockin, chunk: int, batch_windows: int = 1):
