@@ -88,3 +88,19 @@ def test_bench_montecarlo_runs(capsys):
         incl, excl, failed = float(r[5]), float(r[6]), int(r[7])
         assert min(sim_ms, sampled_ms, calib_ms, incl, excl) > 0 and failed == 0
         assert ratio == pytest.approx(sim_ms / calib_ms, rel=0.05, abs=0.01)
+
+
+def test_bench_locate_covers_locate_amplitudes_and_the_live_path(capsys):
+    """bench_locate measures locate (CSV and npy), amplitudes (CSV and npy) and the live path against the bare
+    lock-in, with 1 and 2 carriers; the live path writes the same rows as the file path."""
+    bench = _load("bench_locate")
+    res = bench.main(["--seconds", "2", "--repeats", "1", "--markdown"])
+    got = {(c["what"], c["carriers"], c["format"]) for c in res["cases"]}
+    want = {(w, k, f) for k in (1, 2) for w, f in (("locate", "csv"), ("locate", "npy"), ("amplitudes", "csv"),
+                                                   ("amplitudes", "npy"), ("live", "csv"))}
+    assert got == want
+    rows = {(c["what"], c["carriers"], c["format"]): c["rows"] for c in res["cases"]}
+    for k in (1, 2):
+        assert rows[("live", k, "csv")] == rows[("locate", k, "csv")] == k * int(2 * bench.RATE_HZ) // 1250
+    assert all(0 < c["fraction_of_bare_lockin"] < 5 for c in res["cases"])
+    assert "| live | 2 | csv |" in capsys.readouterr().out
