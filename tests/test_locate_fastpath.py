@@ -228,3 +228,34 @@ def test_compiled_window_sums_not_finite_on_a_bad_sample():
     _, coef, xx = MultiCarrierLockin(RATE, (1000.0, 1300.0), 0.01, compiled=True).fit_rows(0.0, rows)
     bad = ~np.isfinite(xx)
     assert bad[3, 2] and bad[7, 0] and bad.sum() == 2
+
+
+def test_locate_rows_with_the_compiled_lockin_equal_the_numpy_lockin(tmp_path, monkeypatch):
+    """The whole locate output with the compiled window sums against numpy's: the same rows and emitters,
+    every number equal to its 10 significant digits up to one unit of the last (the sums differ by
+    rounding; the noise variance, a difference of two sums of the signal's energy, by 1e-13 of that
+    energy, which moves a sigma by ~1e-10 of itself)."""
+    import psdcal.signal.stream as st
+    from psdcal import _jit
+
+    if not _jit.enabled():
+        pytest.skip("numba disabled")
+    m, x = _sig(80_000, noise=1e-4)  # high SNR: the noise variance is the most sensitive to rounding
+    np.save(tmp_path / "r.npy", np.ascontiguousarray(x.T))
+    rec = open_recording(tmp_path / "r.npy", RATE)
+    cfg = LocateConfig(carriers_hz=(1000.0, 1300.0), window_s=0.01, distance_mm=5000.0)
+    locate_to_csv(rec, m, tmp_path / "compiled.csv", cfg)
+    monkeypatch.setattr(st, "use_compiled_lockin", lambda n_samples=0: False)
+    locate_to_csv(rec, m, tmp_path / "numpy.csv", cfg)
+    a = np.genfromtxt(tmp_path / "compiled.csv", delimiter=",", names=True, dtype=None, encoding="utf-8")
+    b = np.genfromtxt(tmp_path / "numpy.csv", delimiter=",", names=True, dtype=None, encoding="utf-8")
+    assert a.shape == b.shape == (2 * (80_000 // 1250),)
+    assert list(a["emitter"]) == list(b["emitter"])
+    # a sigma's relative change: half that of the noise variance, 1e-13 of the energy per sample over it
+    noise = 1e-4
+    rtol_sigma = 1e-13 * float(np.mean(x ** 2)) / noise ** 2 + 2e-9
+    assert rtol_sigma < 1e-5  # (the bound is a small one)
+    for c in a.dtype.names:
+        if c != "emitter":
+            rtol = rtol_sigma if c.startswith("sigma_") else 2e-9
+            np.testing.assert_allclose(a[c], b[c], rtol=rtol, atol=0, err_msg=c)
