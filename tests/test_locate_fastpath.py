@@ -259,3 +259,43 @@ def test_locate_rows_with_the_compiled_lockin_equal_the_numpy_lockin(tmp_path, m
         if c != "emitter":
             rtol = rtol_sigma if c.startswith("sigma_") else 2e-9
             np.testing.assert_allclose(a[c], b[c], rtol=rtol, atol=0, err_msg=c)
+
+
+def test_compiled_window_arithmetic_equals_numpy():
+    """The compiled per-window arithmetic (noise, common phase, projected amplitudes) against the numpy
+    code on the same sums: equal to rounding, including a window without signal (no phase: amplitudes
+    along the in-phase axis), a window of zeros (the noise floor) and non-finite sums (NaN, no warning)."""
+    from psdcal import _jit
+
+    if not _jit.enabled():
+        pytest.skip("numba disabled")
+    _, x = _sig(20_000, (1000.0, 1300.0))
+    rows = np.ascontiguousarray(x.T)
+    rows[3 * 1250: 4 * 1250] = 0.05  # a constant window: no carrier
+    rows[5 * 1250: 6 * 1250] = 0.0  # zeros: the residual floor
+    a = MultiCarrierLockin(RATE, (1000.0, 1300.0), 0.01, compiled=False)
+    b = MultiCarrierLockin(RATE, (1000.0, 1300.0), 0.01, compiled=True)
+    j0, coef, xx = a.fit_rows(0.0, rows)
+    b.fit_rows(0.0, rows)
+    xx = xx.copy()
+    xx[7, 1] = np.nan
+    wa, wb = a.windows(j0, coef, xx), b.windows(j0, coef, xx)
+    # the noise variance is |x|^2 - fit: equal to rounding of the energy (1e-13 |x|^2 / dof), as above
+    tol_var = 1e-13 * xx / a._dof
+    ok = np.isfinite(xx)
+    assert np.all(np.abs(wb.noise_sigma**2 - wa.noise_sigma**2)[ok] <= tol_var[ok])
+    ok &= wa.noise_sigma > 0  # (the window of zeros: no noise, nothing to scale)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        gain = wa.var_amplitude / (wa.noise_sigma**2)[:, None, :]
+    okk = np.broadcast_to(ok[:, None, :], gain.shape)
+    assert np.all(wb.var_amplitude[5] == 0) and np.all(wa.var_amplitude[5] == 0)
+    assert np.all((np.abs(wb.var_amplitude - wa.var_amplitude) <= gain * tol_var[:, None, :] * (1 + 1e-9))[okk])
+    for f in ("amplitude", "t_s", "index"):
+        u, v = getattr(wb, f), getattr(wa, f)
+        assert u.shape == v.shape
+        np.testing.assert_array_equal(np.isnan(u), np.isnan(v), err_msg=f)
+        ok = ~np.isnan(v)
+        np.testing.assert_allclose(u[ok], v[ok], rtol=1e-12, atol=1e-12 * np.nanmax(np.abs(v)), err_msg=f)
+    np.testing.assert_allclose(np.exp(1j * wb.phase_rad), np.exp(1j * wa.phase_rad), rtol=0, atol=1e-12)
+    assert np.isnan(wb.noise_sigma[7, 1]) and np.all(np.isfinite(wb.noise_sigma[7, [0, 2, 3]]))
+    assert np.array_equal(np.isnan(wb.var_amplitude), np.isnan(wa.var_amplitude))

@@ -23,6 +23,8 @@ numba is imported at the first call (:func:`window_sums` is lazy).
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 #: fastmath flags of the kernel: reassociation (SIMD sums) and fused multiply-add only; never
@@ -141,3 +143,71 @@ def window_sums(P, x, n, coef, xx, xt) -> None:
 
         _compiled = _jit._compile(_window_sums, fastmath=set(FASTMATH))
     _compiled(P, x, n, coef, xx, xt)
+
+
+def _window_stats(coef, xx, gram, gi, n, dof, floor2, var, amp, var_amp, zr, zi):  # pragma: no cover - compiled
+    """The per-window arithmetic of ``MultiCarrierLockin._windows`` (its numpy code is the reference).
+
+    ``coef`` (nw, 2k + 1, 4), ``xx`` (nw, 4): the window sums; ``gram`` (2k + 1, 2k + 1), ``gi`` (k, 2, 2);
+    writes ``var`` (nw, 4) the residual noise variance (clipped at 0, floored at ``floor2 xx / n``),
+    ``amp`` and ``var_amp`` (nw, k, 4) the amplitudes projected on the common phase and their variance,
+    ``zr``, ``zi`` (nw, k) the sums of the four channels' in-phase and quadrature parts.
+    """
+    nw = coef.shape[0]
+    J = coef.shape[1]
+    k = (J - 1) // 2
+    for w in range(nw):
+        for c in range(4):
+            f = 0.0
+            for i in range(J):
+                g = 0.0
+                for j in range(J):
+                    g += gram[i, j] * coef[w, j, c]
+                f += coef[w, i, c] * g
+            v = xx[w, c] - f
+            if v < 0.0:
+                v = 0.0
+            v = v / dof
+            fl = floor2 * xx[w, c] / n
+            if v != v or fl != fl:
+                v = np.nan
+            elif fl > v:
+                v = fl
+            var[w, c] = v
+        for m in range(k):
+            a = coef[w, 2 * m, 0] + coef[w, 2 * m, 1] + coef[w, 2 * m, 2] + coef[w, 2 * m, 3]
+            b = coef[w, 2 * m + 1, 0] + coef[w, 2 * m + 1, 1] + coef[w, 2 * m + 1, 2] + coef[w, 2 * m + 1, 3]
+            zr[w, m] = a
+            zi[w, m] = b
+            mag = math.hypot(a, b)
+            ur = 1.0
+            ui = 0.0
+            if mag > 0.0:
+                ur = a / mag
+                ui = b / mag
+            quad = ur * ur * gi[m, 0, 0] + 2.0 * ur * ui * gi[m, 0, 1] + ui * ui * gi[m, 1, 1]
+            for c in range(4):
+                amp[w, m, c] = coef[w, 2 * m, c] * ur + coef[w, 2 * m + 1, c] * ui
+                var_amp[w, m, c] = var[w, c] * quad
+
+
+_stats_compiled = None
+
+
+def window_stats(coef, xx, gram, gi, n, dof, floor2):
+    """:func:`_window_stats` (compiled at the first call): returns ``(var, amp, var_amp, zr, zi)``."""
+    global _stats_compiled
+    if _stats_compiled is None:
+        from psdcal import _jit
+
+        _stats_compiled = _jit._compile(_window_stats)
+    nw, J = coef.shape[0], coef.shape[1]
+    k = (J - 1) // 2
+    var = np.empty((nw, 4))
+    amp = np.empty((nw, k, 4))
+    var_amp = np.empty((nw, k, 4))
+    zr = np.empty((nw, k))
+    zi = np.empty((nw, k))
+    _stats_compiled(np.ascontiguousarray(coef), np.ascontiguousarray(xx), gram, gi, float(n), float(max(dof, 1)),
+                    float(floor2), var, amp, var_amp, zr, zi)
+    return var, amp, var_amp, zr, zi

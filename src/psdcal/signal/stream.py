@@ -331,6 +331,8 @@ class MultiCarrierLockin:
             return self._windows(coef, xx, index, t_start)
 
     def _windows(self, coef, xx, index, t_start) -> WindowBlock:
+        if self.compiled:
+            return self._windows_compiled(coef, xx, index, t_start)
         n = self.n_window
         k = len(self.carriers_hz)
         fit = (coef * np.matmul(self._gram, coef)).sum(axis=1)  # coef^T G coef per window and channel (nw, 4)
@@ -360,6 +362,17 @@ class MultiCarrierLockin:
             phase_rad=phase,
             noise_sigma=np.sqrt(var),
         )
+
+    def _windows_compiled(self, coef, xx, index, t_start) -> WindowBlock:
+        """:meth:`_windows` by the compiled per-window loop (its numpy code is the reference; equal to rounding)."""
+        from psdcal.signal._lockin_kernel import window_stats
+
+        n = self.n_window
+        var, amp, var_amp, zr, zi = window_stats(coef, xx, self._gram, self._gi, n, self._dof, NOISE_FLOOR_REL**2)
+        phase = np.arctan2(zi, zr) - self._omega[None, :] * (t_start - self._origin_s)[:, None]
+        phase = np.angle(np.exp(1j * phase))
+        return WindowBlock(index=index, t_start_s=t_start, t_s=t_start + 0.5 * (n - 1) / self.rate_hz,
+                           amplitude=amp, var_amplitude=var_amp, phase_rad=phase, noise_sigma=np.sqrt(var))
 
     def _demodulate(self, xw: np.ndarray) -> WindowBlock:
         """Numpy reference of :meth:`_demodulate_rows` on the channel-major layout ``xw`` (4, nw, n)."""
