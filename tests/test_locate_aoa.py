@@ -223,3 +223,36 @@ def test_error_map(tmp_path, mode):
         np.testing.assert_allclose(emap.aoa_error_deg[0, 0], np.degrees(np.hypot(*res.sigma_alpha_rad)))
     plot_error_map(emap, tmp_path / "e.png")
     assert (tmp_path / "e.png").read_bytes()[:4] == b"\x89PNG"
+
+
+def test_compiled_impact_rows_equal_numpy_reference():
+    """The compiled impact points of locate's rows (psdcal.measure._impact_kernel) against
+    impact_from_amplitudes: d, its covariance and dd/dgains equal to rounding (1e-12 relative), NaN rows
+    where the gain-corrected sum is not positive or a value is not finite."""
+    from psdcal import _jit
+    from psdcal.measure._impact_kernel import impact_compiled
+    from psdcal.measure.aoa import impact_from_amplitudes
+    from psdcal.measure.sensor_model import SensorModel
+
+    if not _jit.enabled():
+        pytest.skip("numba disabled")
+    m = SensorModel.from_dict({"intrinsics": {"f_mm": 8.0, "cx_mm": 0.1, "cy_mm": -0.2},
+                               "gains": [1.0, 1.03, 0.97, 1.01]})
+    rng = np.random.default_rng(11)
+    a = rng.uniform(0.01, 1.0, (500, 4)) * rng.choice([1.0, 1e-3, 1e3], (500, 1))
+    var = rng.uniform(1e-8, 1e-5, (500, 4))
+    a[7] = [0.2, -0.2, 0.1, -0.1]  # a sum near zero (after the gains: small, either way)
+    a[9] = [-0.2, -0.1, -0.1, -0.1]  # negative sum
+    a[11, 2] = np.nan
+    a[13, 0] = np.inf
+    ref = impact_from_amplitudes(a, m, var, on_zero="nan")
+    d, cov, ddg, bad = impact_compiled(a, m.gains, var, m.lx_mm, m.ly_mm)
+    want_bad = np.isnan(ref.d_mm).any(axis=-1)
+    assert set(np.flatnonzero(want_bad)) >= {9, 11, 13}
+    np.testing.assert_array_equal(bad, want_bad)
+    for got, exp, what in ((d, ref.d_mm, "d"), (cov, ref.cov_d_mm2, "cov"), (ddg, ref.dd_dgains, "dd_dg")):
+        assert np.all(np.isnan(got[bad])) and np.all(np.isnan(exp[bad])), what
+        ok = ~bad
+        scale = np.abs(exp[ok]).reshape(ok.sum(), -1).max(axis=1)
+        err = np.abs(got[ok] - exp[ok]).reshape(ok.sum(), -1).max(axis=1)
+        assert np.all(err <= 1e-12 * scale), what

@@ -79,8 +79,12 @@ def locate_stream(stream, model, out_path, config: LocateConfig) -> LiveSummary:
     sums = SumCheck.for_model(model, str(stream.path))
     warned: list[str] = []
 
+    from psdcal.signal.stream import use_compiled_lockin
+
+    fast = use_compiled_lockin()  # the compiled impact points with the compiled lock-in, decided once
+
     def make_cols(t, nm, a, v):
-        return _rows_single(t, nm, a, v, model, config.distance_mm, config.min_snr, sums)
+        return _rows_single(t, nm, a, v, model, config.distance_mm, config.min_snr, sums, fast)
 
     def check_sums():
         # said as soon as the data show it (a live run may go on for hours), once

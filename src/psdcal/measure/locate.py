@@ -212,10 +212,12 @@ def _no_nan_sigmas(alpha_deg, sigma_deg, model: SensorModel) -> None:
                          field="covariance")
 
 
-def _rows_single(t_s, names, a, var_a, model: SensorModel, distance_mm, min_snr, sums=None):
+def _rows_single(t_s, names, a, var_a, model: SensorModel, distance_mm, min_snr, sums=None, fast: bool = False):
     """Columns for rows (t, emitter) of amplitudes a (n, 4); drops low-SNR rows.
 
     ``sums``: a :class:`psdcal.measure.channel_order.SumCheck` that the kept rows are added to.
+    ``fast``: impact points by the compiled loop (:mod:`psdcal.measure._impact_kernel`, equal to
+    :func:`psdcal.measure.aoa.impact_from_amplitudes` to rounding), decided once per run.
     """
     total = a.sum(-1)
     sd = np.sqrt(var_a.sum(-1))
@@ -224,10 +226,15 @@ def _rows_single(t_s, names, a, var_a, model: SensorModel, distance_mm, min_snr,
     t_s, names, a, var_a = t_s[keep], names[keep], a[keep], var_a[keep]
     if sums is not None:
         sums.add(a, var_a)
-    imp = impact_from_amplitudes(a, model, var_a, on_zero="nan")
-    res = angles_from_points(imp.d_mm, model, imp.cov_d_mm2, imp.dd_dgains, derivatives=False)
-    d = imp.d_mm
-    res_d = np.sqrt(np.clip(np.diagonal(imp.cov_d_mm2, axis1=-2, axis2=-1), 0.0, None))
+    if fast:
+        from psdcal.measure._impact_kernel import impact_compiled
+
+        d, cov_d, dd_dg, _ = impact_compiled(a, model.gains, var_a, model.lx_mm, model.ly_mm)
+    else:
+        imp = impact_from_amplitudes(a, model, var_a, on_zero="nan")
+        d, cov_d, dd_dg = imp.d_mm, imp.cov_d_mm2, imp.dd_dgains
+    res = angles_from_points(d, model, cov_d, dd_dg, derivatives=False)
+    res_d = np.sqrt(np.clip(np.diagonal(cov_d, axis1=-2, axis2=-1), 0.0, None))
     alpha = res.alpha_rad * _DEG
     sa = res.sigma_alpha_rad * _DEG
     _no_nan_sigmas(alpha, sa, model)
@@ -316,7 +323,10 @@ def _stream_single(recording: Recording, config: LocateConfig, out_path, order, 
         raise InputError("time multiplexing uses a single carrier", field="carrier_hz")
     names = config.emitter_names()
     window_s, warnings = prescan(recording, config)
-    lockin = MultiCarrierLockin(recording.rate_hz, config.carriers_hz, window_s)
+    from psdcal.signal.stream import use_compiled_lockin
+
+    lockin = MultiCarrierLockin(recording.rate_hz, config.carriers_hz, window_s,
+                                compiled=use_compiled_lockin(int(getattr(recording, "n_samples", 0) or 0)))
     if config.distance_mm is not None and not (config.distance_mm > 0):
         raise InputError(f"--distance-mm must be positive, got {config.distance_mm}", field="distance_mm")
     seg = None
@@ -467,9 +477,14 @@ def locate_to_csv(recording: Recording, model: SensorModel, out_path, config: Lo
             sums[id(m)] = SumCheck.for_model(m, str(recording.path))
         return sums[id(m)]
 
+    # the compiled impact points with the compiled lock-in (decided once: every row alike)
+    from psdcal.signal.stream import use_compiled_lockin
+
+    fast = use_compiled_lockin(int(getattr(recording, "n_samples", 0) or 0))
+
     def make_cols(t, nm, a, v):
         if not models:
-            return _rows_single(t, nm, a, v, model, config.distance_mm, config.min_snr, sum_check(model))
+            return _rows_single(t, nm, a, v, model, config.distance_mm, config.min_snr, sum_check(model), fast)
         parts, skipped = [], 0
         order = np.argsort(t, kind="stable")
         t, nm, a, v = t[order], nm[order], a[order], v[order]
@@ -480,7 +495,7 @@ def locate_to_csv(recording: Recording, model: SensorModel, out_path, config: Lo
             idx = np.array(idx)
             m = models.get(name, model)
             cols, sk = _rows_single(t[idx], nm[idx], a[idx], v[idx], m, config.distance_mm, config.min_snr,
-                                    sum_check(m))
+                                    sum_check(m), fast)
             parts.append(cols)
             skipped += sk
         merged = {c: np.concatenate([p[c] for p in parts]) for c in parts[0]}
