@@ -342,11 +342,12 @@ def rows_bytes(columns) -> bytes:
     # the cells left to Python (rare: values near a rounding tie, extreme exponents), spliced in
     rr, jj = np.divmod(fb_cell[:n_left], len(cols))
     parts, at = [], 0
+    text = memoryview(out)  # the segments joined without copies of their own
     for pos, r, j in zip(fb_pos[:n_left].tolist(), rr.tolist(), jj.tolist()):
-        parts.append(out[at:pos].tobytes())
+        parts.append(text[at:pos])
         parts.append((("%.10g" % F[r, src[j]]) if kind[j] == 0 else ("%d" % I[r, src[j]])).encode())
         at = pos
-    parts.append(out[at:length].tobytes())
+    parts.append(text[at:length])
     return b"".join(parts)
 
 
