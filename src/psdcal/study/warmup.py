@@ -38,6 +38,18 @@ def warm_up(verbose: bool = True) -> float:
 
     model = SensorModel.from_dict({"intrinsics": {"f_mm": 8.0, "cx_mm": 0.0, "cy_mm": 0.0}})
     angles_from_points(np.zeros((4, 2)), model, np.zeros((4, 2, 2)))
+    # locate's lock-in (window sums on writable rows, as from a live stream, and on read-only ones, as from a
+    # memory-mapped .npy; the per-window arithmetic) and its impact points
+    from psdcal.measure._impact_kernel import impact_compiled
+    from psdcal.signal.stream import MultiCarrierLockin
+
+    rows = np.zeros((600, 4))
+    ro = rows.copy()
+    ro.flags.writeable = False
+    for r in (rows, ro):
+        lk = MultiCarrierLockin(10_000.0, (1000.0,), 0.03, compiled=True)
+        lk.windows(*lk.fit_rows(0.0, r))
+    impact_compiled(np.ones((2, 4)), np.ones(4), np.zeros((2, 4)), 9.0, 9.0)
     from psdcal.measure._csvtext import rows_text  # locate's CSV writer
 
     rows_text([np.zeros(2), np.array(["a", "b"], dtype=object), np.arange(2)])
