@@ -299,3 +299,24 @@ def test_compiled_window_arithmetic_equals_numpy():
     np.testing.assert_allclose(np.exp(1j * wb.phase_rad), np.exp(1j * wa.phase_rad), rtol=0, atol=1e-12)
     assert np.isnan(wb.noise_sigma[7, 1]) and np.all(np.isfinite(wb.noise_sigma[7, [0, 2, 3]]))
     assert np.array_equal(np.isnan(wb.var_amplitude), np.isnan(wa.var_amplitude))
+
+
+def test_mapped_rows_equal_read_rows_and_truncation_is_named(tmp_path):
+    """``chunks(mapped=True)``: the same rows as the copied reads, as views of the file (no copy); a file
+    truncated after it was opened is named as truncated before a block past its end is touched."""
+    _, x = _sig(10_000)
+    np.save(tmp_path / "r.npy", np.ascontiguousarray(x.T))
+    rec = open_recording(tmp_path / "r.npy", RATE)
+    a = np.concatenate([b for _, b in rec.chunks(3_000, rows=True)])
+    it = rec.chunks(3_000, rows=True, mapped=True)
+    t0, first = next(it)
+    assert not first.flags.writeable and t0 == 0.0
+    b = np.concatenate([first] + [blk for _, blk in it])
+    np.testing.assert_array_equal(a, b)
+    data = (tmp_path / "r.npy").read_bytes()
+    it = rec.chunks(3_000, rows=True, mapped=True)
+    next(it)
+    with open(tmp_path / "r.npy", "r+b") as fh:  # the same file, shortened (not replaced)
+        fh.truncate(len(data) - 32 * 5_000)
+    with pytest.raises(InputError, match=r"r\.npy.*truncated"):
+        list(it)

@@ -321,36 +321,36 @@ def _rows_mapped(rec: Recording, chunk: int, check: bool, offset: int):
     import mmap
 
     n = rec.n_samples
+    if n == 0:
+        return
+
+    def truncated(size):
+        got = max(0, size - offset) // 32
+        return InputError(f"the file ends after {got} of its {n} samples: a truncated recording", path=rec.path)
+
     with open(rec.path, "rb") as fh:
-        size = os.fstat(fh.fileno()).st_size
-        if n == 0:
-            return
-        if size < offset + 32 * n:  # (checked again before each block: touching a truncated map is a crash)
-            got = max(0, size - offset) // 32
-            raise InputError(f"the file ends after {got} of its {n} samples: a truncated recording", path=rec.path)
-        mm = mmap.mmap(fh.fileno(), offset + 32 * n, access=mmap.ACCESS_READ)
-    try:
-        arr = np.frombuffer(mm, dtype=np.float64, count=4 * n, offset=offset).reshape(n, 4)
-        for start in range(0, n, chunk):
-            m = min(n, start + chunk) - start
-            try:
-                size = os.stat(rec.path).st_size
-            except OSError:
-                size = -1
-            if size < offset + 32 * (start + m):
-                got = max(0, size - offset) // 32
-                raise InputError(f"the file ends after {got} of its {n} samples: a truncated recording",
-                                 path=rec.path)
-            block = arr[start: start + m]
-            if check:
-                _check_finite(block.T, rec.path, start)
-            yield rec.t0_s + start / rec.rate_hz, block
-    finally:
-        arr = block = None  # noqa: F841  (no view may outlive the map)
+        fd = fh.fileno()
+        if os.fstat(fd).st_size < offset + 32 * n:
+            raise truncated(os.fstat(fd).st_size)
+        mm = mmap.mmap(fd, offset + 32 * n, access=mmap.ACCESS_READ)
         try:
-            mm.close()
-        except BufferError:  # a caller still holds a block: the map closes when it is dropped
-            pass
+            arr = np.frombuffer(mm, dtype=np.float64, count=4 * n, offset=offset).reshape(n, 4)
+            for start in range(0, n, chunk):
+                m = min(n, start + chunk) - start
+                # the mapped file's size before each block (touching a truncated map is a crash, not an error)
+                size = os.fstat(fd).st_size
+                if size < offset + 32 * (start + m):
+                    raise truncated(size)
+                block = arr[start: start + m]
+                if check:
+                    _check_finite(block.T, rec.path, start)
+                yield rec.t0_s + start / rec.rate_hz, block
+        finally:
+            arr = block = None  # noqa: F841  (no view may outlive the map)
+            try:
+                mm.close()
+            except BufferError:  # a caller still holds a block: the map closes when it is dropped
+                pass
 
 
 # --------------------------------------------------------------------------- csv
