@@ -62,9 +62,20 @@ def _window_sums(P, x, n, coef, xx, xt):  # pragma: no cover - compiled
         n3 = 1
     if r == 4:
         n3 = 2
+    n4 = n - n % 4
     for w in range(nw):
         b = w * n
-        for t in range(n):
+        # channel-major copy, four rows at a time (a 4 x 4 block: fewer, wider stores)
+        for t in range(0, n4, 4):
+            a0, a1, a2, a3 = x[b + t, 0], x[b + t, 1], x[b + t, 2], x[b + t, 3]
+            b0, b1, b2, b3 = x[b + t + 1, 0], x[b + t + 1, 1], x[b + t + 1, 2], x[b + t + 1, 3]
+            c0, c1, c2, c3 = x[b + t + 2, 0], x[b + t + 2, 1], x[b + t + 2, 2], x[b + t + 2, 3]
+            d0, d1, d2, d3 = x[b + t + 3, 0], x[b + t + 3, 1], x[b + t + 3, 2], x[b + t + 3, 3]
+            xt[0, t], xt[0, t + 1], xt[0, t + 2], xt[0, t + 3] = a0, b0, c0, d0
+            xt[1, t], xt[1, t + 1], xt[1, t + 2], xt[1, t + 3] = a1, b1, c1, d1
+            xt[2, t], xt[2, t + 1], xt[2, t + 2], xt[2, t + 3] = a2, b2, c2, d2
+            xt[3, t], xt[3, t + 1], xt[3, t + 2], xt[3, t + 3] = a3, b3, c3, d3
+        for t in range(n4, n):
             xt[0, t] = x[b + t, 0]
             xt[1, t] = x[b + t, 1]
             xt[2, t] = x[b + t, 2]

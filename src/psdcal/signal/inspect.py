@@ -79,7 +79,8 @@ def read_prefix(recording, max_samples: int = DEFAULT_SCAN_SAMPLES) -> np.ndarra
     parts, n = [], 0
     # a .npy as rows: a (n, 4) file is then read without a transposing copy (the same checked samples)
     rows = getattr(recording, "kind", None) == "npy"
-    for _, block in recording.chunks(min(int(max_samples), 1 << 16), **({"rows": True} if rows else {})):
+    kw = {"rows": True, "mapped": True} if rows else {}  # (mapped: views of the file, checked, no copy)
+    for _, block in recording.chunks(min(int(max_samples), 1 << 16), **kw):
         parts.append(block[: max_samples - n].T if rows else block[:, : max_samples - n])
         n += parts[-1].shape[1]
         if n >= max_samples:
