@@ -89,3 +89,58 @@ def impact_compiled(a: np.ndarray, gains: np.ndarray, var_a: np.ndarray, lx_mm: 
     impact_rows(np.ascontiguousarray(a, dtype=float), np.ascontiguousarray(gains, dtype=float),
                 np.ascontiguousarray(var_a, dtype=float), float(lx_mm), float(ly_mm), d, cov, dd_dg, bad)
     return d, cov, dd_dg, bad
+
+
+@njit
+def channel_sum_rows(a, var_a, g, acc):  # pragma: no cover - compiled
+    """The sums of :meth:`psdcal.measure.channel_order.SumCheck.add` over rows ``a``, ``var_a`` (n, 4).
+
+    ``acc`` (16,) receives: [0] the rows used, [1] sum D^2 / var D, [2:5] sum J^T D / var D,
+    [5:14] sum J^T J / var D (3 x 3, row-major), [14] sum D^2, [15] max |D| (the numpy code of
+    ``SumCheck.add`` is the reference).
+    """
+    n = a.shape[0]
+    acc[:] = 0.0
+    for r in range(n):
+        v0 = a[r, 0] / g[0]
+        v1 = a[r, 1] / g[1]
+        v2 = a[r, 2] / g[2]
+        v3 = a[r, 3] / g[3]
+        w0 = var_a[r, 0] / g[0] ** 2
+        w1 = var_a[r, 1] / g[1] ** 2
+        w2 = var_a[r, 2] / g[2] ** 2
+        w3 = var_a[r, 3] / g[3] ** 2
+        sx = v0 + v1
+        sy = v2 + v3
+        s = sx + sy
+        d = (sx - sy) / s
+        var_d = 4.0 * (sy ** 2 * (w0 + w1) + sx ** 2 * (w2 + w3)) / s ** 4
+        s2 = s ** 2
+        j1 = (2 * sy / s2) * (-v1 / g[1])
+        j2 = (-2 * sx / s2) * (-v2 / g[2])
+        j3 = (-2 * sx / s2) * (-v3 / g[3])
+        if not (d - d == 0.0 and var_d - var_d == 0.0 and var_d > 0 and s > 0 and j1 - j1 == 0.0
+                and j2 - j2 == 0.0 and j3 - j3 == 0.0):
+            continue
+        acc[0] += 1.0
+        acc[1] += d * d / var_d
+        q = d / var_d
+        acc[2] += j1 * q
+        acc[3] += j2 * q
+        acc[4] += j3 * q
+        k1 = j1 / var_d
+        k2 = j2 / var_d
+        k3 = j3 / var_d
+        acc[5] += k1 * j1
+        acc[6] += k1 * j2
+        acc[7] += k1 * j3
+        acc[8] += k2 * j1
+        acc[9] += k2 * j2
+        acc[10] += k2 * j3
+        acc[11] += k3 * j1
+        acc[12] += k3 * j2
+        acc[13] += k3 * j3
+        acc[14] += d * d
+        ad = abs(d)
+        if ad > acc[15]:
+            acc[15] = ad

@@ -89,8 +89,27 @@ class SumCheck:
         """The check for a :class:`psdcal.measure.sensor_model.SensorModel` (its gains and their covariance)."""
         return cls(model.gains, model.ly_mm, what, gain_covariance(model))
 
-    def add(self, a, var_a) -> None:
-        """Rows ``a`` (n, 4) of amplitudes ``vx1, vx2, vy1, vy2`` with their variances ``var_a`` (n, 4)."""
+    def add(self, a, var_a, *, compiled: bool = False) -> None:
+        """Rows ``a`` (n, 4) of amplitudes ``vx1, vx2, vy1, vy2`` with their variances ``var_a`` (n, 4).
+
+        ``compiled``: the sums by one compiled loop over the rows (:mod:`psdcal.measure._impact_kernel`;
+        this numpy code is the reference, equal to rounding).
+        """
+        if compiled:
+            from psdcal.measure._impact_kernel import channel_sum_rows
+
+            acc = np.empty(16)
+            channel_sum_rows(np.ascontiguousarray(np.asarray(a, dtype=float).reshape(-1, 4)),
+                             np.ascontiguousarray(np.asarray(var_a, dtype=float).reshape(-1, 4)), self.gains, acc)
+            if acc[0] == 0:
+                return
+            self.n += int(acc[0])
+            self.s0 += float(acc[1])
+            self.u += acc[2:5]
+            self.m += acc[5:14].reshape(3, 3)
+            self.sum_d2 += float(acc[14])
+            self.max_abs_d = max(self.max_abs_d, float(acc[15]))
+            return
         v = np.asarray(a, dtype=float).reshape(-1, 4) / self.gains
         var = np.asarray(var_a, dtype=float).reshape(-1, 4) / self.gains ** 2
         sx, sy = v[:, 0] + v[:, 1], v[:, 2] + v[:, 3]

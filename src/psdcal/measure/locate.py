@@ -225,7 +225,7 @@ def _rows_single(t_s, names, a, var_a, model: SensorModel, distance_mm, min_snr,
     keep &= np.all(np.isfinite(a), axis=-1)
     t_s, names, a, var_a = t_s[keep], names[keep], a[keep], var_a[keep]
     if sums is not None:
-        sums.add(a, var_a)
+        sums.add(a, var_a, compiled=fast)
     if fast:
         from psdcal.measure._impact_kernel import impact_compiled
 

@@ -50,6 +50,9 @@ def warm_up(verbose: bool = True) -> float:
         lk = MultiCarrierLockin(10_000.0, (1000.0,), 0.03, compiled=True)
         lk.windows(*lk.fit_rows(0.0, r))
     impact_compiled(np.ones((2, 4)), np.ones(4), np.zeros((2, 4)), 9.0, 9.0)
+    from psdcal.measure.channel_order import SumCheck
+
+    SumCheck(np.ones(4), 9.0).add(np.ones((2, 4)), np.ones((2, 4)), compiled=True)
     from psdcal.measure._csvtext import rows_text  # locate's CSV writer
 
     rows_text([np.zeros(2), np.array(["a", "b"], dtype=object), np.arange(2)])
