@@ -64,7 +64,7 @@ REGISTRY: dict[str, Bench] = {
     "bench_verdict": Bench((), ("--sets", "2", "--repeats", "1"), ("1",), 30),
     "bench_live": Bench(("--seconds", "3"), ("--seconds", "1"), ("1",), 10),
     "bench_live_multi": Bench(("--seconds", "10", "--repeat", "3"), ("--seconds", "2", "--repeat", "1"), ("1",), 60),
-    "bench_pose": Bench((), ("--right", "20", "--wrong", "4", "--repeats", "10"), ("1", "2"), 180),
+    "bench_pose": Bench((), ("--right", "6", "--wrong", "2", "--repeats", "5"), ("1", "2", "3", "4"), 180),
     "bench_dashboard": Bench(("--reps", "3", "--seconds", "10"), ("--reps", "1", "--seconds", "2"), ("1", "2"), 120),
     "efficiency": Bench((), ("--trials", "20"), ("1",), 20),
 }
