@@ -27,18 +27,19 @@ ROOT = Path(__file__).resolve().parent.parent
 
 #: A generated region: its name, then its body (everything between the two markers).
 REGION_RE = re.compile(
-    r"<!-- bench:(?P<name>[A-Za-z0-9_.-]+/[A-Za-z0-9_.-]+) begin -->\n(?P<body>.*?)<!-- bench:(?P=name) end -->",
-    re.S,
+    r"^<!-- bench:(?P<name>[A-Za-z0-9_.-]+/[A-Za-z0-9_.-]+) begin -->\n(?P<body>.*?)^<!-- bench:(?P=name) end -->$",
+    re.S | re.M,
 )
-#: Any marker, to find unbalanced or misspelt ones.
-MARKER_RE = re.compile(r"<!-- bench:(\S+) (begin|end) -->")
+#: Any marker (a line of its own), to find unbalanced or misspelt ones.
+MARKER_RE = re.compile(r"^<!-- bench:(\S+) (begin|end) -->", re.M)
 #: An explicit table id printed by a benchmark just before its table (``_table.print_table(table_id=...)``).
 TABLE_ID_RE = re.compile(r"^<!-- table: ([A-Za-z0-9_.-]+) -->$")
 
 
-def doc_pages(root: Path = ROOT) -> list[Path]:
+def doc_pages(root: Path | None = None) -> list[Path]:
     """README.md and every Markdown page under docs/, sorted."""
-    return [root / "README.md", *sorted((root / "docs").rglob("*.md"))]
+    root = ROOT if root is None else root
+    return [p for p in [root / "README.md", *sorted((root / "docs").rglob("*.md"))] if p.exists()]
 
 
 def parse_tables(stdout: str) -> dict[str, str]:
@@ -168,8 +169,9 @@ def _git_commit(root: Path) -> str:
     return head + (" with local changes" if dirty else "")
 
 
-def environment(root: Path = ROOT) -> dict[str, str]:
+def environment(root: Path | None = None) -> dict[str, str]:
     """Machine and versions of this run: date, cpu, cores, load, python, numpy, scipy, numba, opencv, psdcal."""
+    root = ROOT if root is None else root
     try:
         load = "{:.2f} {:.2f} {:.2f}".format(*os.getloadavg())
     except OSError:
