@@ -28,7 +28,7 @@ from __future__ import annotations
 import subprocess
 import sys
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
@@ -46,29 +46,28 @@ class Bench:
     tables: tuple[str, ...] = ("1",)
     #: a rough full-size duration on the 2-core development machine, s (for the --list and the docs)
     about_s: int = 60
-    notes: str = field(default="")
 
 
 #: Every script ``python3 tasks.py bench`` runs. A generated region of the docs names one of these
 #: tables (``tests/test_bench_docs.py`` checks it, and that every table here has a region).
 REGISTRY: dict[str, Bench] = {
     "bench_scaling": Bench(("--repeats", "9"), ("--quick", "--repeats", "1", "--scipy-max-views", "0"),
-                           ("1", "2", "3"), 420),
+                           ("1", "2", "3"), 600),
     "bench_linear": Bench((), ("--repeats", "20"), ("1",), 20),
     "bench_startup": Bench(("--repeats", "5"), ("--repeats", "1"), ("1",), 30),
     "bench_aoa": Bench(("--runs", "5"), ("--points", "100000", "--runs", "1"), ("1",), 60),
-    "bench_locate": Bench(("--seconds", "60", "--repeats", "5"), ("--seconds", "2", "--repeats", "1"), ("1",), 240),
+    "bench_locate": Bench(("--seconds", "60", "--repeats", "5"), ("--seconds", "2", "--repeats", "1"), ("1",), 120),
     # (its start-up table compiles every kernel three times in fresh caches: minutes; not in --quick)
     "bench_opencv": Bench(("--sets", "20", "--repeats", "3"), ("--sets", "2", "--repeats", "1", "--no-startup"),
                           ("1", "2"), 300),
     "bench_montecarlo": Bench(("--trials", "30"), ("--trials", "3"), ("1",), 60),
-    "bench_signalchain": Bench((), ("--points", "500"), ("1",), 30),
-    "bench_verdict": Bench((), ("--sets", "2", "--repeats", "1"), ("1",), 30),
+    "bench_signalchain": Bench((), ("--points", "500"), ("1",), 20),
+    "bench_verdict": Bench((), ("--sets", "2", "--repeats", "1"), ("1",), 20),
     "bench_live": Bench(("--seconds", "3"), ("--seconds", "1"), ("1",), 10),
     "bench_live_multi": Bench(("--seconds", "10", "--repeat", "3"), ("--seconds", "2", "--repeat", "1"), ("1",), 60),
     "bench_pose": Bench((), ("--right", "6", "--wrong", "2", "--repeats", "5"), ("1", "2", "3", "4"), 180),
     "bench_dashboard": Bench(("--reps", "3", "--seconds", "10"), ("--reps", "1", "--seconds", "2"), ("1", "2"), 120),
-    "efficiency": Bench((), ("--trials", "20"), ("1",), 20),
+    "efficiency": Bench((), ("--trials", "20"), ("1",), 150),
 }
 
 
