@@ -98,8 +98,10 @@ def check_docs(root: Path | None = None) -> list[str]:
         text = page.read_text(encoding="utf-8")
         rel = page.relative_to(root)
         problems += [f"{rel}: {p}" for p in _docgen.marker_problems(text)]
-        for name, _ in _docgen.regions(text):
+        for name, body in _docgen.regions(text):
             script, tid = name.split("/", 1)
+            if not body.strip():
+                problems.append(f"{rel}: region {name!r} is empty: run python3 tasks.py bench {script}")
             if script not in REGISTRY:
                 problems.append(f"{rel}: region {name!r}: no benchmark {script!r} in benchmarks/run_all.py's REGISTRY")
             elif tid not in REGISTRY[script].tables:

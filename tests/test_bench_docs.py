@@ -176,7 +176,8 @@ def _fake_tree(tmp_path, docgen, monkeypatch, run_all):
 def test_bench_writes_its_tables_with_the_machine_and_leaves_everything_else(tmp_path, monkeypatch, run_all, docgen,
                                                                               capsys):
     readme, page = _fake_tree(tmp_path, docgen, monkeypatch, run_all)
-    assert run_all.check_docs(tmp_path) == []
+    assert [p for p in run_all.check_docs(tmp_path) if "is empty" not in p] == []
+    assert "p.md: region 'bench_ok/1' is empty" in "\n".join(run_all.check_docs(tmp_path))
     assert run_all.main([]) == 1  # bench_bad failed: its region is kept, the others are written
     out = capsys.readouterr()
     assert "bench_bad" in out.err and "wrote" in out.out
@@ -193,7 +194,8 @@ def test_bench_writes_its_tables_with_the_machine_and_leaves_everything_else(tmp
     assert "| 7 |" in p and "| thing | 42 |" in p  # both tables, each in its own region
     assert docgen.outside_regions(p) == docgen.outside_regions(page)
     assert docgen.outside_regions(new) == docgen.outside_regions(readme)
-    # the page still checks out, and a second run rewrites the same regions in place (no growth)
+    # the page checks out (bench_bad's region is old but not empty), and a second run rewrites the same
+    # regions in place (no growth)
     assert run_all.check_docs(tmp_path) == []
     assert run_all.main(["ok"]) == 0
     again = (tmp_path / "README.md").read_text()
