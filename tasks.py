@@ -3,7 +3,7 @@
 
     python3 tasks.py demo    # calibrate the bundled default data (main job)
     python3 tasks.py test    # run the test suite
-    python3 tasks.py bench   # run the benchmarks
+    python3 tasks.py bench   # run the benchmarks, write their tables into README/docs (--quick: smoke run)
     python3 tasks.py docs    # build the documentation site into site/ (strict)
 
 Each task creates the virtual environment ``.venv`` at the repository root

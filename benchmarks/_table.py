@@ -2,9 +2,15 @@
 from __future__ import annotations
 
 
-def print_table(head, lines, markdown: bool = False) -> None:
-    """Print rows of strings under a header, as a Markdown table or right-aligned columns."""
+def print_table(head, lines, markdown: bool = False, table_id: str | None = None) -> None:
+    """Print rows of strings under a header, as a Markdown table or right-aligned columns.
+
+    ``table_id`` (Markdown only) prints ``<!-- table: ID -->`` before the table: the name its
+    generated region in the docs uses (``benchmarks/_docgen.py``; without it, the table's number).
+    """
     if markdown:
+        if table_id is not None:
+            print(f"<!-- table: {table_id} -->")
         print("| " + " | ".join(head) + " |")
         print("|" + "|".join("---" for _ in head) + "|")
         for line in lines:

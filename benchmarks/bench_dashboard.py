@@ -249,11 +249,35 @@ def main(argv=None):
     ap.add_argument("--webgl", action="store_true", help="Measure the latency with the 3-D view on (software GL).")
     ap.add_argument("--skip-throughput", action="store_true")
     ap.add_argument("--skip-latency", action="store_true")
+    ap.add_argument("--markdown", action="store_true", help="also print the results as Markdown tables")
     a = ap.parse_args(argv)
+    lat = thr = None
     if not a.skip_latency:
-        latency(a.seconds, a.webgl)
+        lat = latency(a.seconds, a.webgl)
     if not a.skip_throughput:
-        throughput(a.reps)
+        thr = throughput(a.reps)
+    if a.markdown:
+        sys.path.insert(0, str(Path(__file__).resolve().parent))
+        from _table import print_table
+
+        if not a.skip_latency:
+            print(f"\nlatency, row written -> drawn ({'with' if a.webgl else 'without'} the 3-D view), "
+                  f"{a.seconds:g} s of rows")
+            print_table(("windows", "median ms", "p99 ms", "max ms", "redraws/s", "page errors"),
+                        [(str(lat["windows"]), f"{lat['median_ms']:.1f}", f"{lat['p99_ms']:.1f}", f"{lat['max_ms']:.1f}",
+                          f"{lat['draws_per_s']:.0f}", str(len(lat["errors"] or [])))] if lat else
+                        [("-", "-", "-", "-", "-", "not measured (no chromium, or no window drawn)")], markdown=True)
+        if thr is not None:
+            print(f"\npsdcal locate --sensors (3 sensors, 20 s at 20 kS/s), {a.reps} runs per case; "
+                  "the dashboard following a live feed of 300 rows/s")
+            rows = [(k, f"{thr['median_s'][k]:.2f}", f"{statistics.median(c for _, c in v):.2f}", "-")
+                    for k, v in thr["runs"].items()]
+            rows.append(("ten viewers against none, paired median", "-", "-", f"{thr['ten_vs_none_pct']:+.1f} %"))
+            for n, v in thr["server_cpu"].items():
+                rows.append((f"dashboard server CPU, {n} viewers", "-", "-",
+                             f"{100 * statistics.median(v):.1f} % of one core"))
+            print_table(("case", "locate wall s (median)", "locate CPU s (median)", "change or share"), rows,
+                        markdown=True)
     return 0
 
 

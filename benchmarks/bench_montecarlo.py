@@ -13,7 +13,7 @@ simulation's time over the calibration's (issue 11 target: <= 1). Times are CPU 
 process (one core); a process pool scales them by the number of cores
 (``psdcal.study.montecarlo.run_trials``).
 
-Run: ``.venv/bin/python benchmarks/bench_montecarlo.py [--trials N]``
+Run: ``.venv/bin/python benchmarks/bench_montecarlo.py [--trials N] [--markdown]``
 """
 from __future__ import annotations
 
@@ -48,6 +48,7 @@ def _cpu(fn, n):
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--trials", type=int, default=20, help="trials per row (default 20)")
+    ap.add_argument("--markdown", action="store_true", help="print the table in Markdown instead")
     args = ap.parse_args(argv)
     n = args.trials
     gains = channel_gains(chain_settings(40.0))
@@ -100,6 +101,19 @@ def main(argv=None) -> int:
         rows.append((lens, t_sim, t_samp, t_sig, f_sig, t_geo, f_geo, t_cal))
     print(f"Monte Carlo throughput, one core (CPU time), {n} trials per row; trial = 9 views x 14 LEDs, "
           "paper's model, template cost")
+    if args.markdown:
+        import sys
+
+        sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+        from _table import print_table
+
+        print_table(("lens", "signal simulation ms/trial", "sampled records ms (reference)", "calibration ms",
+                     "simulation / calibration", "calibrations/s per core, signal included",
+                     "calibrations/s per core, signal excluded", "failed"),
+                    [(lens, f"{1e3 * t_sim:.2f}", f"{1e3 * t_samp:.2f}", f"{1e3 * t_cal:.2f}", f"{t_sim / t_cal:.2f}",
+                      f"{1 / t_sig:.1f}", f"{1 / t_geo:.1f}", str(f_sig + f_geo))
+                     for lens, t_sim, t_samp, t_sig, f_sig, t_geo, f_geo, t_cal in rows], markdown=True)
+        return 0
     print(f"{'lens':6} {'sim ms/trial':>13} {'sampled ms':>11} {'calib ms':>9} {'sim/calib':>10} "
           f"{'calib/s, signal incl.':>22} {'calib/s, signal excl.':>22} {'failed':>7}")
     for lens, t_sim, t_samp, t_sig, f_sig, t_geo, f_geo, t_cal in rows:

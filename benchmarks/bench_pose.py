@@ -77,6 +77,15 @@ def timing(src: str, repeats: int) -> dict:
     return json.loads(res.stdout.strip().splitlines()[-1])
 
 
+def _print_markdown(tables) -> None:
+    sys.path.insert(0, str(HERE))
+    from _table import print_table
+
+    for title, head, rows in tables:
+        print(f"\n{title}")
+        print_table(head, rows, markdown=True)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--right", type=int, default=400, help="rooms per layout with the right survey")
@@ -85,6 +94,7 @@ def main() -> None:
     ap.add_argument("--before", help="another checkout's src directory, timed on the same rooms")
     ap.add_argument("--seed", type=int, default=7)
     ap.add_argument("--timing-only", action="store_true", help="only the timing")
+    ap.add_argument("--markdown", action="store_true", help="also print the results as Markdown tables")
     a = ap.parse_args()
 
     src = str(HERE.parent / "src")
@@ -96,8 +106,13 @@ def main() -> None:
     show(f"one pose, 6 emitters (median of {a.repeats}, wall clock and process CPU)", t)
     if a.before:
         show(f"  before ({a.before})", timing(a.before, a.repeats))
+    md = []  # (title, head, rows) of the Markdown tables, printed at the end
+    md.append((f"one pose, 6 emitters, median of {a.repeats} calls", ("layout", "wall ms", "process CPU ms"),
+               [(k, f"{t[k] * 1e3:.2f}", f"{t[k + '_cpu'] * 1e3:.2f}") for k in ("general", "floor")]))
 
     if a.timing_only:
+        if a.markdown:
+            _print_markdown(md)
         return
     sys.path.insert(0, src)
     from psdcal.measure.pose import estimate_pose
@@ -127,6 +142,25 @@ def main() -> None:
           f"{sum(r['sqpnp_dchi2'] > 0 for r in differ)} of them")
     print(f"SQPnP: same basin in {sum(same)} of {len(same)}, within the result's 99.9 % region in "
           f"{sum(close)} of {len(close)} (its cost is unweighted: with per-emitter noise it is not the ML pose)")
+    outcomes = ("clean", "warned", "refused", "unusable")
+    md.append(("rooms by survey and outcome", ("survey", "rooms", *outcomes, "silently wrong"),
+               [(how, str(sum(r["survey"] == how for r in recs)),
+                 *(str(sum(r["survey"] == how and r["outcome"] == o for r in recs)) for o in outcomes),
+                 str(sum(r["survey"] == how for r in silent))) for how in sim.SURVEYS]))
+    nees_rows = [("all", str(len(nees)), f"{nees.mean():.2f} +- {np.sqrt(12.0 / len(nees)):.2f}",
+                  f"{np.median(nees):.2f}", str(int(np.sum(nees > 37.95))))]
+    for kind in sim.KINDS:
+        v = np.array([r["nees"] for r in usable if r["kind"] == kind])
+        nees_rows.append((kind, str(len(v)), f"{v.mean():.2f} +- {np.sqrt(12.0 / len(v)):.2f}", f"{np.median(v):.2f}",
+                          str(int(np.sum(v > 37.95)))))
+    md.append(("NEES of the 6-dof pose, usable right surveys (chi2(6): mean 6, median 5.35)",
+               ("layout", "poses", "mean NEES", "median", "beyond chi2(6) at 1e-6"), nees_rows))
+    md.append(("OpenCV's SQPnP on the right surveys", ("right surveys", "SQPnP differs", "of which SQPnP fits worse",
+                                                        "same basin", "within psdcal's 99.9 % region"),
+               [(str(len(right)), str(len(differ)), str(sum(r["sqpnp_dchi2"] > 0 for r in differ)),
+                 f"{sum(same)} of {len(same)}", f"{sum(close)} of {len(close)}")]))
+    if a.markdown:
+        _print_markdown(md)
 
 
 if __name__ == "__main__":

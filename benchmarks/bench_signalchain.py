@@ -9,7 +9,7 @@ three repeats.  Rows:
 * ``demodulate``: records -> amplitudes (lock-in or band-pass);
 * ``chain``: the whole :func:`psdcal.signal.chain.measure_points`, blocks included.
 
-Run: ``.venv/bin/python benchmarks/bench_signalchain.py [--points N]`` (about 15 s).
+Run: ``.venv/bin/python benchmarks/bench_signalchain.py [--points N] [--markdown]`` (about 15 s).
 """
 from __future__ import annotations
 
@@ -39,6 +39,7 @@ def _best_of(fn, repeats: int = 3) -> float:
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--points", type=int, default=4000, help="spots per timed call (default 4000)")
+    parser.add_argument("--markdown", action="store_true", help="print the table in Markdown")
     args, _ = parser.parse_known_args(argv)
 
     from psdcal.signal import chain as sc
@@ -61,6 +62,13 @@ def main(argv=None) -> int:
     s0 = sc.ChainSettings()
     print(f"signal chain throughput, one core: {s0.rate_hz:g} Hz x {s0.duration_s * 1e3:g} ms "
           f"({s0.n_samples} samples x 4 channels), carrier {s0.carrier_hz:g} Hz, SNR 40 dB, {n} spots")
+    if args.markdown:
+        sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+        from _table import print_table
+
+        print_table(("method", "stage", "us/spot", "spots/s per core"),
+                    [(m, st, f"{t * 1e6:.1f}", f"{1.0 / t:,.0f}") for m, st, t in rows], markdown=True)
+        return 0
     print(f"{'method':<10}{'stage':<20}{'us/spot':>10}{'spots/s/core':>15}")
     for method, stage, t in rows:
         print(f"{method:<10}{stage:<20}{t * 1e6:>10.1f}{1.0 / t:>15,.0f}")

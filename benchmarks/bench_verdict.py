@@ -7,7 +7,7 @@ for the default model and ``--no-tangential``; the time of the verdict
 
 Usage::
 
-    .venv/bin/python benchmarks/bench_verdict.py [--sets 10] [--repeats 3]
+    .venv/bin/python benchmarks/bench_verdict.py [--sets 10] [--repeats 3] [--markdown]
 """
 from __future__ import annotations
 
@@ -26,6 +26,7 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--sets", type=int, default=10)
     ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--markdown", action="store_true", help="also print the results as a Markdown table")
     a = ap.parse_args(argv)
     from psdcal.calibration.core import calibrate
     from psdcal.study.simulate import simulate_set
@@ -34,6 +35,7 @@ def main(argv=None):
         from psdcal.calibration.verdict import assess
     except ImportError:  # before the verdict existed
         assess = None
+    table = []
     for tang in (True, False):
         times, vt = [], []
         for lens in ("lens1", "lens2"):
@@ -54,6 +56,15 @@ def main(argv=None):
         if vt:
             line += f"; verdict median {np.median(vt) * 1e3:.2f} ms"
         print(line)
+        table.append(("default" if tang else "--no-tangential", f"{np.median(times) * 1e3:.2f}",
+                      f"{np.median(vt) * 1e3:.2f}" if vt else "-"))
+    if a.markdown:
+        import sys
+
+        sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+        from _table import print_table
+
+        print_table(("model", "calibrate ms (median)", "verdict ms (median)"), table, markdown=True)
 
 
 if __name__ == "__main__":

@@ -41,3 +41,22 @@ def trial_executor(scheduler: str | None):
                          field="scheduler") from None
     with client:
         yield client.get_executor()
+
+
+@contextmanager
+def study_executor(workers: int | None, scheduler: str | None):
+    """The executor of a study's tasks: the Dask cluster at ``scheduler``, else ``workers`` local processes.
+
+    Yields None (run in this process) when neither asks for more than one process.
+    """
+    if scheduler is not None:
+        with trial_executor(scheduler) as executor:
+            yield executor
+        return
+    if workers is None or workers <= 1:
+        yield None
+        return
+    import concurrent.futures as cf
+
+    with cf.ProcessPoolExecutor(max_workers=workers) as executor:
+        yield executor

@@ -749,6 +749,18 @@ class NoiseVsSnr:
         return self.measured_std_mm / self.predicted_std_mm
 
 
+def _noise_at_snr(spots_mm, settings: ChainSettings, gains, gen, l1: float):
+    """One SNR of :func:`point_noise_vs_snr`: (std (2,), its standard error (2,), mean (2,)), mm.
+
+    A top-level function, so that an executor can pickle it to another process.
+    """
+    from psdcal._stats import std_standard_error
+
+    pts = measure_points(spots_mm, settings, gains, gen, l1)
+    se = np.array([std_standard_error(pts[:, 0]), std_standard_error(pts[:, 1])])
+    return pts.std(axis=0, ddof=1), se, pts.mean(axis=0)
+
+
 def point_noise_vs_snr(
     snr_db_values,
     settings: ChainSettings | None = None,
@@ -758,6 +770,7 @@ def point_noise_vs_snr(
     xy_mm=(0.0, 0.0),
     gains=None,
     l1: float = 0.0,
+    executor=None,
 ) -> NoiseVsSnr:
     """Measure the impact-point noise of one spot at several SNRs, by simulation.
 
@@ -780,13 +793,16 @@ def point_noise_vs_snr(
         True spot position, mm.
     gains, l1
         As in :func:`measure_points`.
+    executor : concurrent.futures.Executor, optional
+        Runs one task per SNR (each with its own child stream, so the result is
+        the same bit for bit as without one): a ``ProcessPoolExecutor``, or a
+        Dask cluster's ``distributed.Client(address).get_executor()``. It is
+        not shut down. None: in this process.
 
     Returns
     -------
     NoiseVsSnr
     """
-    from psdcal._stats import std_standard_error
-
     s = ChainSettings() if settings is None else settings
     snrs = np.atleast_1d(np.asarray(snr_db_values, dtype=float))
     if snrs.ndim != 1 or snrs.size == 0 or not np.all(np.isfinite(snrs)):
@@ -804,13 +820,15 @@ def point_noise_vs_snr(
     se = np.empty((snrs.size, 2))
     mean = np.empty((snrs.size, 2))
     pred = np.empty((snrs.size, 2))
-    for k, (snr, gen) in enumerate(zip(snrs, streams)):
-        sk = replace(s, snr_db=float(snr))
-        pts = measure_points(spots, sk, gains, gen, l1)
-        std[k] = pts.std(axis=0, ddof=1)
-        se[k] = [std_standard_error(pts[:, 0]), std_standard_error(pts[:, 1])]
-        mean[k] = pts.mean(axis=0)
-        pred[k] = predicted_point_std(p, sk, gains, l1)
+    tasks = [(spots, replace(s, snr_db=float(snr)), gains, gen, l1) for snr, gen in zip(snrs, streams)]
+    if executor is None:
+        done = [_noise_at_snr(*t) for t in tasks]
+    else:
+        futures = [executor.submit(_noise_at_snr, *t) for t in tasks]
+        done = [f.result() for f in futures]
+    for k, (task, (std_k, se_k, mean_k)) in enumerate(zip(tasks, done)):
+        std[k], se[k], mean[k] = std_k, se_k, mean_k
+        pred[k] = predicted_point_std(p, task[1], gains, l1)
     return NoiseVsSnr(snrs, std, se, pred, mean, p, int(n), replace(s, snr_db=None))
 
 
