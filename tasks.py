@@ -14,6 +14,7 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
+import time
 import venv
 from pathlib import Path
 
@@ -24,19 +25,43 @@ PY = BIN / ("python.exe" if os.name == "nt" else "python")
 STAMP = VENV / ".psdcal-installed"
 
 
-def ensure_venv() -> None:
-    """Create .venv and install the package when missing or when pyproject changed."""
+#: The kernel warm-up's parts (psdcal.study.warmup.PARTS), compiled in parallel processes.
+WARM_UP_PARTS = ("calibration", "measure")
+
+
+def ensure_venv() -> list[subprocess.Popen]:
+    """Create .venv and install the package when missing or when pyproject changed.
+
+    After an install, the numerical kernels are compiled once, in the background, one
+    process per part of :data:`WARM_UP_PARTS`; the processes are returned (none when the
+    set-up was already done): :func:`finish_set_up` waits for them.
+    """
     if not PY.exists():
         print(f"creating virtual environment in {VENV}", flush=True)
         venv.EnvBuilder(with_pip=True).create(VENV)
     pyproject = (ROOT / "pyproject.toml").read_bytes()
     if STAMP.exists() and STAMP.read_bytes() == pyproject:
-        return
+        return []
+    t0 = time.perf_counter()
     subprocess.check_call([str(PY), "-m", "pip", "install", "-q", "--upgrade", "pip"])
     subprocess.check_call([str(PY), "-m", "pip", "install", "-q", "-e", f"{ROOT}[test]"])
-    # compile the numerical kernels now (once per machine), so that no later run stalls on it
-    subprocess.call([str(PY), "-c", "from psdcal.study.warmup import warm_up; warm_up()"])
-    STAMP.write_bytes(pyproject)
+    print(f"psdcal set-up: venv + pip install {time.perf_counter() - t0:.1f} s", file=sys.stderr, flush=True)
+    # compile the numerical kernels now (once per machine), so that no later run stalls on it; the parts
+    # compile different kernels, in parallel (the demo itself needs none: it runs beside them)
+    print(f"psdcal: compiling the numerical kernels in the background ({len(WARM_UP_PARTS)} processes) ...",
+          file=sys.stderr, flush=True)
+    return [subprocess.Popen([str(PY), "-c", f"from psdcal.study.warmup import warm_up; warm_up(False, part={p!r})"])
+            for p in WARM_UP_PARTS]
+
+
+def finish_set_up(warming: list[subprocess.Popen], t0: float) -> None:
+    """Wait for the kernel warm-up (if one runs), then mark the set-up as done."""
+    if not warming:
+        return
+    for proc in warming:
+        proc.wait()
+    print(f"psdcal set-up: kernels compiled {time.perf_counter() - t0:.1f} s", file=sys.stderr, flush=True)
+    STAMP.write_bytes((ROOT / "pyproject.toml").read_bytes())
 
 
 def run(args: list[str]) -> int:
@@ -49,9 +74,14 @@ def main(argv: list[str]) -> int:
     if task not in {"demo", "test", "bench", "docs"}:
         print(__doc__)
         return 0 if task == "help" else 2
-    ensure_venv()
-    if task == "demo":
-        return run([str(BIN / "psdcal"), "demo", *extra])
+    warming = ensure_venv()
+    t0 = time.perf_counter()
+    if task == "demo":  # the demo (12 views x 14 points, numpy path) needs no kernel: it runs beside the warm-up
+        try:
+            return run([str(BIN / "psdcal"), "demo", *extra])
+        finally:
+            finish_set_up(warming, t0)
+    finish_set_up(warming, t0)
     if task == "test":
         return run([str(PY), "-m", "pytest", "-n", "2", "-q", *extra])
     if task == "docs":

@@ -10,6 +10,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 DATA = Path(__file__).resolve().parent.parent / "src" / "psdcal" / "data"
@@ -108,3 +109,126 @@ def test_lazy_help_listing_equals_the_loaded_one():
                          for pre in ("", "_register()\n"))
         assert "Commands:" in fresh and "  locate " in fresh
         assert fresh == loaded, columns
+
+
+# ----------------------------------------------------------------- cold processes: no numba for small work
+def _probe(code: str) -> dict:
+    probe = code + "\nimport sys, json\nfrom psdcal import _jit\nprint(json.dumps({'numba': 'numba' in sys.modules, " \
+                   "'scipy': 'scipy' in sys.modules, 'mode': _jit._MODE}))"
+    out = subprocess.run([sys.executable, "-c", probe], check=True, capture_output=True, text=True).stdout
+    return json.loads(out.strip().splitlines()[-1])
+
+
+def test_deferred_kernels_import_no_numba_until_called():
+    from psdcal import _jit
+
+    got = _probe("import psdcal.measure._csvtext, psdcal.measure.locate")
+    assert got["numba"] is False
+    if not _jit.enabled():
+        pytest.skip("numba disabled")
+    got = _probe("import numpy as np\nfrom psdcal.measure._csvtext import rows_text, format_cells\n"
+                 "rows_text([np.arange(3.0)])\nimport psdcal.measure._csvtext as m\n"
+                 "assert type(m.format_cells).__module__.startswith('numba'), type(m.format_cells)\n"
+                 "assert type(m._scaled).__module__.startswith('numba'), type(m._scaled)")
+    assert got["numba"] is True
+
+
+def test_deferred_kernel_equals_its_python_function():
+    from psdcal import _jit
+
+    def poly(x, n):  # pragma: no cover - compiled
+        s = 0.0
+        for k in range(n):
+            s = s * x + k
+        return s
+
+    lazy = _jit.deferred_njit(poly)
+    assert lazy(1.5, 7) == poly(1.5, 7)
+    if _jit.enabled():
+        assert lazy.py_func is poly
+
+
+def _short_recording(tmp_path):
+    from _locate_sim import amplitudes, calib_dict, signals, spot_for_angles
+    from psdcal.measure.sensor_model import SensorModel
+
+    calib = tmp_path / "calib.json"
+    calib.write_text(json.dumps(calib_dict()))
+    m = SensorModel.load(calib)
+    d = spot_for_angles(m, np.radians(np.array([[10.0, -3.0], [-7.0, 12.0]])))
+    x = signals(50_000.0, 50_000, [(amplitudes(m, d[0]), 1000.0, 0.0), (amplitudes(m, d[1]), 1300.0, 1.0)],
+                noise=2e-3, rng=np.random.default_rng(4))
+    np.save(tmp_path / "rec.npy", x.T)
+    return calib, tmp_path / "rec.npy"
+
+
+
+def test_short_locate_aoa_pose_import_no_numba_and_match_the_compiled_path(tmp_path):
+    """A 1 s recording: locate and aoa take the numpy path in a fresh process (numba never imported), and
+    write what the compiled kernels write (angles to 1e-9 relative; the CSV writer is byte-exact by design)."""
+    from psdcal import _jit
+
+    calib, rec = _short_recording(tmp_path)
+    loc = ["locate", str(rec), "--calib", str(calib), "--rate-hz", "50000", "--carrier-hz", "1000",
+           "--carrier-hz", "1300", "-o", str(tmp_path / "numpy.csv")]
+    aoa = ["aoa", str(tmp_path / "numpy.csv"), "--calib", str(calib), "--sigma-d-mm", "0.001",
+           "-o", str(tmp_path / "aoa_numpy.csv")]
+    got = _probe(f"from psdcal.cli import main\nassert main({loc!r}) == 0\nassert main({aoa!r}) == 0")
+    assert got == {"numba": False, "scipy": False, "mode": "auto"}
+    if not _jit.enabled():
+        pytest.skip("numba disabled: no compiled path to compare")
+    forced = ("from psdcal import _jit\n_jit.set_mode = _jit.set_mode_for = lambda *a: None\n"
+              "from psdcal.cli import main\n"
+              f"assert main({[*loc[:-1], str(tmp_path / 'jit.csv')]!r}) == 0\n"
+              f"assert main({[*aoa[:1], str(tmp_path / 'jit.csv'), *aoa[2:-1], str(tmp_path / 'aoa_jit.csv')]!r}) == 0")
+    got = _probe(forced)
+    assert got["numba"] is True and got["mode"] == "always"
+    for a, b in (("numpy.csv", "jit.csv"), ("aoa_numpy.csv", "aoa_jit.csv")):
+        ta, tb = (np.genfromtxt(tmp_path / f, delimiter=",", names=True, dtype=None, encoding="utf-8") for f in (a, b))
+        assert ta.dtype.names == tb.dtype.names and len(ta) == len(tb) > 50
+        for name in ta.dtype.names:
+            if ta[name].dtype.kind == "f":
+                np.testing.assert_allclose(ta[name], tb[name], rtol=1e-9, atol=1e-12, err_msg=name)
+            else:
+                assert (ta[name] == tb[name]).all(), name
+
+
+def test_one_shot_mode_follows_the_size_of_the_whole_run(monkeypatch):
+    from psdcal import _jit
+
+    _jit.set_mode_for(1000)
+    assert _jit._MODE == "auto"
+    _jit.set_mode_for(min(_jit.AUTO_MIN_ANGLES, _jit.AUTO_MIN_CSV_ROWS))
+    assert _jit._MODE == "always"
+    _jit.set_mode_for(None)  # size unknown (a stream): the kernels, loaded once
+    assert _jit._MODE == "always"
+    if not _jit.enabled():
+        return
+    monkeypatch.setattr(_jit, "_MODE", "auto")
+    monkeypatch.setattr(_jit, "_numba", None)
+    assert not _jit.use_compiled(_jit.AUTO_MIN_ANGLES - 1, _jit.AUTO_MIN_ANGLES)
+    assert _jit.use_compiled(_jit.AUTO_MIN_ANGLES, _jit.AUTO_MIN_ANGLES)
+    monkeypatch.setattr(_jit, "_numba", object())  # numba loaded already: the kernels cost little more
+    assert _jit.use_compiled(1, _jit.AUTO_MIN_ANGLES)
+
+
+def test_locate_mode_counts_windows_emitters_and_recordings(monkeypatch):
+    from types import SimpleNamespace
+
+    from psdcal import _jit
+    from psdcal.cli import locate_cmd
+
+    seen = []
+    monkeypatch.setattr(_jit, "set_mode_for", seen.append)
+    cfg = SimpleNamespace(window_s=0.01, carriers_hz=(1000.0, 1300.0), n_emitters=None, emitters=None)
+    rec = SimpleNamespace(n_samples=125_000 * 60, rate_hz=125_000.0, path="x.npy")
+    locate_cmd._one_shot_mode([rec, rec], cfg)
+    assert seen == [60 * 100 * 2 * 2]
+
+
+def test_warm_up_parts():
+    from psdcal.study.warmup import PARTS, warm_up
+
+    assert PARTS == ("calibration", "measure")
+    with pytest.raises(ValueError):
+        warm_up(False, part="everything")
