@@ -49,7 +49,10 @@ def ensure_venv(extras: bool = True) -> tuple[list[subprocess.Popen], Path | Non
         return [], None
     t0 = time.perf_counter()
     subprocess.check_call([str(PY), "-m", "pip", "install", "-q", "--upgrade", "pip"])
-    subprocess.check_call([str(PY), "-m", "pip", "install", "-q", "-e", f"{ROOT}[test]" if extras else str(ROOT)])
+    # --no-compile: no bytecode for the thousands of modules of the dependencies now (most of pip's time);
+    # each module gets its bytecode when first imported (the demo imports a few dozen)
+    subprocess.check_call([str(PY), "-m", "pip", "install", "-q", "--no-compile", "-e",
+                           f"{ROOT}[test]" if extras else str(ROOT)])
     what = "with the test extras" if extras else "psdcal and its dependencies"
     print(f"psdcal set-up: venv + pip install {time.perf_counter() - t0:.1f} s ({what})", file=sys.stderr, flush=True)
     # compile the numerical kernels now (once per machine), so that no later run stalls on it; the parts

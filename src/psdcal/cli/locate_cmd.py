@@ -469,6 +469,9 @@ def errormap_command(calib, distance_mm, mode, grid, sigma_d_mm, csv_path, outpu
 
     if grid < 3:
         raise InputError(f"--grid must be at least 3, got {grid}", field="grid")
+    from psdcal import _jit
+
+    _jit.set_mode_for(grid * grid)  # a map's angles: the numpy path unless the grid is very fine
     model = SensorModel.load(calib)
     model.require_uncertainty(allow_no_covariance)  # else a map of zeros, as if the calibration were exact
     from psdcal._limits import check_bytes
