@@ -59,7 +59,9 @@ def ensure_venv(extras: bool = True) -> tuple[list[subprocess.Popen], Path | Non
     # compile different kernels, in parallel (the demo itself needs none: it runs beside them)
     print(f"psdcal: compiling the numerical kernels in the background ({len(WARM_UP_PARTS)} processes) ...",
           file=sys.stderr, flush=True)
-    warming = [subprocess.Popen([str(PY), "-c", f"from psdcal.study.warmup import warm_up; warm_up(False, part={p!r})"])
+    lower = (lambda: os.nice(10)) if hasattr(os, "nice") else None  # the demo first; the kernels with what is left
+    warming = [subprocess.Popen([str(PY), "-c", f"from psdcal.study.warmup import warm_up; warm_up(False, part={p!r})"],
+                                preexec_fn=lower)
                for p in WARM_UP_PARTS]
     return warming, STAMP if extras else CORE_STAMP
 
