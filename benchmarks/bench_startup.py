@@ -143,10 +143,12 @@ def startup_table(repeats: int, env) -> list[tuple[str, str, str]]:
     t_help = cpu_seconds([py, "-c", _PSDCAL, "--help"], repeats, env)
     t_help_src = cpu_seconds([py, "-c", _PSDCAL, "--help"], repeats, env, fresh_src=True)
     t_help_none = cpu_seconds([py, "-c", _PSDCAL, "--help"], repeats, env, no_bytecode=True)
+    t_click_none = cpu_seconds([py, "-c", "import click"], repeats, env, no_bytecode=True)
     rows.append(("python -c pass (the interpreter alone)", t_pass, None))
     rows.append(("psdcal --help (bytecode cached): the reference", t_help, None))
     rows.append(("psdcal --help without psdcal's bytecode (fresh clone)", t_help_src, None))
     rows.append(("psdcal --help without any bytecode (stdlib and click compiled too)", t_help_none, None))
+    rows.append(("python -c 'import click' without any bytecode (that floor)", t_click_none, None))
     with tempfile.TemporaryDirectory() as tmp:
         cmds = _room(Path(tmp), env)
         cmds_list = list(cmds.items())
