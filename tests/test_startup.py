@@ -111,6 +111,16 @@ def test_lazy_help_listing_equals_the_loaded_one():
         assert fresh == loaded, columns
 
 
+
+def test_unknown_command_suggestions_as_with_every_command_loaded():
+    """`psdcal locat` suggests 'locate' although no command module is loaded (click >= 8.4 suggests)."""
+    for name in ("locat", "simulat", "no-such-command", "calibrat-directions"):
+        fresh, loaded = (subprocess.run([sys.executable, "-c", f"from psdcal.cli import main, _register\n{pre}"
+                                         f"raise SystemExit(main([{name!r}]))"],
+                                        capture_output=True, text=True).stderr
+                         for pre in ("", "_register()\n"))
+        assert fresh == loaded and fresh.startswith("psdcal: error: No such command"), (fresh, loaded)
+
 # ----------------------------------------------------------------- cold processes: no numba for small work
 def _probe(code: str) -> dict:
     probe = code + "\nimport sys, json\nfrom psdcal import _jit\nprint(json.dumps({'numba': 'numba' in sys.modules, " \

@@ -228,6 +228,15 @@ class LazyGroup(PolicyGroup):
             importlib.import_module(f"{__name__}.{LAZY_COMMANDS[cmd_name][0]}")
         return self.commands.get(cmd_name)
 
+    def resolve_command(self, ctx, args):
+        try:
+            return super().resolve_command(ctx, args)
+        except click.UsageError as exc:  # click >= 8.4 suggests from the loaded commands: from all of them
+            no_such = getattr(click.exceptions, "NoSuchCommand", None)
+            if no_such is None or not isinstance(exc, no_such) or exc.possibilities:
+                raise
+            raise no_such(exc.command_name, possibilities=self.list_commands(ctx), ctx=exc.ctx) from None
+
     def listed_command(self, name):
         """The command ``name`` if its module is loaded, else a stand-in with its short help (no import)."""
         cmd = self.commands.get(name)
