@@ -6,7 +6,12 @@ median process CPU time (user + system of the child, ``RUSAGE_CHILDREN``),
 which another job on the machine disturbs less than the wall-clock time, and
 the differences and ratios within this one run.
 
-Table 1, light commands and a 1 s recording:
+Table 1, ``psdcal calibrate`` on the bundled default data (12 views x 14
+points; the command keeps such a problem on the numpy path) against a
+Python script that reads the same CSV files, runs ``cv2.calibrateCamera``
+(one f, C, k1, k2, p1, p2) and writes a JSON file.
+
+Table 2, light commands and a 1 s recording:
 
 - ``python -c pass``: the interpreter alone;
 - ``psdcal --help``: with the bytecode caches as installed (the reference of
@@ -21,16 +26,12 @@ Table 1, light commands and a 1 s recording:
   imported) and with the compiled kernels forced (``psdcal._jit`` mode
   "always", kernels loaded from a warm disk cache).
 
-Table 2, ``psdcal calibrate`` on the bundled default data (12 views x 14
-points; the command keeps such a problem on the numpy path) against a
-Python script that reads the same CSV files, runs ``cv2.calibrateCamera``
-(one f, C, k1, k2, p1, p2) and writes a JSON file.
-
 ``--clone`` adds table 3: ``git clone`` of this repository (its committed
 HEAD) into a temporary folder and ``python3 tasks.py demo`` there (which
-creates ``.venv``, pip-installs psdcal with its test extras and compiles the
-kernels), wall-clock, with the set-up's phases as ``tasks.py`` reports them;
-the pip part depends on the network and pip's cache.
+creates ``.venv``, pip-installs psdcal and compiles the kernels), wall-clock:
+to the demo's table and to the end of the command, with the set-up's phases
+as ``tasks.py`` reports them; the pip part depends on the network and pip's
+cache.
 
 Usage::
 
@@ -224,11 +225,12 @@ def main(argv=None) -> int:
     a = ap.parse_args(argv)
     env = {**os.environ, "OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1"}
     subprocess.run([sys.executable, "-c", "from psdcal.study.warmup import warm_up; warm_up(False)"], check=True, env=env)
-    print(f"fresh processes, median of {a.repeats}, process CPU seconds; {_load()} ({os.cpu_count()} CPUs)")
-    print_table(("command", "CPU s", "above psdcal --help"), startup_table(a.repeats, env), a.markdown)
-    print()
-    print(f"psdcal calibrate against an OpenCV script, median of {a.repeats}, process CPU seconds; {_load()}")
+    print(f"psdcal calibrate against an OpenCV script, median of {a.repeats}, process CPU seconds; {_load()} "
+          f"({os.cpu_count()} CPUs)")
     print_table(("command", "CPU s", "ratio to OpenCV"), calibrate_table(a.repeats, env), a.markdown)
+    print()
+    print(f"fresh processes, median of {a.repeats}, process CPU seconds; {_load()}")
+    print_table(("command", "CPU s", "above psdcal --help"), startup_table(a.repeats, env), a.markdown)
     if a.clone:
         print()
         print(f"fresh clone to the demo's table (wall-clock seconds, {os.cpu_count()} CPUs); {_load()}")
