@@ -19,10 +19,11 @@ numba is imported only when a compiled kernel is first needed (importing it
 and loading the kernels costs some 0.5-0.7 s per process); modules whose kernels
 are declared with :func:`deferred_njit` do not import it at all until one is
 called. :func:`set_mode` ``("auto")``, used by the command line for its
-one-shot runs (``calibrate``, and ``locate``, ``amplitudes``, ``aoa``,
-``pose`` on files), keeps small problems on the numpy path, where the whole
-work costs less than that loading; the library's default (``"always"``)
-compiles whenever it can.
+one-shot runs (``calibrate`` and ``demo``; ``locate``, ``amplitudes``,
+``aoa``, ``errormap`` and ``pose`` on files, see :func:`set_mode_for`), keeps
+small problems on the numpy path, where the whole work costs less than that
+loading; the library's default (``"always"``) compiles whenever it can, and
+so do the live paths.
 Where no cache can be written (a read-only install run by a user without a
 writable home), the functions are compiled in memory for each process
 instead: slower to start, never a crash.
