@@ -13,3 +13,13 @@ settings.load_profile("ci" if os.environ.get("CI") else "dev")
 @pytest.fixture
 def rng():
     return np.random.default_rng(12345)
+
+
+@pytest.fixture(autouse=True)
+def _restore_jit_mode():
+    """A command run in-process sets psdcal._jit's mode for its one-shot run ("auto"): not for the next test."""
+    from psdcal import _jit
+
+    mode = _jit._MODE
+    yield
+    _jit._MODE = mode

@@ -104,3 +104,19 @@ def test_bench_locate_covers_locate_amplitudes_and_the_live_path(capsys):
         assert rows[("live", k, "csv")] == rows[("locate", k, "csv")] == k * int(2 * bench.RATE_HZ) // 1250
     assert all(0 < c["fraction_of_bare_lockin"] < 5 for c in res["cases"])
     assert "| live | 2 | csv |" in capsys.readouterr().out
+
+
+def test_bench_startup_light_commands_table(capsys):
+    """bench_startup's table 1 runs fresh processes and measures them against `psdcal --help`."""
+    bench = _load("bench_startup")
+    import os
+
+    rows = bench.startup_table(1, {**os.environ, "OMP_NUM_THREADS": "1"})
+    names = [r[0] for r in rows]
+    assert names[1].startswith("psdcal --help") and any(n.startswith("locate, 1 sensor") for n in names)
+    assert any("aoa" in n for n in names) and any("pose" in n for n in names)
+    assert sum("compiled kernels forced" in n for n in names) == 4
+    for name, cpu, above in rows:
+        assert 0.0 < float(cpu) < 60.0, name
+        if name.startswith(("locate", "aoa", "pose")):
+            assert float(above) == pytest.approx(float(cpu) - float(rows[1][1]), abs=2e-3)

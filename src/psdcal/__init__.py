@@ -4,8 +4,8 @@ The reference model is Rodriguez-Navarro et al., Sensors 2016, 16(9), 1484,
 with the conventions and corrections of ``docs/model.md``.
 
 The public API, importable from ``psdcal`` itself (``psdcal.__all__``).
-Everything but the errors and the parameter records is loaded on first use,
-so ``import psdcal`` stays light (no matplotlib, scipy, numba or click).
+Everything but the errors is loaded on first use (``__version__`` too), so
+``import psdcal`` stays light (no numpy, matplotlib, scipy, numba or click).
 
 Calibration
     ``calibrate`` (the validating front door), ``CalibrationResult``,
@@ -37,18 +37,15 @@ Sub-packages follow the data flow ``model`` -> ``calibration`` -> ``signal``
 from __future__ import annotations
 
 from importlib import import_module
-from importlib.metadata import PackageNotFoundError, version as _version
-
-try:
-    __version__ = _version("psdcal")
-except PackageNotFoundError:  # pragma: no cover
-    __version__ = "0.0.0+unknown"
 
 from psdcal.errors import ConvergenceError, DegenerateViewsError, InputError, PsdcalError, ZeroSignalError
-from psdcal.model.params import Distortion, Intrinsics, ModelSpec, Pose
 
 #: Lazily imported public names -> the module that defines them.
 _LAZY = {
+    "Intrinsics": "psdcal.model.params",
+    "Distortion": "psdcal.model.params",
+    "ModelSpec": "psdcal.model.params",
+    "Pose": "psdcal.model.params",
     "calibrate": "psdcal.calibration.core",
     "CalibrationResult": "psdcal.calibration.core",
     "initial_estimate": "psdcal.calibration.core",
@@ -76,7 +73,19 @@ _LAZY = {
 }
 
 
+def _package_version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("psdcal")
+    except PackageNotFoundError:  # pragma: no cover
+        return "0.0.0+unknown"
+
+
 def __getattr__(name: str):
+    if name == "__version__":  # read from the installed metadata on first use (importlib.metadata is not light)
+        globals()[name] = value = _package_version()
+        return value
     module = _LAZY.get(name)
     if module is None:
         raise AttributeError(f"module 'psdcal' has no attribute {name!r}")
@@ -97,11 +106,6 @@ __all__ = [
     "DegenerateViewsError",
     "ZeroSignalError",
     "ConvergenceError",
-    # parameter records
-    "Intrinsics",
-    "Distortion",
-    "ModelSpec",
-    "Pose",
-    # lazily loaded
+    # lazily loaded: the parameter records, then the rest
     *_LAZY,
 ]

@@ -21,9 +21,7 @@ from __future__ import annotations
 
 import contextlib
 import contextvars
-import json
 import os
-import tempfile
 from pathlib import Path
 
 #: Prefix of every temporary file psdcal writes (stale ones are removed by the next run).
@@ -76,6 +74,8 @@ def recover(directory) -> int:
             pid = _owner_pid(p.name, JOURNAL_PREFIX)
             if pid is None or _pid_alive(pid):
                 continue
+            import json  # here, not at the top: `psdcal --help` imports this module
+
             try:
                 pairs = json.loads(p.read_text(encoding="utf-8"))
             except (OSError, ValueError):
@@ -109,6 +109,9 @@ class _OutputSet:
             return
         journal = None
         if len(self.pairs) > 1:
+            import json
+            import tempfile
+
             first = self.pairs[0][1].parent
             body = json.dumps([[str(t.resolve()), str(p.resolve())] for t, p in self.pairs])
             fd, jt = tempfile.mkstemp(prefix=f"{TMP_PREFIX}{os.getpid()}-journal.", suffix=".json", dir=first)
@@ -159,6 +162,8 @@ def output_set():
 
 
 def _mkstemp_beside(path: Path, suffix: str | None):
+    import tempfile
+
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f"{TMP_PREFIX}{os.getpid()}-{path.name[:80]}.",
                                suffix=suffix or path.suffix or ".tmp", dir=path.parent)

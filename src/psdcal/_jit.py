@@ -16,10 +16,14 @@ tasks.py`` does it once during the set-up, see :func:`psdcal.study.warmup.warm_u
 processes load them.
 
 numba is imported only when a compiled kernel is first needed (importing it
-and loading the kernels costs some 0.4 s per process). :func:`set_mode`
-``("auto")``, used by the command line for its one-shot runs, keeps small
-problems on the numpy path, where a whole calibration costs less than that
-loading; the library's default (``"always"``) compiles whenever it can.
+and loading the kernels costs some 0.5-0.7 s per process); modules whose kernels
+are declared with :func:`deferred_njit` do not import it at all until one is
+called. :func:`set_mode` ``("auto")``, used by the command line for its
+one-shot runs (``calibrate`` and ``demo``; ``locate``, ``amplitudes``,
+``aoa``, ``errormap`` and ``pose`` on files, see :func:`set_mode_for`), keeps
+small problems on the numpy path, where the whole work costs less than that
+loading; the library's default (``"always"``) compiles whenever it can, and
+so do the live paths.
 Where no cache can be written (a read-only install run by a user without a
 writable home), the functions are compiled in memory for each process
 instead: slower to start, never a crash.
@@ -41,6 +45,15 @@ _MODE = "always"
 #: In ``"auto"`` mode, problems with fewer observations than this run on the numpy path
 #: (unless the kernels are already loaded in this process).
 AUTO_MIN_OBSERVATIONS = 3000
+#: In ``"auto"`` mode (unless numba is already loaded), fewer impact points than this get their
+#: angles from the numpy code, and fewer rows than :data:`AUTO_MIN_CSV_ROWS` are written as CSV by
+#: Python's formatting: importing numba and loading the kernels costs a fresh process some 0.5-0.7 s
+#: of CPU, what the numpy code takes for some 500,000 points or 400,000 rows (numpy 1.0-1.2 us a
+#: point with its covariance, 0.08-0.1 us compiled; CSV 2.2-2.9 us a row of 10 columns, 0.9-1.3
+#: us compiled; one run, benchmarks/bench_startup.py). The thresholds are below the break-even:
+#: from them on, the compiled path costs at most about the loading more.
+AUTO_MIN_ANGLES = 200_000
+AUTO_MIN_CSV_ROWS = 200_000
 
 
 def _load_numba():
@@ -66,13 +79,39 @@ def set_mode(mode: str) -> None:
     _MODE = mode
 
 
-def use_compiled(n_observations: int) -> bool:
-    """Whether a problem of ``n_observations`` points should use the compiled kernels."""
+def use_compiled(n_observations: int, auto_min: int | None = None) -> bool:
+    """Whether a problem of ``n_observations`` points should use the compiled kernels.
+
+    In ``"auto"`` mode: the calibration's kernels (``auto_min`` None) from
+    :data:`AUTO_MIN_OBSERVATIONS` observations or once the image-cost kernel's
+    module is loaded; other kernels from ``auto_min`` items (their break-even
+    size against importing numba and loading the kernels, e.g.
+    :data:`AUTO_MIN_ANGLES`) or once numba is loaded in this process.
+    """
     if not AVAILABLE:
         return False
     if _MODE == "always":
         return True
-    return n_observations >= AUTO_MIN_OBSERVATIONS or "psdcal.calibration._image_kernel" in sys.modules
+    if auto_min is None:
+        return n_observations >= AUTO_MIN_OBSERVATIONS or "psdcal.calibration._image_kernel" in sys.modules
+    return n_observations >= auto_min or _numba is not None
+
+
+def set_mode_for(n_items: int | None) -> None:
+    """A one-shot command's mode for ``n_items`` angles or rows in all (None: not known).
+
+    ``"auto"`` (numpy for calls below :data:`AUTO_MIN_ANGLES` / :data:`AUTO_MIN_CSV_ROWS`,
+    and for the calibration's small problems) when the whole work is below those
+    thresholds; else ``"always"``: a long input pays for loading the kernels once,
+    whatever the size of the blocks it is processed in.
+    """
+    small = n_items is not None and n_items < min(AUTO_MIN_ANGLES, AUTO_MIN_CSV_ROWS)
+    set_mode("auto" if small else "always")
+
+
+def loaded() -> bool:
+    """Whether numba has been imported by a kernel of this process."""
+    return _numba is not None
 
 
 def njit(fn):
@@ -102,19 +141,30 @@ def _compile(fn, **options):
 
 
 class _Lazy:
-    """A kernel compiled on its first call (numba imported then)."""
+    """A kernel compiled at its first call (numba imported then); see :func:`deferred_njit`."""
 
-    def __init__(self, fn):
+    def __init__(self, fn, options=None):
         self.py_func = fn
+        self.options = dict(options or {})
         self._compiled = None
         self.__doc__ = fn.__doc__
         self.__name__ = fn.__name__
         self.__wrapped__ = fn
 
-    def __call__(self, *args):
+    def compiled(self):
+        """The numba dispatcher (created on first use, with every deferred kernel it can call)."""
         if self._compiled is None:
-            self._compiled = njit(self.py_func)
-        return self._compiled(*args)
+            self._compiled = _compile(self.py_func, **self.options)
+            g = self.py_func.__globals__
+            if g.get(self.__name__) is self:
+                g[self.__name__] = self._compiled  # compiled callers see the dispatcher, not this wrapper
+            for name, value in list(g.items()):  # the deferred helpers it may call (same module or imported)
+                if isinstance(value, _Lazy):
+                    g[name] = value.compiled()
+        return self._compiled
+
+    def __call__(self, *args, **kwargs):
+        return (self._compiled or self.compiled())(*args, **kwargs)
 
 
 def lazy_njit(fn):
@@ -125,6 +175,31 @@ def lazy_njit(fn):
     if not AVAILABLE:
         return fn
     return _Lazy(fn)
+
+
+def deferred_njit(fn):
+    """As :func:`njit`, but numba is imported (and the kernel loaded) only when it is first called.
+
+    A module of such kernels costs nothing to import, so a command that takes its
+    numpy path never imports numba. At the first call, the kernel and every
+    deferred kernel in its module's namespace (:func:`deferred_njit_inline`
+    helpers it calls, defined there or imported there) become numba dispatchers
+    in that namespace, so compiled code calls compiled code.
+    """
+    if not AVAILABLE:
+        return fn
+    if _numba is not None:  # numba already loaded: nothing to save
+        return _compile(fn)
+    return _Lazy(fn)
+
+
+def deferred_njit_inline(fn):
+    """:func:`njit_inline` deferred like :func:`deferred_njit` (a helper of deferred kernels)."""
+    if not AVAILABLE:
+        return fn
+    if _numba is not None:
+        return _compile(fn, inline="always")
+    return _Lazy(fn, {"inline": "always"})
 
 
 def cache_is_warm() -> bool:

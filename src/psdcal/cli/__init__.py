@@ -1,8 +1,10 @@
 """psdcal command line: a thin layer over the library.
 
 Each command group lives in its own module of this package and registers
-itself on :data:`cli`; heavy imports happen inside the commands, after the
-arguments are parsed.  Every :class:`psdcal.errors.PsdcalError` becomes one
+itself on :data:`cli`; the top-level group (:class:`LazyGroup`) imports a
+command's module only when that command runs (``psdcal --help`` imports
+none), and heavy imports happen inside the commands, after the arguments are
+parsed.  Every :class:`psdcal.errors.PsdcalError` becomes one
 line on stderr and exit status 2.
 """
 from __future__ import annotations
@@ -149,8 +151,113 @@ class PolicyGroup(click.Group):
 
 PolicyGroup.group_class = PolicyGroup
 
+#: Top-level commands: name -> (module of this package that defines it, first paragraph of its help).
+#: ``psdcal --help`` lists them from here without importing a command module; ``psdcal NAME``
+#: imports only NAME's module. tests/test_startup.py checks this table against the commands.
+LAZY_COMMANDS = {
+    'amplitudes': ('locate_cmd',
+        'Demodulate RECORDING to carrier amplitudes (no calibration needed).'),
+    'aoa': ('locate_cmd',
+        'Convert impact points (x_mm,y_mm) or amplitudes (vx1..vy2) in POINTS.csv to angles.'),
+    'bundle': ('system_cmd',
+        'Calibrate several sensors together: all poses and emitter positions in one bundle adjustment.'),
+    'calibrate': ('calibrate_cmd',
+        'Calibrate a PSD + lens sensor from views of a planar LED template.'),
+    'calibrate-directions': ('directions_cmd',
+        'Calibrate a PSD + lens sensor from spots at known directions (rotation stage, goniometer).'),
+    'compare': ('report_cmd',
+        'Compare two calibrations of one sensor in angle of arrival over the field of view.'),
+    'dashboard': ('dashboard_cmd',
+        'Show the room in a browser: sensors, emitters with their 3-sigma, tracks, health and warnings.'),
+    'demo': ('simulate_cmd',
+        'Calibrate the bundled default data and show the truth beside the estimate.'),
+    'errormap': ('locate_cmd',
+        "Draw the AoA and position error over the field of view (the paper's Figure 9)."),
+    'export': ('export_cmd',
+        'Export a calibration for other tools.'),
+    'gains': ('gains_cmd',
+        'Fit the three relative channel gains from spots at known positions (bench, lens removed).'),
+    'inspect': ('inspect_cmd',
+        'Show what RECORDING holds: channels, carriers found, TDM segments.'),
+    'locate': ('locate_cmd',
+        'Demodulate RECORDING(s) and write angles of arrival and positions.'),
+    'module': ('module_cmd',
+        'Split a module RECORDING (X, Y, SUM of time-multiplexed LEDs) into LEDs.'),
+    'next-view': ('capture_cmd',
+        'Suggest the next calibration view: the template pose that lowers the worst AoA uncertainty most.'),
+    'plan': ('system_cmd',
+        'Plan an installation: coverage and position uncertainty over a plane of the room.'),
+    'pose': ('system_cmd',
+        "Estimate a calibrated sensor's rotation and position in the room (PnP + maximum likelihood)."),
+    'record': ('live_cmd',
+        'Record live SOURCES (one per sensor) with their arrival times, for `locate --replay`.'),
+    'report': ('report_cmd',
+        'Write the calibration report: one self-contained HTML page.'),
+    'reproduce': ('reproduce_cmd',
+        "Regenerate the paper's Tables 1-10 and Figure 9 beside the paper's numbers."),
+    'selfcal': ('selfcal_cmd',
+        "Calibrate the room: every sensor's pose from a tag waved through it."),
+    'signal-noise': ('signal_cmd',
+        'Measured std of the impact point (mm) per SNR, beside the first-order prediction.'),
+    'simulate': ('simulate_cmd',
+        'Simulate a calibration set (geometry only) with known truth.'),
+    'simulate-recording': ('simrec_cmd',
+        'Simulate four-channel recordings with known truth (template views, or a room).'),
+    'tag-pose': ('selfcal_cmd',
+        "The rigid tag's six-degree-of-freedom pose at every time step."),
+    'track': ('system_cmd',
+        'Filter a `locate` output (LOCATED.csv) per emitter with a constant-velocity Kalman filter.'),
+}
 
-@click.group(cls=PolicyGroup, context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100})
+
+class LazyGroup(PolicyGroup):
+    """The top-level group: a command's module is imported when that command is looked up.
+
+    The help's command listing uses :data:`LAZY_COMMANDS` (the short help is made from
+    the first paragraph exactly as click makes it from the whole help), so that
+    ``psdcal --help`` imports no command module.
+    """
+
+    def list_commands(self, ctx):
+        return sorted(set(self.commands) | set(LAZY_COMMANDS))
+
+    def get_command(self, ctx, cmd_name):
+        if cmd_name not in self.commands and cmd_name in LAZY_COMMANDS:
+            import importlib
+
+            importlib.import_module(f"{__name__}.{LAZY_COMMANDS[cmd_name][0]}")
+        return self.commands.get(cmd_name)
+
+    def resolve_command(self, ctx, args):
+        try:
+            return super().resolve_command(ctx, args)
+        except click.UsageError as exc:  # click >= 8.4 suggests from the loaded commands: from all of them
+            no_such = getattr(click.exceptions, "NoSuchCommand", None)
+            if no_such is None or not isinstance(exc, no_such) or exc.possibilities:
+                raise
+            raise no_such(exc.command_name, possibilities=self.list_commands(ctx), ctx=exc.ctx) from None
+
+    def listed_command(self, name):
+        """The command ``name`` if its module is loaded, else a stand-in with its short help (no import)."""
+        cmd = self.commands.get(name)
+        if cmd is None and name in LAZY_COMMANDS:
+            cmd = click.Command(name, help=LAZY_COMMANDS[name][1])
+        return cmd
+
+    def format_commands(self, ctx, formatter):
+        # click.Group.format_commands, with the stand-ins instead of importing every command
+        commands = [(n, c) for n in self.list_commands(ctx) for c in [self.listed_command(n)]
+                    if c is not None and not c.hidden]
+        if commands:
+            limit = formatter.width - 6 - max(len(n) for n, _ in commands)
+            rows = [(n, c.get_short_help_str(limit)) for n, c in commands]
+            from gettext import gettext as _  # as click words its section titles
+
+            with formatter.section(_("Commands")):
+                formatter.write_dl(rows)
+
+
+@click.group(cls=LazyGroup, context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100})
 @click.version_option(package_name="psdcal")
 @click.option("--events", type=click.Path(dir_okay=False), envvar="PSDCAL_EVENTS", default=None,
               help="Also append every warning line the command prints to this JSON-lines log "
@@ -168,29 +275,13 @@ def cli(ctx, events):
         ctx.with_resource(logging_warnings(events, ctx.invoked_subcommand or ""))
 
 
-# Command modules: each one adds its commands to `cli` when imported.
-_COMMANDS = (
-    "system_cmd",
-    "simrec_cmd",
-    "calibrate_cmd",
-    "simulate_cmd",
-    "signal_cmd",
-    "locate_cmd",
-    "report_cmd",
-    "dashboard_cmd",
-    "reproduce_cmd",
-    "directions_cmd",
-    "inspect_cmd",
-    "module_cmd",
-    "gains_cmd",
-    "export_cmd",
-    "capture_cmd",
-    "selfcal_cmd",
-    "live_cmd",
-)
+# Command modules: each one adds its commands to `cli` when imported (all of them: _register;
+# one command's: LazyGroup.get_command).
+_COMMANDS = tuple(dict.fromkeys(module for module, _ in LAZY_COMMANDS.values()))
 
 
 def _register() -> None:
+    """Import every command module (for code that walks ``cli.commands``; ``main`` imports lazily)."""
     import importlib
 
     for name in _COMMANDS:
@@ -231,7 +322,6 @@ def main(argv=None) -> int:
 
     import logging
 
-    _register()
     _quiet_libraries()
     logging.disable(logging.WARNING)  # npTDMS and friends: no log line before the one error line
     try:

@@ -50,6 +50,43 @@ def _guard_window(config, recs) -> None:
                     f"{rec.rate_hz:g} Hz", "--window-s")
 
 
+def _one_shot_mode(recs, config) -> None:
+    """Files in, one run: the compiled kernels only if the whole output pays for loading them.
+
+    ``psdcal._jit.set_mode_for`` of the rows the run writes (windows x emitters x
+    recordings): a short recording takes the numpy path and never imports numba.
+    """
+    import os
+
+    from psdcal import _jit
+
+    windows = 0.0
+    for r in recs:
+        n = r.n_samples
+        if n is None:  # a text recording: at least 8 bytes a sample row, so this over-counts
+            try:
+                n = os.path.getsize(r.path) // 8
+            except (OSError, TypeError):
+                return _jit.set_mode_for(None)
+        rate = r.rate_hz or 0.0
+        window_s = config.window_s or 0.001  # None: 0.01 s, or TDM on-times (longer than 1 ms)
+        windows += n / max(window_s * rate, 1.0) if rate > 0 else n
+    per_window = max(len(config.carriers_hz), config.n_emitters or 0, len(config.emitters or ()), 1)
+    _jit.set_mode_for(int(windows * per_window))
+
+
+def _aoa_one_shot_mode(points) -> None:
+    """``psdcal aoa``: as :func:`_one_shot_mode`, the rows estimated from the file's size (>= 20 bytes a row)."""
+    import os
+
+    from psdcal import _jit
+
+    try:
+        _jit.set_mode_for(os.path.getsize(points) // 20)
+    except (OSError, TypeError):
+        _jit.set_mode_for(None)
+
+
 def _demod_options(f):
     """Options shared by the commands that demodulate recordings (locate, amplitudes)."""
     opts = [
@@ -261,6 +298,7 @@ def locate_command(recordings, calib, sensors, gains_file, rate_hz, carriers, em
                 "key per sensor)", path=sensors, field="recording")
         recs = [open_recording(p, rate_hz, **opts) for p in paths]
     _guard_window(config, recs)
+    _one_shot_mode(recs, config)
 
     total = recs[0].n_samples
     show = progress if progress is not None else (total is not None and total >= _PROGRESS_MIN_SAMPLES)
@@ -348,6 +386,7 @@ def amplitudes_command(recording, rate_hz, carriers, emitters, window_s, tdm, sc
                           output_format=output_format)
     rec = open_recording(recording, rate_hz, channels=_channels(channels), dataset=dataset, group=group)
     _guard_window(config, [rec])
+    _one_shot_mode([rec], config)
     show = progress if progress is not None else (rec.n_samples is not None and rec.n_samples >= _PROGRESS_MIN_SAMPLES)
     bar = _Bar(rec.n_samples, rec.path) if show else None
     try:
@@ -400,6 +439,7 @@ def aoa_command(points, calib, distance_mm, sigma_d_mm, gains_file, output, expe
         from psdcal.calibration.bench import load_gains, with_gains
 
         model = with_gains(model, *load_gains(gains_file))
+    _aoa_one_shot_mode(points)
     n = aoa_csv(points, model, output, distance_mm=distance_mm, sigma_d_mm=sigma_d_mm)
     click.echo(f"wrote {n} rows to {output}")
 
@@ -429,6 +469,9 @@ def errormap_command(calib, distance_mm, mode, grid, sigma_d_mm, csv_path, outpu
 
     if grid < 3:
         raise InputError(f"--grid must be at least 3, got {grid}", field="grid")
+    from psdcal import _jit
+
+    _jit.set_mode_for(grid * grid)  # a map's angles: the numpy path unless the grid is very fine
     model = SensorModel.load(calib)
     model.require_uncertainty(allow_no_covariance)  # else a map of zeros, as if the calibration were exact
     from psdcal._limits import check_bytes

@@ -112,6 +112,9 @@ def demo_command(cost, out):
     tids, txy = read_template(data / "default_template.csv")
     pf = read_points(data / "default_points.csv", tids)
     truth_d = json.loads((data / "default_truth.json").read_text())
+    from psdcal import _jit
+
+    _jit.set_mode("auto")  # as `psdcal calibrate`: 12 x 14 points take the numpy path (no numba, nothing compiled)
     res = calibrate(txy, pf.points_mm, cost=cost, radial=2, tangential=True, image_ids=pf.image_ids, point_ids=tids)
     truth = {**truth_d["intrinsics"], **truth_d["distortion"]}
     click.echo(f"bundled data: {data / 'default_points.csv'} ({len(pf.image_ids)} images, noise "

@@ -183,6 +183,9 @@ def pose_command(source, calib, emitters_csv, rate_hz, carriers, emitter_names, 
 
     if into is None and output is None:
         raise InputError("give --into SENSORS.json and/or -o ENTRY.json", field="output")
+    from psdcal import _jit
+
+    _jit.set_mode("auto")  # a pose's angles are a few emitters' means: the numpy path, numba never imported
     from psdcal.cli._angles import is_front_end_table
 
     front_end = is_front_end_table(source, table_kw)  # angles of any front-end: no calibration

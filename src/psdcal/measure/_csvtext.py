@@ -16,8 +16,10 @@ leaves the value to Python's own formatting; so the text equals
 random, edge and tie values).  :func:`rows_text_reference` is the Python
 reference.
 
-numba is imported when this module is (it is imported only by the writers
-that use it).
+The kernels are deferred (:func:`psdcal._jit.deferred_njit`): numba is
+imported at the first compiled call, not with this module, so a writer that
+takes the Python path (:func:`_write_rows` below ``psdcal._jit.AUTO_MIN_CSV_ROWS``
+rows in the command line's one-shot runs) never imports it.
 """
 from __future__ import annotations
 
@@ -25,7 +27,7 @@ import math
 
 import numpy as np
 
-from psdcal._jit import njit, njit_inline
+from psdcal._jit import deferred_njit as njit, deferred_njit_inline as njit_inline
 
 #: Bytes reserved per formatted value ("-1.234567891e-100" is 17; an int64 20); the ten digits
 #: of a float are worked out in the slot's last ten bytes.
@@ -363,7 +365,7 @@ def _write_rows(fh, cols: dict, order) -> int:
         return 0
     from psdcal import _jit
 
-    if _jit.enabled():
+    if _jit.use_compiled(n, _jit.AUTO_MIN_CSV_ROWS):
         text = rows_bytes([cols[c] for c in order])
         raw = getattr(fh, "buffer", None)
         if raw is not None and getattr(fh, "encoding", "").lower().replace("-", "") == "utf8":

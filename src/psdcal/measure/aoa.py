@@ -205,7 +205,7 @@ def angles_from_points(d_mm, model: SensorModel, cov_d_mm2=None, dd_dgains=None,
     d = np.asarray(d_mm, dtype=float)
     from psdcal import _jit
 
-    if d.ndim >= 1 and d.shape[-1] == 2 and _jit.use_compiled(d.size // 2):
+    if d.ndim >= 1 and d.shape[-1] == 2 and _jit.use_compiled(d.size // 2, _jit.AUTO_MIN_ANGLES):
         return _angles_compiled(d, model, cov_d_mm2, dd_dgains, derivatives)
     return angles_from_points_reference(d, model, cov_d_mm2, dd_dgains, derivatives=derivatives)
 

@@ -12,17 +12,41 @@ import sys
 from psdcal import _jit
 
 
-def warm_up(verbose: bool = True) -> float:
-    """Compile (or load) every kernel once by running a small calibration, angles and locate; seconds taken."""
+#: The parts of :func:`warm_up`, which compile different kernels (``python3 tasks.py`` runs them in
+#: parallel processes): the calibration's (the bulk), and the measuring side's (angles, CSV writer).
+PARTS = ("calibration", "measure")
+
+
+def warm_up(verbose: bool = True, part: str | None = None) -> float:
+    """Compile (or load) the kernels once by running a small calibration, angles and locate; seconds taken.
+
+    ``part``: one of :data:`PARTS` (None: all of them).
+    """
     import time
 
-    import numpy as np
-
     t0 = time.perf_counter()
+    if part is not None and part not in PARTS:
+        raise ValueError(f"part must be one of {PARTS} or None, got {part!r}")
     if not _jit.AVAILABLE:
         return 0.0
     if verbose:
         print("psdcal: compiling the numerical kernels (once per machine and version) ...", file=sys.stderr, flush=True)
+    mode = _jit._MODE
+    _jit.set_mode("always")  # every kernel, whatever the problems' sizes
+    try:
+        if part in (None, "calibration"):
+            _calibration_kernels()
+        if part in (None, "measure"):
+            _measure_kernels()
+    finally:
+        _jit.set_mode(mode)
+    dt = time.perf_counter() - t0
+    if verbose:
+        print(f"psdcal: kernels ready ({dt:.1f} s)", file=sys.stderr, flush=True)
+    return dt
+
+
+def _calibration_kernels() -> None:
     from psdcal.calibration.core import calibrate
     from psdcal.study.simulate import simulate_set
 
@@ -33,6 +57,11 @@ def warm_up(verbose: bool = True) -> float:
             calibrate(s.template_mm, s.points_mm, **kw)
         except Exception:  # a warm-up: the kernels are compiled even when a fit fails
             pass
+
+
+def _measure_kernels() -> None:
+    import numpy as np
+
     from psdcal.measure.aoa import angles_from_points
     from psdcal.measure.sensor_model import SensorModel
 
@@ -56,10 +85,6 @@ def warm_up(verbose: bool = True) -> float:
     from psdcal.measure._csvtext import rows_text  # locate's CSV writer
 
     rows_text([np.zeros(2), np.array(["a", "b"], dtype=object), np.arange(2)])
-    dt = time.perf_counter() - t0
-    if verbose:
-        print(f"psdcal: kernels ready ({dt:.1f} s)", file=sys.stderr, flush=True)
-    return dt
 
 
-__all__ = ["warm_up"]
+__all__ = ["PARTS", "warm_up"]
