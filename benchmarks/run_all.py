@@ -55,7 +55,7 @@ REGISTRY: dict[str, Bench] = {
     "bench_scaling": Bench(("--repeats", "9"), ("--quick", "--repeats", "1", "--scipy-max-views", "0"),
                            ("1", "2", "3"), 480),
     "bench_linear": Bench((), ("--repeats", "20"), ("1",), 20),
-    "bench_startup": Bench(("--repeats", "5"), ("--repeats", "1"), ("1",), 30),
+    "bench_startup": Bench(("--repeats", "5"), ("--repeats", "1"), ("1", "2"), 90),
     "bench_aoa": Bench(("--runs", "5"), ("--points", "100000", "--runs", "1"), ("1",), 60),
     "bench_locate": Bench(("--seconds", "60", "--repeats", "5"), ("--seconds", "2", "--repeats", "1"), ("1",), 120),
     # (its start-up table compiles every kernel three times in fresh caches: minutes; not in --quick)

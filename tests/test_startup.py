@@ -136,9 +136,9 @@ def test_deferred_kernels_import_no_numba_until_called():
     assert got["numba"] is False
     if not _jit.enabled():
         pytest.skip("numba disabled")
-    got = _probe("import numpy as np\nfrom psdcal.measure._csvtext import rows_text, format_cells\n"
+    got = _probe("import numpy as np\nfrom psdcal.measure._csvtext import rows_text, format_rows\n"
                  "rows_text([np.arange(3.0)])\nimport psdcal.measure._csvtext as m\n"
-                 "assert type(m.format_cells).__module__.startswith('numba'), type(m.format_cells)\n"
+                 "assert type(m.format_rows).__module__.startswith('numba'), type(m.format_rows)\n"
                  "assert type(m._scaled).__module__.startswith('numba'), type(m._scaled)")
     assert got["numba"] is True
 
