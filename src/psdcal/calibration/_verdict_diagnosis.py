@@ -7,7 +7,7 @@ two template LEDs swapped.
 """
 from __future__ import annotations
 
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -17,13 +17,85 @@ from psdcal.calibration._verdict_rules import F_RANGE_MM
 
 # -- diagnosis ---------------------------------------------------------------------------
 def _refit(result, **changes):
-    """Re-run ``result``'s calibration with changed options (or a changed template); None if it fails."""
+    """Re-run ``result``'s calibration with changed options (or a changed template); None if it fails.
+
+    Without changes, the re-run of a result this process has just computed is that result (the calibration is
+    deterministic: :func:`psdcal.calibration.core._remember`).
+    """
     from psdcal.calibration.core import _calibrate_record
 
     try:
-        return _calibrate_record(result, **changes)
+        return _calibrate_record(result, reuse=True, **changes)
     except Exception:  # noqa: BLE001 -- a diagnosis refit that fails is just not the explanation
         return None
+
+
+@dataclass(frozen=True)
+class _Warm:
+    """A warm-started refit (:func:`_warm_refit`): what the diagnosis reads of a refit."""
+
+    intrinsics: object
+    residuals_mm: np.ndarray  # (N, 2) of the valid observations, mm
+    sigma_mm: float
+
+
+#: Model changes :func:`_warm_refit` refines from the fit's own solution (the new terms at 0).
+WARM_CHANGES = frozenset({"radial", "tangential", "psd_radial", "aspect", "fit_gains"})
+
+
+def _warm_refit(result, *, drop_image=None, template_mm=None, max_iterations=None, **changes):
+    """The refinement of ``result``'s problem with ``changes`` to its model (terms added at 0), a view left out or
+    another template, started from the fit's own solution; None when it fails or stops where no camera is.
+
+    A diagnosis asks whether an alternative explains the residuals; the fit's
+    solution is in the alternative's valley (the terms added are small, a view
+    or two LEDs change little of the rest), so the refinement from it costs a
+    few iterations where a full calibration runs every start. Results of
+    another cost, with fixed values or priors, fall back to the full refit
+    (:func:`_refit`).
+    """
+    from psdcal.calibration._refine import Problem, SolverOptions, refine
+    from psdcal.calibration.checks import align_to_problem
+    from psdcal.calibration.core import inputs_from_record
+
+    p = result.problem if isinstance(result.problem, dict) else {}
+    o = p.get("options", {})
+    if o.get("cost", "image") != "image" or o.get("fix") or o.get("priors") or not set(changes) <= WARM_CHANGES:
+        kw = dict(changes)
+        if drop_image is not None:
+            kw["drop_image"] = drop_image
+        if template_mm is not None:
+            kw["template_mm"] = template_mm
+        if max_iterations is not None:
+            kw["solver"] = {**o.get("solver", {}), "max_iterations": max_iterations}
+        return _refit(result, **kw)
+    try:
+        res = align_to_problem(result)
+        T, X = inputs_from_record(res.problem)
+        if template_mm is not None:
+            T = np.asarray(template_mm, dtype=float)
+        rv, tv = np.asarray(res.rvecs, float), np.asarray(res.tvecs_mm, float)
+        if drop_image is not None:
+            X, rv, tv = np.delete(X, drop_image, axis=0), np.delete(rv, drop_image, axis=0), \
+                np.delete(tv, drop_image, axis=0)
+        spec = replace(res.model, **changes)
+        intr = res.intrinsics
+        if spec.aspect and intr.fy_mm is None:
+            intr = replace(intr, fy_mm=intr.f_mm)
+        gains = np.asarray(res.gains, float) if res.model.fit_gains else np.ones(4)
+        solver = SolverOptions(**o.get("solver", {}))
+        if max_iterations is not None:
+            solver = replace(solver, max_iterations=max_iterations)
+        prob = Problem(T, X, spec, cost="image", sensor_mm=tuple(res.sensor_mm))
+        with np.errstate(all="ignore"):
+            r = refine(prob, intr, res.distortion, gains, rv, tv, solver)
+    except Exception:  # noqa: BLE001 -- a diagnosis refit that fails is just not the explanation
+        return None
+    q = np.asarray(r.residuals, dtype=float).reshape(-1, 2)
+    if not (r.converged and np.all(np.isfinite(q)) and r.intrinsics.f_mm > 0 and np.all(r.tvecs[:, 2] > 0)):
+        return None
+    dof = max(q.size - r.z.size, 1)
+    return _Warm(r.intrinsics, q, float(np.sqrt(np.sum(q * q) / dof)))
 
 
 def _ssr(r) -> float:
@@ -74,7 +146,7 @@ def _diagnose(result, checks, lin, points_kind, bad_view):
     if broken and len(result.image_ids) >= 4:
         cause = _view_advice(result)  # the linearisation of a collapsed fit says little: refit each view out
     if broken and cause is None:
-        perm = _homography_hint(result) or _permutation_advice(result, lin, base)
+        perm = _homography_hint(result) or _permutation_advice(result, lin, base, full=True)
         if perm:
             cause = perm
             if leds is not None:  # verified by the refit: the result is wrong
@@ -94,7 +166,7 @@ def _diagnose(result, checks, lin, points_kind, bad_view):
 
             dg = gain_map(lin.pts, np.ones(4), *result.sensor_mm, jacobians=True)[2][..., 1:]  # (N, 2, 3)
             expl_g, _ = _explained(lin, dg.reshape(-1, 3))
-            g = None if expl_g > 0.5 * base or m.skew or m.aspect or m.radial < 1 else _refit(result, fit_gains=True)
+            g = None if expl_g > 0.5 * base or m.skew or m.aspect or m.radial < 1 else _warm_refit(result, fit_gains=True)
             if expl_g > 0.5 * base or better(g, 4.0):
                 cause = ("residuals show a projective pattern: raw amplitudes through unequal channel gains; "
                          "run with --fit-gains (or calibrate the gains electrically)")
@@ -108,7 +180,7 @@ def _diagnose(result, checks, lin, points_kind, bad_view):
                              ("--aspect", {"aspect": True}) if not (m.aspect or m.skew) else (None, None)):
                 if flag is None:
                     continue
-                r = _refit(result, **ch)
+                r = _warm_refit(result, **ch)
                 if r is not None and _ssr(r) < base / 1.05 and F_RANGE_MM[0] <= r.intrinsics.f_mm <= F_RANGE_MM[1]:
                     extra.append((_ssr(r), flag))
             if extra:
@@ -227,7 +299,7 @@ def _view_advice(result, lin=None) -> str | None:
         if not (np.isfinite(sig[order[0]]) and sig[order[0]] * 3 < base and sig[order[0]] * 3 < sig[order[1]]):
             return None
         i = int(order[0])
-        r = _refit(result, drop_image=i)
+        r = _warm_refit(result, drop_image=i)
         if r is None or not r.sigma_mm * 3 < result.sigma_mm:
             return None
         return (f"view {result.image_ids[i]} disagrees with the others (without it the implied noise falls "
@@ -249,24 +321,37 @@ def _view_advice(result, lin=None) -> str | None:
     return None
 
 
-def _permutation_advice(result, lin, base) -> str | None:
-    """When swapping template LEDs (among the least consistent) makes the fit far better, say which."""
+def _permutation_advice(result, lin, base, *, full: bool = False) -> str | None:
+    """When swapping template LEDs (among the least consistent) makes the fit far better, say which.
+
+    Each swap is refined from the fit's own solution (:func:`_warm_refit`); a
+    swap that brings the cost down 50x is a least-squares solution of the
+    swapped template whatever its start. ``full``: when none does (a collapsed
+    fit, whose solution may be far from the right one), every swap is then
+    calibrated from scratch (all starts).
+    """
 
     M = len(result.point_ids)
     q = lin.e.reshape(-1, 2)
     sq = np.bincount(lin.led, weights=np.sum(q * q, axis=1), minlength=M)
     worst = list(np.argsort(-sq)[: min(5, M)])
     T = np.asarray(result.problem["template"]["xy_mm"], dtype=float)
-    best = (base, None)
-    for a_i in range(len(worst)):
-        for b_i in range(a_i + 1, len(worst)):
-            a, b = worst[a_i], worst[b_i]
+    pairs = [(worst[a_i], worst[b_i]) for a_i in range(len(worst)) for b_i in range(a_i + 1, len(worst))]
+
+    def search(refit):
+        best = (base, None)
+        for a, b in pairs:
             T2 = T.copy()
             T2[[a, b]] = T2[[b, a]]
-            r = _refit(result, template_mm=T2, solver={**result.problem["options"].get("solver", {}),
-                                                       "max_iterations": 40})
+            r = refit(T2)
             if r is not None and _ssr(r) < best[0]:
                 best = (_ssr(r), (a, b))
+        return best
+
+    best = search(lambda T2: _warm_refit(result, template_mm=T2, max_iterations=40))
+    if full and (best[1] is None or best[0] > base / 50):
+        best = search(lambda T2: _refit(result, template_mm=T2, solver={**result.problem["options"].get("solver", {}),
+                                                                        "max_iterations": 40}))
     if best[1] is None or best[0] > base / 50:
         return None
     a, b = best[1]

@@ -593,6 +593,7 @@ def calibrate(
             gains=gains, image_ids=image_ids, point_ids=point_ids, sensor_mm=sensor_mm, solver=solver,
             f_guess_mm=f_guess_mm,
         )
+        _remember(res)
         if verdict:
             res = with_verdict(res, noise_mm=noise_mm, diagnose=False)
         return res
@@ -683,6 +684,7 @@ def _calibrate_constrained(template_mm, points_mm, *, fix, priors, gains, fit_ga
     if why:
         raise ConvergenceError(f"the {what}-cost refinement stopped at a solution that is not a camera ({why}); "
                                "check the fixed values and priors", result=result)
+    _remember(result)
     if verdict:
         result = with_verdict(result, noise_mm=noise_mm, diagnose=False)
     return result
@@ -1317,8 +1319,41 @@ def recalibrate(calib: dict | CalibrationResult, *, verdict: bool = True) -> Cal
     return _calibrate_record(calib, verdict=verdict)
 
 
-def _calibrate_record(calib, *, verdict: bool = False, template_mm=None, drop_image=None, **changes) -> CalibrationResult:
-    """Re-run the calibration recorded in ``calib`` with ``changes`` to its options (another template, an image left out)."""
+#: The last few results :func:`calibrate` returned, by the identity of their problem record (which
+#: :func:`dataclasses.replace`, the verdict included, passes on unchanged): ``id(problem) -> (problem, result)``.
+_RECENT: dict = {}
+_RECENT_SIZE = 4
+
+
+def _remember(res: CalibrationResult) -> None:
+    """Keep ``res`` as the answer to a re-run of its own problem record (:func:`_calibrate_record` without changes).
+
+    The calibration is deterministic, so re-running the record of a result this
+    process has just computed gives that result again; the verdict's diagnosis
+    (a re-run that reaches a lower cost means a local minimum) then costs nothing
+    for a fit of this process, and still re-runs a result read from a file.
+    """
+    p = res.problem
+    if not isinstance(p, dict):
+        return
+    _RECENT.pop(id(p), None)
+    _RECENT[id(p)] = (p, res)
+    while len(_RECENT) > _RECENT_SIZE:
+        _RECENT.pop(next(iter(_RECENT)))
+
+
+def _calibrate_record(calib, *, verdict: bool = False, template_mm=None, drop_image=None, reuse: bool = False,
+                      **changes) -> CalibrationResult:
+    """Re-run the calibration recorded in ``calib`` with ``changes`` to its options (another template, an image left out).
+
+    ``reuse``: a re-run without changes of a result :func:`calibrate` returned in this process is that result
+    (:func:`_remember`).
+    """
+    if reuse and not verdict and template_mm is None and drop_image is None and not changes \
+            and isinstance(calib, CalibrationResult):
+        hit = _RECENT.get(id(calib.problem))
+        if hit is not None and hit[0] is calib.problem:
+            return hit[1]
     d = calib.to_dict() if isinstance(calib, CalibrationResult) else calib
     p = d["problem"]
     if p.get("kind") == "directions":  # a rotation-stage calibration (psdcal.calibration.directions)
