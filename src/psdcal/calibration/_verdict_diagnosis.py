@@ -98,6 +98,30 @@ def _warm_refit(result, *, drop_image=None, template_mm=None, max_iterations=Non
     return _Warm(r.intrinsics, q, float(np.sqrt(np.sum(q * q) / dof)))
 
 
+#: A diagnosis refit runs only when the linearised refit (the Gauss-Newton step from the fit, computed from its
+#: Jacobian) explains at least 1 / SCREEN of the fall of the cost the refit must show to name its cause.
+SCREEN = 4.0
+
+#: The left-out terms (names of the verdict's richer model, :func:`psdcal.calibration._verdict_linear.linearise`)
+#: each model change of the diagnosis adds, given the fit's model.
+_TERMS_OF = {
+    "radial": lambda m: (f"k{m.radial + 1}",),
+    "tangential": lambda m: ("p1", "p2"),
+    "psd_radial": lambda m: ("l1",),
+    "aspect": lambda m: ("fy_mm",),
+}
+
+
+def _cannot_explain(lin, terms, needed: float) -> bool:
+    """Whether adding ``terms`` to the linearised fit explains less than ``needed / SCREEN`` of the residual sum of
+    squares (False when the terms are not among ``lin``'s left-out ones: then refit)."""
+    names = list(lin.extra_names or ())
+    if lin.extra is None or not terms or any(t not in names for t in terms):
+        return False
+    expl, _ = _explained(lin, lin.extra[:, [names.index(t) for t in terms]])
+    return expl < needed / SCREEN
+
+
 def _ssr(r) -> float:
     q = r.residuals_mm
     return float(np.nansum(q * q))
@@ -166,7 +190,8 @@ def _diagnose(result, checks, lin, points_kind, bad_view):
 
             dg = gain_map(lin.pts, np.ones(4), *result.sensor_mm, jacobians=True)[2][..., 1:]  # (N, 2, 3)
             expl_g, _ = _explained(lin, dg.reshape(-1, 3))
-            g = None if expl_g > 0.5 * base or m.skew or m.aspect or m.radial < 1 else _warm_refit(result, fit_gains=True)
+            g = None if expl_g > 0.5 * base or m.skew or m.aspect or m.radial < 1 or expl_g < base * 0.75 / SCREEN \
+                else _warm_refit(result, fit_gains=True)
             if expl_g > 0.5 * base or better(g, 4.0):
                 cause = ("residuals show a projective pattern: raw amplitudes through unequal channel gains; "
                          "run with --fit-gains (or calibrate the gains electrically)")
@@ -179,6 +204,8 @@ def _diagnose(result, checks, lin, points_kind, bad_view):
                              ("--psd-radial 1", {"psd_radial": 1}) if m.psd_radial == 0 else (None, None),
                              ("--aspect", {"aspect": True}) if not (m.aspect or m.skew) else (None, None)):
                 if flag is None:
+                    continue
+                if _cannot_explain(lin, _TERMS_OF[next(iter(ch))](m), base * (1 - 1 / 1.05)):
                     continue
                 r = _warm_refit(result, **ch)
                 if r is not None and _ssr(r) < base / 1.05 and F_RANGE_MM[0] <= r.intrinsics.f_mm <= F_RANGE_MM[1]:

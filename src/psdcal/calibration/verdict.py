@@ -56,6 +56,7 @@ left out: :mod:`psdcal.calibration._verdict_diagnosis`).
 """
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -101,6 +102,11 @@ EFFECT_WRONG = 10.0
 FIELD_VISIBLE = 0.3
 
 VERDICTS = ("good", "suspect", "wrong")
+
+# the checks' thresholds depend only on (alpha, degrees of freedom): computed once per size (Monte Carlo trials repeat
+# them), each an iterative inversion of a distribution function
+_f_isf = functools.lru_cache(maxsize=1024)(_stats.f_isf)
+_chi2_isf = functools.lru_cache(maxsize=1024)(_stats.chi2_isf)
 
 # the names the verdict's users import (kept from the single-module layout)
 _Linear = Linear
@@ -392,7 +398,7 @@ def _noise_check(ssr: float, dof: int, noise_mm) -> Check:
         p = float(_stats.chi2_sf(stat, dof))
         ok = p >= ALPHA
         return Check(
-            "noise", stat / dof, float(_stats.chi2_isf(ALPHA, dof)) / dof, p, ALPHA, ok,
+            "noise", stat / dof, float(_chi2_isf(ALPHA, dof)) / dof, p, ALPHA, ok,
             f"residual RMS per coordinate {np.sqrt(ssr / dof) * 1e3:.3g} um against the stated noise {noise_mm * 1e3:.3g} um "
             f"(chi2/dof {stat / dof:.3g}, p = {p:.2g})" + ("" if ok else "; the standard errors use the implied noise"),
             "" if ok else "the model does not explain the points to their noise: see the other checks for the cause; "
@@ -411,7 +417,7 @@ def _structure_check(result, lin: Linear, ssr: float, dof: int, cons, n_pts, alp
     if p_dim == 0:
         return None
     frac = expl / ssr if ssr > 0 else 0.0
-    thr = float(_stats.f_isf(alpha, p_dim, dof - p_dim))
+    thr = float(_f_isf(alpha, p_dim, dof - p_dim))
     found = (f"a smooth field over the sensor explains {100 * frac:.3g} % of the residuals (F = {F:.3g} on {p_dim} "
              f"and {dof - p_dim} dof, p = {p:.2g})")
     eff = size = None
@@ -481,7 +487,7 @@ def assess_fit(result, jacobian, residuals, points_mm, *, noise_mm: float | None
         if p_dim:
             good = p >= ALPHA
             checks.append(Check(
-                "structure", F, float(_stats.f_isf(ALPHA, p_dim, dof - p_dim)), p, ALPHA, good,
+                "structure", F, float(_f_isf(ALPHA, p_dim, dof - p_dim)), p, ALPHA, good,
                 f"a smooth field over the sensor explains {100 * expl / max(ssr, 1e-300):.3g} % of the residuals "
                 f"(F = {F:.3g} on {p_dim} and {dof - p_dim} dof, p = {p:.2g})",
                 "" if good else "a systematic misfit over the sensor: a missing model term, ignored gains or a "
