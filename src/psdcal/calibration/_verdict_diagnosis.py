@@ -101,6 +101,9 @@ def _warm_refit(result, *, drop_image=None, template_mm=None, max_iterations=Non
 #: A diagnosis refit runs only when the linearised refit (the Gauss-Newton step from the fit, computed from its
 #: Jacobian) explains at least 1 / SCREEN of the fall of the cost the refit must show to name its cause.
 SCREEN = 4.0
+#: ... and a model change only when its linearised fall is at least 1 / SCREEN_BEST of the fall the best change
+#: refitted so far reached (the changes are refitted in the order of their linearised falls).
+SCREEN_BEST = 2.0
 
 #: The left-out terms (names of the verdict's richer model, :func:`psdcal.calibration._verdict_linear.linearise`)
 #: each model change of the diagnosis adds, given the fit's model.
@@ -112,14 +115,14 @@ _TERMS_OF = {
 }
 
 
-def _cannot_explain(lin, terms, needed: float) -> bool:
-    """Whether adding ``terms`` to the linearised fit explains less than ``needed / SCREEN`` of the residual sum of
-    squares (False when the terms are not among ``lin``'s left-out ones: then refit)."""
+def _predicted_fall(lin, terms) -> float | None:
+    """The fall of the residual sum of squares (mm^2) the linearised fit predicts when ``terms`` are added (None when
+    they are not among ``lin``'s left-out terms: then the refit decides alone)."""
     names = list(lin.extra_names or ())
     if lin.extra is None or not terms or any(t not in names for t in terms):
-        return False
+        return None
     expl, _ = _explained(lin, lin.extra[:, [names.index(t) for t in terms]])
-    return expl < needed / SCREEN
+    return float(expl)
 
 
 def _ssr(r) -> float:
@@ -199,17 +202,26 @@ def _diagnose(result, checks, lin, points_kind, bad_view):
             cause = _view_advice(result, lin)
         if cause is None:
             extra = []
-            for flag, ch in ((f"--radial {m.radial + 1}", {"radial": m.radial + 1}) if m.radial < 3 else (None, None),
-                             ("--tangential", {"tangential": True}) if not m.tangential else (None, None),
-                             ("--psd-radial 1", {"psd_radial": 1}) if m.psd_radial == 0 else (None, None),
-                             ("--aspect", {"aspect": True}) if not (m.aspect or m.skew) else (None, None)):
-                if flag is None:
-                    continue
-                if _cannot_explain(lin, _TERMS_OF[next(iter(ch))](m), base * (1 - 1 / 1.05)):
+            cands = [(flag, ch) for flag, ch in (
+                (f"--radial {m.radial + 1}", {"radial": m.radial + 1}) if m.radial < 3 else (None, None),
+                ("--tangential", {"tangential": True}) if not m.tangential else (None, None),
+                ("--psd-radial 1", {"psd_radial": 1}) if m.psd_radial == 0 else (None, None),
+                ("--aspect", {"aspect": True}) if not (m.aspect or m.skew) else (None, None)) if flag is not None]
+            # the linearised fall of the cost each change brings; refitted in that order (largest first), a change
+            # whose linearised fall is below 1 / SCREEN of the fall it needs, or below 1 / SCREEN_BEST of the fall
+            # of the best one refitted, is not
+            needed = base * (1 - 1 / 1.05)
+            pred = [_predicted_fall(lin, _TERMS_OF[next(iter(ch))](m)) for _, ch in cands]
+            order = sorted(range(len(cands)), key=lambda k: -(np.inf if pred[k] is None else pred[k]))
+            best_fall = 0.0
+            for k in order:
+                flag, ch = cands[k]
+                if pred[k] is not None and (pred[k] < needed / SCREEN or pred[k] < best_fall / SCREEN_BEST):
                     continue
                 r = _warm_refit(result, **ch)
                 if r is not None and _ssr(r) < base / 1.05 and F_RANGE_MM[0] <= r.intrinsics.f_mm <= F_RANGE_MM[1]:
                     extra.append((_ssr(r), flag))
+                    best_fall = max(best_fall, base - _ssr(r))
             if extra:
                 extra.sort()
                 cause = f"the model lacks terms the data need: add {extra[0][1]}" + (
