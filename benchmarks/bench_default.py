@@ -19,9 +19,17 @@ points in pixels at a 10 um pitch. Time: process CPU time
 ``--repeats`` calls after a warm-up (benchmarks/_timing.py's rule). The ratio
 is psdcal's time over OpenCV's (the issue 22 target: <= 0.5 with the verdict).
 
+A second table (skipped with ``--no-cli``) runs ``psdcal calibrate`` on each
+real set of ``tests/data`` (Zhang's and the five chessboard sets, whatever
+their verdict: the diagnosis of a failed check included) in fresh processes,
+and gives the CPU time of each (the children's user + system time,
+``resource.getrusage``) above that of ``psdcal --help``, the median of
+``--cli-repeats`` runs (issue 22 target: <= 0.3 s). The interpreter writes its
+bytecode cache (a first run of each command is not counted).
+
 Usage::
 
-    .venv/bin/python benchmarks/bench_default.py [--repeats 7] [--markdown]
+    .venv/bin/python benchmarks/bench_default.py [--repeats 7] [--cli-repeats 5] [--no-cli] [--markdown]
 """
 from __future__ import annotations
 
@@ -31,7 +39,10 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_var, "1")
 
 import argparse  # noqa: E402
+import resource  # noqa: E402
+import subprocess  # noqa: E402
 import sys  # noqa: E402
+import tempfile  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 
@@ -110,9 +121,44 @@ def cases(cv2):
     return out
 
 
+def real_sets() -> list[Path]:
+    """The folders (template.csv, points.csv) of the real sets in tests/data."""
+    chess = ROOT / "tests" / "data" / "chessboards"
+    return [ZHANG] + sorted(d for d in chess.iterdir() if (d / "points.csv").exists())
+
+
+def _children_cpu(cmd, env) -> float:
+    """CPU seconds (user + system) of one fresh process running ``cmd``."""
+    r0 = resource.getrusage(resource.RUSAGE_CHILDREN)
+    subprocess.run(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, check=False)
+    r1 = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return (r1.ru_utime - r0.ru_utime) + (r1.ru_stime - r0.ru_stime)
+
+
+def cli_rows(repeats: int) -> tuple[float, list[list[str]]]:
+    """``psdcal --help`` CPU seconds, and per real set: the median CPU seconds of ``psdcal calibrate`` above it."""
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONDONTWRITEBYTECODE"}
+    script = Path(sys.executable).parent / "psdcal"  # the console script, as a user runs it
+    exe = [str(script)] if script.exists() else [sys.executable, "-m", "psdcal.cli"]
+    out = Path(tempfile.mkdtemp()) / "calib.json"
+    cmds = {d.name: exe + ["calibrate", str(d / "points.csv"), "-t", str(d / "template.csv"), "-o", str(out),
+                           "--force"] for d in real_sets()}
+    for cmd in [exe + ["--help"], *cmds.values()]:  # the bytecode cache written, not counted
+        _children_cpu(cmd, env)
+    helps, runs = [], {n: [] for n in cmds}
+    for _ in range(repeats):
+        helps.append(_children_cpu(exe + ["--help"], env))
+        for n, cmd in cmds.items():
+            runs[n].append(_children_cpu(cmd, env))
+    h = float(np.median(helps))
+    return h, [[n, f"{np.median(t):.3f}", f"{np.median(t) - h:.3f}"] for n, t in runs.items()]
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeats", type=int, default=7)
+    ap.add_argument("--cli-repeats", type=int, default=5)
+    ap.add_argument("--no-cli", dest="cli", action="store_false", help="skip the command-line table")
     ap.add_argument("--markdown", action="store_true", help="print the table as Markdown")
     a = ap.parse_args(argv)
     import cv2
@@ -129,6 +175,13 @@ def main(argv=None) -> int:
                 lines, a.markdown)
     if not a.markdown:
         print(f"(process CPU time, one thread, median of {a.repeats}; load {os.getloadavg()[0]:.2f})")
+    if a.cli:
+        h, rows = cli_rows(a.cli_repeats)
+        print()
+        print_table(["psdcal calibrate on", "CPU (s)", "above psdcal --help (s)"], rows, a.markdown)
+        if not a.markdown:
+            print(f"(psdcal --help: {h:.3f} s CPU; fresh processes, median of {a.cli_repeats}; "
+                  f"load {os.getloadavg()[0]:.2f})")
     return 0
 
 
