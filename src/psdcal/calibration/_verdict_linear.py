@@ -301,8 +301,12 @@ def field_basis(pts, c_mm, half_mm) -> np.ndarray:
     u = pts / half_mm
     n = pts.shape[0]
     # the monomials u^i v^j (i + j <= FIELD_DEGREE) from the powers of u and v, in the order i, then j
-    pu = u[:, 0:1] ** np.arange(FIELD_DEGREE + 1)
-    pv = u[:, 1:2] ** np.arange(FIELD_DEGREE + 1)
+    pu = np.empty((n, FIELD_DEGREE + 1))
+    pv = np.empty((n, FIELD_DEGREE + 1))
+    pu[:, 0] = pv[:, 0] = 1.0
+    for q in range(1, FIELD_DEGREE + 1):  # products, not pow
+        np.multiply(pu[:, q - 1], u[:, 0], out=pu[:, q])
+        np.multiply(pv[:, q - 1], u[:, 1], out=pv[:, q])
     ij = [(i, j) for i in range(FIELD_DEGREE + 1) for j in range(FIELD_DEGREE + 1 - i)]
     mono = pu[:, [i for i, _ in ij]] * pv[:, [j for _, j in ij]]  # (N, n_mono)
     k = len(ij)
