@@ -13,6 +13,7 @@ from __future__ import annotations
 import datetime as _dt
 import math
 import functools
+import threading
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -1323,6 +1324,7 @@ def recalibrate(calib: dict | CalibrationResult, *, verdict: bool = True) -> Cal
 #: :func:`dataclasses.replace`, the verdict included, passes on unchanged): ``id(problem) -> (problem, result)``.
 _RECENT: dict = {}
 _RECENT_SIZE = 4
+_RECENT_LOCK = threading.Lock()  # calibrations run in threads (the studies' local clusters)
 
 
 def _remember(res: CalibrationResult) -> None:
@@ -1336,10 +1338,11 @@ def _remember(res: CalibrationResult) -> None:
     p = res.problem
     if not isinstance(p, dict):
         return
-    _RECENT.pop(id(p), None)
-    _RECENT[id(p)] = (p, res)
-    while len(_RECENT) > _RECENT_SIZE:
-        _RECENT.pop(next(iter(_RECENT)))
+    with _RECENT_LOCK:
+        _RECENT.pop(id(p), None)
+        _RECENT[id(p)] = (p, res)
+        while len(_RECENT) > _RECENT_SIZE:
+            _RECENT.pop(next(iter(_RECENT)))
 
 
 def _calibrate_record(calib, *, verdict: bool = False, template_mm=None, drop_image=None, reuse: bool = False,
@@ -1351,7 +1354,8 @@ def _calibrate_record(calib, *, verdict: bool = False, template_mm=None, drop_im
     """
     if reuse and not verdict and template_mm is None and drop_image is None and not changes \
             and isinstance(calib, CalibrationResult):
-        hit = _RECENT.get(id(calib.problem))
+        with _RECENT_LOCK:
+            hit = _RECENT.get(id(calib.problem))
         if hit is not None and hit[0] is calib.problem:
             return hit[1]
     d = calib.to_dict() if isinstance(calib, CalibrationResult) else calib
