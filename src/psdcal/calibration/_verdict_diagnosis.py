@@ -7,6 +7,7 @@ two template LEDs swapped.
 """
 from __future__ import annotations
 
+import sys
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -43,14 +44,16 @@ class _Warm:
 WARM_CHANGES = frozenset({"radial", "tangential", "psd_radial", "aspect", "fit_gains"})
 
 
-def _warm_refit(result, *, drop_image=None, template_mm=None, max_iterations=None, **changes):
-    """The refinement of ``result``'s problem with ``changes`` to its model (terms added at 0), a view left out or
-    another template, started from the fit's own solution; None when it fails or stops where no camera is.
+def _warm_refit(result, *, drop_image=None, **changes):
+    """The refinement of ``result``'s problem with ``changes`` to its model (terms added at 0) or a view left out,
+    started from the fit's own solution; None when it fails or stops where no camera is.
 
     A diagnosis asks whether an alternative explains the residuals; the fit's
     solution is in the alternative's valley (the terms added are small, a view
-    or two LEDs change little of the rest), so the refinement from it costs a
-    few iterations where a full calibration runs every start. Results of
+    left out changes little of the rest), so the refinement from it costs a
+    few iterations where a full calibration runs every start. (Not for a
+    template permutation: from the fit of the wrong template, the right one's
+    refinement crawls along a valley.) Results of
     another cost, with fixed values or priors, fall back to the full refit
     (:func:`_refit`).
     """
@@ -64,16 +67,10 @@ def _warm_refit(result, *, drop_image=None, template_mm=None, max_iterations=Non
         kw = dict(changes)
         if drop_image is not None:
             kw["drop_image"] = drop_image
-        if template_mm is not None:
-            kw["template_mm"] = template_mm
-        if max_iterations is not None:
-            kw["solver"] = {**o.get("solver", {}), "max_iterations": max_iterations}
         return _refit(result, **kw)
     try:
         res = align_to_problem(result)
         T, X = inputs_from_record(res.problem)
-        if template_mm is not None:
-            T = np.asarray(template_mm, dtype=float)
         rv, tv = np.asarray(res.rvecs, float), np.asarray(res.tvecs_mm, float)
         if drop_image is not None:
             X, rv, tv = np.delete(X, drop_image, axis=0), np.delete(rv, drop_image, axis=0), \
@@ -84,8 +81,6 @@ def _warm_refit(result, *, drop_image=None, template_mm=None, max_iterations=Non
             intr = replace(intr, fy_mm=intr.f_mm)
         gains = np.asarray(res.gains, float) if res.model.fit_gains else np.ones(4)
         solver = SolverOptions(**o.get("solver", {}))
-        if max_iterations is not None:
-            solver = replace(solver, max_iterations=max_iterations)
         prob = Problem(T, X, spec, cost="image", sensor_mm=tuple(res.sensor_mm))
         with np.errstate(all="ignore"):
             r = refine(prob, intr, res.distortion, gains, rv, tv, solver)
@@ -123,6 +118,21 @@ def _predicted_fall(lin, terms) -> float | None:
         return None
     expl, _ = _explained(lin, lin.extra[:, [names.index(t) for t in terms]])
     return float(expl)
+
+
+def _load_kernels() -> None:
+    """Before several full calibrations: load the compiled kernels when they are available and already compiled
+    on this machine, so that the refits run on them (the command line keeps small problems on the numpy path,
+    :func:`psdcal._jit.use_compiled`, until the kernels are loaded; loading them costs well under a second,
+    the numpy path's calibrations of a fit that collapsed seconds each)."""
+    from psdcal import _jit
+
+    if not _jit.enabled() or "psdcal.calibration._image_kernel" in sys.modules or not _jit.cache_is_warm():
+        return
+    try:
+        import psdcal.calibration._image_kernel  # noqa: F401
+    except Exception:  # noqa: BLE001 -- without the kernels the refits run on the numpy path
+        return
 
 
 def _ssr(r) -> float:
@@ -345,6 +355,7 @@ def _view_advice(result, lin=None) -> str | None:
                 f"{result.sigma_mm / r.sigma_mm:.3g}x): check its labels (two LEDs merged or shifted by the demodulator?) "
                 "or leave it out")
     sig = []
+    _load_kernels()  # a full calibration per view follows
     for i in range(n):
         r = _refit(result, drop_image=i)
         sig.append(np.inf if r is None else r.sigma_mm)
@@ -363,34 +374,52 @@ def _view_advice(result, lin=None) -> str | None:
 def _permutation_advice(result, lin, base, *, full: bool = False) -> str | None:
     """When swapping template LEDs (among the least consistent) makes the fit far better, say which.
 
-    Each swap is refined from the fit's own solution (:func:`_warm_refit`); a
-    swap that brings the cost down 50x is a least-squares solution of the
-    swapped template whatever its start. ``full``: when none does (a collapsed
-    fit, whose solution may be far from the right one), every swap is then
-    calibrated from scratch (all starts).
+    The swaps are ranked by how well each view's homography fits the swapped
+    template (a linear fit per view, no refinement: a wrong pair leaves two
+    points off by the LEDs' spacing, the right one leaves the lens'
+    distortion); the best-ranked swap is calibrated (all starts, 40
+    iterations), and named when its cost falls 50x. ``full``: when it does not
+    (a collapsed fit), every swap is calibrated, as the ranking then says
+    little.
     """
+    from psdcal.calibration._homography import apply_homography, homographies
+    from psdcal.calibration.core import points_from_record
 
     M = len(result.point_ids)
     q = lin.e.reshape(-1, 2)
     sq = np.bincount(lin.led, weights=np.sum(q * q, axis=1), minlength=M)
     worst = list(np.argsort(-sq)[: min(5, M)])
     T = np.asarray(result.problem["template"]["xy_mm"], dtype=float)
+    X = points_from_record(result.problem["points"]["xy_mm"])
     pairs = [(worst[a_i], worst[b_i]) for a_i in range(len(worst)) for b_i in range(a_i + 1, len(worst))]
+    solver = {**result.problem["options"].get("solver", {}), "max_iterations": 40}
 
-    def search(refit):
+    def swapped(a, b):
+        T2 = T.copy()
+        T2[[a, b]] = T2[[b, a]]
+        return T2
+
+    def misfit(T2) -> float:
+        try:
+            Hs = homographies(T2, X, normalize=True)
+        except Exception:  # noqa: BLE001 -- a swap the DLT cannot fit ranks last
+            return np.inf
+        d = np.stack([apply_homography(H, T2) for H in Hs]) - X
+        return float(np.nansum(d * d))
+
+    def search(cands):
         best = (base, None)
-        for a, b in pairs:
-            T2 = T.copy()
-            T2[[a, b]] = T2[[b, a]]
-            r = refit(T2)
+        for a, b in cands:
+            r = _refit(result, template_mm=swapped(a, b), solver=solver)
             if r is not None and _ssr(r) < best[0]:
                 best = (_ssr(r), (a, b))
         return best
 
-    best = search(lambda T2: _warm_refit(result, template_mm=T2, max_iterations=40))
+    ranked = sorted(pairs, key=lambda ab: misfit(swapped(*ab)))
+    best = search(ranked[:1])
     if full and (best[1] is None or best[0] > base / 50):
-        best = search(lambda T2: _refit(result, template_mm=T2, solver={**result.problem["options"].get("solver", {}),
-                                                                        "max_iterations": 40}))
+        _load_kernels()  # a full calibration per swap follows
+        best = search(ranked[1:]) if best[1] is None else min(best, search(ranked[1:]), key=lambda t: t[0])
     if best[1] is None or best[0] > base / 50:
         return None
     a, b = best[1]
