@@ -151,3 +151,21 @@ def test_screened_model_refits_keep_the_diagnosis(fit):
 
     v = assess(fit, points_kind="points")
     assert any("--radial 2" in ch.advice for ch in v.failed)
+
+
+def test_rerun_of_a_failed_fit_fails_the_same_way_without_refitting():
+    from psdcal.calibration._refine import SolverOptions
+    from psdcal.errors import ConvergenceError
+
+    s = simulate_set("lens2", n_images=6, noise_mm=1e-3, seed=5)
+    with pytest.raises(ConvergenceError) as info:
+        calibrate(s.template_mm, s.points_mm, solver=SolverOptions(max_iterations=1), verdict=False)
+    failed = info.value.result
+    assert failed is not None
+    assert D._refit(failed) is None  # the re-run raises the same error (a refit that fails names nothing)
+    from psdcal.calibration.core import _calibrate_record
+
+    with pytest.raises(ConvergenceError):
+        _calibrate_record(failed, reuse=True)
+    with pytest.raises(ConvergenceError):  # without the reuse: the calibration itself fails again
+        _calibrate_record(failed)
