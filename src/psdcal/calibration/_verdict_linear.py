@@ -261,6 +261,8 @@ def projector(G, Jpose, row_img, n_img, gram: bool = False):
 #: Above this condition number of a set of columns, their orthonormal basis comes from a Householder QR instead of
 #: :func:`_cholqr2` (whose first pass loses ``cond^2`` of the precision that its second pass restores).
 CHOLQR_MAX_COND = 1e5
+#: ... and below this one, one pass is orthonormal to 1e-10 (its loss, ``eps cond^2``): no second pass.
+CHOLQR_ONE_PASS_COND = 1e3
 
 
 def _cholqr2(A, unit_columns: bool = True):
@@ -280,6 +282,8 @@ def _cholqr2(A, unit_columns: bool = True):
     if not np.all(lam[..., 0] > lam[..., -1] / CHOLQR_MAX_COND ** 2) or not np.all(np.isfinite(lam)):
         return None
     Q = _bmm(A, V / d[..., :, None] / np.sqrt(lam)[..., None, :])
+    if np.all(lam[..., 0] > lam[..., -1] / CHOLQR_ONE_PASS_COND ** 2):
+        return Q  # orthonormal to eps cond^2 < 1e-10 already
     L = np.linalg.cholesky(np.swapaxes(Q, -1, -2) @ Q)
     return _bmm(Q, np.swapaxes(np.linalg.inv(L), -1, -2))
 
