@@ -169,3 +169,13 @@ def test_rerun_of_a_failed_fit_fails_the_same_way_without_refitting():
         _calibrate_record(failed, reuse=True)
     with pytest.raises(ConvergenceError):  # without the reuse: the calibration itself fails again
         _calibrate_record(failed)
+
+
+def test_median_without_numpy_ma_is_numpys():
+    from psdcal.calibration.verdict import _median
+
+    rng = np.random.default_rng(0)
+    for n in (1, 2, 3, 4, 7, 12):
+        x = rng.normal(size=n)
+        assert _median(x) == float(np.median(x))
+    assert np.isnan(_median(np.array([1.0, np.nan, 2.0])))
