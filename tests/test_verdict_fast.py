@@ -179,3 +179,20 @@ def test_median_without_numpy_ma_is_numpys():
         x = rng.normal(size=n)
         assert _median(x) == float(np.median(x))
     assert np.isnan(_median(np.array([1.0, np.nan, 2.0])))
+
+
+def test_field_parts_products_equal_the_dense_fields(fit):
+    lin = L.linearise(fit)
+    fp = L.structure_fields(lin, fit, parts=True)
+    B = fp.dense()
+    np.testing.assert_array_equal(B, L.structure_fields(lin, fit))
+    rng = np.random.default_rng(3)
+    Q = rng.normal(size=(B.shape[0], 5))
+    np.testing.assert_allclose(fp.coords(Q), Q.T @ B, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(fp.gram(), B.T @ B, rtol=1e-12, atol=1e-12)
+    n_img = int(lin.img.max()) + 1
+    Qbt = rng.normal(size=(n_img, 6, B.shape[0] // n_img))
+    ref = np.matmul(Qbt, B.reshape(n_img, -1, B.shape[1])).reshape(-1, B.shape[1])
+    np.testing.assert_allclose(fp.coords_blocks(Qbt), ref, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(lin.gram_perp(fp), lin.gram_perp(B), rtol=0, atol=1e-9 * np.abs(B.T @ B).max())
+    assert L.explained(lin, fp) == pytest.approx(L.explained(lin, B), rel=1e-10)

@@ -62,8 +62,8 @@ class Linear:
         """(k, k) the Gram matrix of ``(I - P) B``: ``B^T B`` (``btb`` when given) less its part on the Jacobian's
         span."""
         if self.pgram is not None:
-            return self.pgram(np.asarray(B, dtype=float), btb)
-        Bp = self.perp(np.asarray(B, dtype=float))
+            return self.pgram(B if isinstance(B, FieldParts) else np.asarray(B, dtype=float), btb)
+        Bp = self.perp(B.dense() if isinstance(B, FieldParts) else np.asarray(B, dtype=float))
         return Bp.T @ Bp
 
     @cached_property
@@ -251,6 +251,13 @@ def projector(G, Jpose, row_img, n_img, gram: bool = False):
     def pgram(B, btb=None):
         # P = (pose bases, view by view) + Qg Qg^T with Qg orthogonal to the pose columns: B^T P B is the sum of the
         # squares of B's coordinates on both
+        if isinstance(B, FieldParts):
+            if not dense:
+                B = B.dense()
+            else:
+                cb = B.coords_blocks(Qbt)
+                cg = B.coords(Qg)
+                return (B.gram() if btb is None else btb) - cb.T @ cb - cg.T @ cg
         cb = np.matmul(Qbt, to_blocks(B)).reshape(-1, B.shape[1])
         cg = Qg.T @ B
         return (B.T @ B if btb is None else btb) - cb.T @ cb - cg.T @ cg
@@ -301,6 +308,58 @@ def _bmm(A, B) -> np.ndarray:
 
 def field_basis(pts, c_mm, half_mm) -> np.ndarray:
     """(2N, p) smooth vector fields over the sensor at ``pts`` (N, 2), rows (x0, y0, x1, y1, ...)."""
+    return field_parts(pts, c_mm, half_mm).dense()
+
+
+class FieldParts:
+    """The fields of :func:`field_basis` in parts: each monomial ``mono`` (N, p) as an x-field then a y-field
+    (columns 2k, 2k + 1), then the dense columns ``R`` (2N, r). The products the verdict needs (``B^T B``,
+    ``Q^T B``) come from the parts, without the (2N, 2p + r) matrix, whose columns are half zeros."""
+
+    def __init__(self, mono, R):
+        self.mono = mono
+        self.R = R
+        self.shape = (R.shape[0], 2 * mono.shape[1] + R.shape[1])
+
+    def dense(self) -> np.ndarray:
+        n, p = self.mono.shape
+        out = np.zeros((n, 2, 2 * p))
+        out[:, 0, 0::2] = self.mono  # x-fields
+        out[:, 1, 1::2] = self.mono  # y-fields
+        return np.concatenate([out.reshape(2 * n, 2 * p), self.R], axis=1)
+
+    def coords(self, Q) -> np.ndarray:
+        """``Q^T B`` (q, k) for ``Q`` (2N, q), rows in B's order."""
+        Q = np.asarray(Q, dtype=float)
+        p = self.mono.shape[1]
+        poly = np.stack([Q[0::2].T @ self.mono, Q[1::2].T @ self.mono], axis=2).reshape(Q.shape[1], 2 * p)
+        return np.concatenate([poly, Q.T @ self.R], axis=1)
+
+    def coords_blocks(self, Qbt) -> np.ndarray:
+        """``Q_v^T B_v`` of each view, stacked (v * s, k), for ``Qbt`` (v, s, rows) whose rows are B's, view by view
+        (every view as many)."""
+        v, s_, nr = Qbt.shape
+        p = self.mono.shape[1]
+        mb = self.mono.reshape(v, nr // 2, p)
+        poly = np.stack([Qbt[:, :, 0::2] @ mb, Qbt[:, :, 1::2] @ mb], axis=3).reshape(v, s_, 2 * p)
+        rad = np.matmul(Qbt, self.R.reshape(v, nr, -1))
+        return np.concatenate([poly, rad], axis=2).reshape(v * s_, -1)
+
+    def gram(self) -> np.ndarray:
+        """``B^T B`` (k, k)."""
+        p = self.mono.shape[1]
+        G = np.zeros((self.shape[1],) * 2)
+        mm = self.mono.T @ self.mono
+        G[0:2 * p:2, 0:2 * p:2] = mm
+        G[1:2 * p:2, 1:2 * p:2] = mm
+        cr = self.coords(self.R)
+        G[2 * p:, :] = cr
+        G[:, 2 * p:] = cr.T
+        return G
+
+
+def field_parts(pts, c_mm, half_mm) -> FieldParts:
+    """:func:`field_basis` in parts (:class:`FieldParts`)."""
     pts = np.asarray(pts, dtype=float)
     u = pts / half_mm
     n = pts.shape[0]
@@ -313,15 +372,12 @@ def field_basis(pts, c_mm, half_mm) -> np.ndarray:
         np.multiply(pv[:, q - 1], u[:, 1], out=pv[:, q])
     ij = [(i, j) for i in range(FIELD_DEGREE + 1) for j in range(FIELD_DEGREE + 1 - i)]
     mono = pu[:, [i for i, _ in ij]] * pv[:, [j for _, j in ij]]  # (N, n_mono)
-    k = len(ij)
-    out = np.zeros((n, 2, 2 * k + 2))
-    out[:, 0, 0:2 * k:2] = mono  # x-fields
-    out[:, 1, 1:2 * k:2] = mono  # y-fields
     d = (pts - np.asarray(c_mm)) / half_mm
     r2 = np.sum(d * d, axis=1)
-    out[:, :, 2 * k] = d * (r2 * r2)[:, None]
-    out[:, :, 2 * k + 1] = d * (r2 * r2 * r2)[:, None]
-    return out.reshape(2 * n, 2 * k + 2)
+    R = np.empty((n, 2, 2))
+    R[:, :, 0] = d * (r2 * r2)[:, None]
+    R[:, :, 1] = d * (r2 * r2 * r2)[:, None]
+    return FieldParts(mono, R.reshape(2 * n, 2))
 
 
 def _sym_eig_desc(K):
@@ -340,7 +396,8 @@ def _basis(lin: Linear, B):
     S^-1 V^T B^T e`` as ``e`` is itself projected off the Jacobian. U is never
     formed (small eigenproblems instead of a tall SVD).
     """
-    btb = B.T @ B
+    parts = isinstance(B, FieldParts)
+    btb = B.gram() if parts else B.T @ B
     scale = np.maximum(np.sqrt(np.maximum(np.diag(btb), 0.0)), 1e-300)
     K = lin.gram_perp(B, btb) / np.outer(scale, scale)  # that of B's columns scaled to norm 1
     nb = np.sqrt(np.maximum(np.diag(K), 0.0))
@@ -351,7 +408,8 @@ def _basis(lin: Linear, B):
     s = np.sqrt(lam)
     keep = s > 1e-2 * s[0]
     s, V = s[keep], V[:, keep]
-    ute = (V.T @ ((B.T @ lin.e)[use] / scale[use])) / s
+    bte = B.coords(lin.e[:, None])[0] if parts else B.T @ lin.e
+    ute = (V.T @ (bte[use] / scale[use])) / s
     W = np.zeros((B.shape[1], s.size))
     W[use] = (V / s) / scale[use, None]
     return ute, W
@@ -387,6 +445,8 @@ def field_shift(lin: Linear, B, *, min_visible: float = 0.0) -> tuple[np.ndarray
     part, and extrapolating that part to the whole field multiplies the noise
     (a generic field has no model linking the two parts; a model term has).
     """
+    if isinstance(B, FieldParts):
+        B = B.dense()
     if lin.gt is None or B.shape[1] == 0:
         return np.zeros(B.shape[1]), np.zeros(len(lin.names))
     if min_visible <= 0:
@@ -601,6 +661,7 @@ def structure_test(result, exclude=None) -> tuple[float, float]:
     return F, p
 
 
-def structure_fields(lin: Linear, result) -> np.ndarray:
-    """The structure check's fields (m, p) at the modelled points."""
-    return field_basis(lin.pts, result.intrinsics.c, np.asarray(result.sensor_mm, float) / 2)
+def structure_fields(lin: Linear, result, *, parts: bool = False):
+    """The structure check's fields (m, p) at the modelled points (``parts``: as :class:`FieldParts`)."""
+    fp = field_parts(lin.pts, result.intrinsics.c, np.asarray(result.sensor_mm, float) / 2)
+    return fp if parts else fp.dense()

@@ -422,7 +422,7 @@ def _noise_check(ssr: float, dof: int, noise_mm) -> Check:
 def _structure_check(result, lin: Linear, ssr: float, dof: int, cons, n_pts, alpha: float = ALPHA):
     """F-test of a smooth field over the sensor fitted to the residuals, judged by what removing the field moves
     (None when no field is testable)."""
-    B = structure_fields(lin, result)
+    B = structure_fields(lin, result, parts=True)
     F, p, p_dim, expl = f_test(lin, B)
     if p_dim == 0:
         return None
