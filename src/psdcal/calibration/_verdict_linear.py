@@ -56,6 +56,15 @@ class Linear:
     g: np.ndarray | None = None  # (m, ng) global Jacobian (natural units)
     perp_pose: object = None  # B -> B projected off each view's pose columns
     held: dict | None = None  # fixed / prior-held parameters: name -> (data-only shift from the fit's value, its std)
+    pgram: object = None  # B (m, k) -> ((I - P) B)^T ((I - P) B) without forming (I - P) B (None: through perp)
+
+    def gram_perp(self, B, btb=None) -> np.ndarray:
+        """(k, k) the Gram matrix of ``(I - P) B``: ``B^T B`` (``btb`` when given) less its part on the Jacobian's
+        span."""
+        if self.pgram is not None:
+            return self.pgram(B if isinstance(B, FieldParts) else np.asarray(B, dtype=float), btb)
+        Bp = self.perp(B.dense() if isinstance(B, FieldParts) else np.asarray(B, dtype=float))
+        return Bp.T @ Bp
 
     @cached_property
     def gt(self) -> np.ndarray | None:
@@ -119,14 +128,14 @@ def linearise(result, exclude=None) -> Linear:
         r, G, Gh, extra, Jpose = r[rows], G[rows], Gh[rows], extra[rows], Jpose[rows]
         img, led, d_meas = img[keep_pt], led[keep_pt], d_meas[keep_pt]
     e_raw = -r
-    perp, h, rank, perp_pose = projector(G, Jpose, np.repeat(img, 2), X.shape[0])
+    perp, h, rank, perp_pose, pgram = projector(G, Jpose, np.repeat(img, 2), X.shape[0], gram=True)
     e = perp(e_raw[:, None])[:, 0]  # the solver stops within its tolerance of the stationary point
     held = _held(free, fixed, prior_names, G, Gh, perp_pose(G), perp_pose, e_raw, e, rank) if (fixed or prior_names) \
         else None
     # the modelled points (noise-free up to the fitted parameters): fields evaluated at the measured ones would carry
     # the noise's own gradient into the test and correlate with it
     return Linear(e, perp, h, d_meas + r.reshape(-1, 2), img, led, rank, tuple(extra_names), extra,
-                  tuple(free), G, perp_pose, held)
+                  tuple(free), G, perp_pose, held, pgram)
 
 
 def _pinv_sym(N) -> np.ndarray:
@@ -165,7 +174,7 @@ def _held(free, fixed, prior_names, G, Gh, gt, perp_pose, e_raw, e, rank):
     return out
 
 
-def projector(G, Jpose, row_img, n_img):
+def projector(G, Jpose, row_img, n_img, gram: bool = False):
     """The projector off the Jacobian's columns, from its block structure.
 
     The pose columns of a view touch only that view's rows: a batched QR of the
@@ -173,40 +182,60 @@ def projector(G, Jpose, row_img, n_img):
     columns so projected. ``Jpose`` is (m, 6): each row's own view's pose
     columns (the compact form). Returns ``(perp, leverages, rank, perp_pose)``
     where ``perp(B)`` is ``(I - P) B`` for B (m, k) and ``perp_pose(B)`` projects
-    off the pose columns only.
+    off the pose columns only; with ``gram``, also ``pgram(B)``, the Gram matrix
+    ``((I - P) B)^T (I - P) B`` from ``B^T B`` and B's coordinates on the
+    orthonormal bases (no (m, k) projected copy of B).
     """
     m = row_img.size
     counts = np.bincount(row_img, minlength=n_img)
-    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
-    pos = np.arange(m) - starts[row_img]
     nr = int(counts.max()) if m else 0
-    blocks = np.zeros((n_img, nr, 6))
-    blocks[row_img, pos] = Jpose
-    blocks /= np.maximum(np.linalg.norm(blocks, axis=1, keepdims=True), 1e-300)
-    Qb, Rb = np.linalg.qr(blocks)
-    dq = np.abs(np.diagonal(Rb, axis1=1, axis2=2))
-    rank = int(np.sum(dq > 1e-10 * max(float(dq.max()), 1e-300)))
-    Qrows = Qb[row_img, pos]  # (m, 6): each row's part of its view's basis
+    # rows in view order, every view with as many rows: the blocks are a reshape (no scatter, no gather)
+    dense = m > 0 and bool(np.all(counts == nr)) and bool(np.all(row_img[1:] >= row_img[:-1]))
+    if dense:
+        pos = None
+        blocks = np.ascontiguousarray(Jpose).reshape(n_img, nr, 6)
+    else:
+        starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+        pos = np.arange(m) - starts[row_img]
+        blocks = np.zeros((n_img, nr, 6))
+        blocks[row_img, pos] = Jpose
+    Qb = _cholqr2(blocks)
+    if Qb is not None:  # every view's pose columns well conditioned: all six count
+        rank = 6 * n_img
+    else:
+        blocks = blocks / np.maximum(np.linalg.norm(blocks, axis=1, keepdims=True), 1e-300)
+        Qb, Rb = np.linalg.qr(blocks)
+        dq = np.abs(np.diagonal(Rb, axis1=1, axis2=2))
+        rank = int(np.sum(dq > 1e-10 * max(float(dq.max()), 1e-300)))
+    Qrows = Qb.reshape(m, 6) if dense else Qb[row_img, pos]  # (m, 6): each row's part of its view's basis
 
     Qbt = np.ascontiguousarray(Qb.transpose(0, 2, 1))
 
-    def perp_pose(B):
-        B = np.asarray(B, dtype=float)
+    def to_blocks(B):
+        if dense:
+            return B.reshape(n_img, nr, B.shape[1])
         Bb = np.zeros((n_img, nr, B.shape[1]))
         Bb[row_img, pos] = B
+        return Bb
+
+    def perp_pose(B):
+        B = np.asarray(B, dtype=float)
         # each view's part of B minus its projection on the view's pose basis (batched matrix products:
         # no (rows, 6, k) temporary)
-        return B - np.matmul(Qb, np.matmul(Qbt, Bb))[row_img, pos]
+        PB = _bmm(Qb, np.matmul(Qbt, to_blocks(B)))
+        return B - (PB.reshape(m, B.shape[1]) if dense else PB[row_img, pos])
 
-    Gn = G / np.maximum(np.linalg.norm(G, axis=0), 1e-300)
+    Gn = G / np.maximum(np.sqrt(np.maximum(np.einsum("ij,ij->j", G, G), 0.0)), 1e-300)
     Gp = perp_pose(Gn)
     if Gp.shape[1]:
-        Qg, Rg = np.linalg.qr(Gp)
-        dg = np.abs(np.diag(Rg))
-        keep = dg > 1e-8 * max(float(dg.max()), 1e-300)
-        if not keep.all():
-            U, sv, _ = np.linalg.svd(Gp, full_matrices=False)
-            Qg = U[:, sv > 1e-8 * sv[0]]
+        Qg = _cholqr2(Gp, unit_columns=False)  # Gp's columns: unit ones less their part on the poses
+        if Qg is None:
+            Qg, Rg = np.linalg.qr(Gp)
+            dg = np.abs(np.diag(Rg))
+            keep = dg > 1e-8 * max(float(dg.max()), 1e-300)
+            if not keep.all():
+                U, sv, _ = np.linalg.svd(Gp, full_matrices=False)
+                Qg = U[:, sv > 1e-8 * sv[0]]
     else:
         Qg = np.zeros((m, 0))
     rank += Qg.shape[1]
@@ -215,53 +244,183 @@ def projector(G, Jpose, row_img, n_img):
         Bp = perp_pose(np.asarray(B, dtype=float))
         return Bp - Qg @ (Qg.T @ Bp)
 
-    h = np.sum(Qrows * Qrows, axis=1) + np.sum(Qg * Qg, axis=1)
-    return perp, h, rank, perp_pose
+    h = np.einsum("ij,ij->i", Qrows, Qrows) + np.einsum("ij,ij->i", Qg, Qg)
+    if not gram:
+        return perp, h, rank, perp_pose
+
+    def pgram(B, btb=None):
+        # P = (pose bases, view by view) + Qg Qg^T with Qg orthogonal to the pose columns: B^T P B is the sum of the
+        # squares of B's coordinates on both
+        if isinstance(B, FieldParts):
+            if not dense:
+                B = B.dense()
+            else:
+                cb = B.coords_blocks(Qbt)
+                cg = B.coords(Qg)
+                return (B.gram() if btb is None else btb) - cb.T @ cb - cg.T @ cg
+        cb = np.matmul(Qbt, to_blocks(B)).reshape(-1, B.shape[1])
+        cg = Qg.T @ B
+        return (B.T @ B if btb is None else btb) - cb.T @ cb - cg.T @ cg
+
+    return perp, h, rank, perp_pose, pgram
+
+
+#: Above this condition number of a set of columns, their orthonormal basis comes from a Householder QR instead of
+#: :func:`_cholqr2` (whose first pass loses ``cond^2`` of the precision that its second pass restores).
+CHOLQR_MAX_COND = 1e5
+#: ... and below this one, one pass is orthonormal to 1e-10 (its loss, ``eps cond^2``): no second pass.
+CHOLQR_ONE_PASS_COND = 1e3
+
+
+def _cholqr2(A, unit_columns: bool = True):
+    """An orthonormal basis (..., r, k) of the columns of ``A`` (..., r, k) (a stack of blocks or one matrix) by two
+    passes of a Cholesky QR (matrix products: several times faster than a Householder QR of tall thin blocks);
+    None when the columns of a block are conditioned worse than :data:`CHOLQR_MAX_COND` (or rank deficient), each
+    column scaled to norm 1 (``unit_columns``) or as given (a column much shorter than the longest one then counts
+    as absorbed, as in a QR's rank test)."""
+    K = np.swapaxes(A, -1, -2) @ A
+    d = np.sqrt(np.diagonal(K, axis1=-2, axis2=-1))  # the columns' norms
+    if not np.all(d > 0) or not np.all(np.isfinite(d)):
+        return None
+    if not unit_columns:
+        d = np.ones_like(d)
+    dd = d[..., :, None] * d[..., None, :]
+    lam, V = np.linalg.eigh(K / dd)
+    if not np.all(lam[..., 0] > lam[..., -1] / CHOLQR_MAX_COND ** 2) or not np.all(np.isfinite(lam)):
+        return None
+    Q = _bmm(A, V / d[..., :, None] / np.sqrt(lam)[..., None, :])
+    if np.all(lam[..., 0] > lam[..., -1] / CHOLQR_ONE_PASS_COND ** 2):
+        return Q  # orthonormal to eps cond^2 < 1e-10 already
+    L = np.linalg.cholesky(np.swapaxes(Q, -1, -2) @ Q)
+    return _bmm(Q, np.swapaxes(np.linalg.inv(L), -1, -2))
+
+
+def _bmm(A, B) -> np.ndarray:
+    """``A @ B`` for a stack of tall blocks ``A`` (v, r, k) and small ``B`` (v, k, l): one BLAS call per block (numpy's
+    batched matmul of such shapes is several times slower); a plain product for 2-d ``A``."""
+    if A.ndim != 3:
+        return A @ B
+    out = np.empty(A.shape[:2] + B.shape[-1:])
+    for a, b, o in zip(A, np.broadcast_to(B, A.shape[:1] + B.shape[-2:]), out):
+        np.matmul(a, b, out=o)
+    return out
 
 
 def field_basis(pts, c_mm, half_mm) -> np.ndarray:
     """(2N, p) smooth vector fields over the sensor at ``pts`` (N, 2), rows (x0, y0, x1, y1, ...)."""
+    return field_parts(pts, c_mm, half_mm).dense()
+
+
+class FieldParts:
+    """The fields of :func:`field_basis` in parts: each monomial ``mono`` (N, p) as an x-field then a y-field
+    (columns 2k, 2k + 1), then the dense columns ``R`` (2N, r). The products the verdict needs (``B^T B``,
+    ``Q^T B``) come from the parts, without the (2N, 2p + r) matrix, whose columns are half zeros."""
+
+    def __init__(self, mono, R):
+        self.mono = mono
+        self.R = R
+        self.shape = (R.shape[0], 2 * mono.shape[1] + R.shape[1])
+
+    def dense(self) -> np.ndarray:
+        n, p = self.mono.shape
+        out = np.zeros((n, 2, 2 * p))
+        out[:, 0, 0::2] = self.mono  # x-fields
+        out[:, 1, 1::2] = self.mono  # y-fields
+        return np.concatenate([out.reshape(2 * n, 2 * p), self.R], axis=1)
+
+    def coords(self, Q) -> np.ndarray:
+        """``Q^T B`` (q, k) for ``Q`` (2N, q), rows in B's order."""
+        Q = np.asarray(Q, dtype=float)
+        p = self.mono.shape[1]
+        poly = np.stack([Q[0::2].T @ self.mono, Q[1::2].T @ self.mono], axis=2).reshape(Q.shape[1], 2 * p)
+        return np.concatenate([poly, Q.T @ self.R], axis=1)
+
+    def coords_blocks(self, Qbt) -> np.ndarray:
+        """``Q_v^T B_v`` of each view, stacked (v * s, k), for ``Qbt`` (v, s, rows) whose rows are B's, view by view
+        (every view as many)."""
+        v, s_, nr = Qbt.shape
+        p = self.mono.shape[1]
+        mb = self.mono.reshape(v, nr // 2, p)
+        poly = np.stack([Qbt[:, :, 0::2] @ mb, Qbt[:, :, 1::2] @ mb], axis=3).reshape(v, s_, 2 * p)
+        rad = np.matmul(Qbt, self.R.reshape(v, nr, -1))
+        return np.concatenate([poly, rad], axis=2).reshape(v * s_, -1)
+
+    def gram(self) -> np.ndarray:
+        """``B^T B`` (k, k)."""
+        p = self.mono.shape[1]
+        G = np.zeros((self.shape[1],) * 2)
+        mm = self.mono.T @ self.mono
+        G[0:2 * p:2, 0:2 * p:2] = mm
+        G[1:2 * p:2, 1:2 * p:2] = mm
+        cr = self.coords(self.R)
+        G[2 * p:, :] = cr
+        G[:, 2 * p:] = cr.T
+        return G
+
+
+def field_parts(pts, c_mm, half_mm) -> FieldParts:
+    """:func:`field_basis` in parts (:class:`FieldParts`)."""
+    pts = np.asarray(pts, dtype=float)
     u = pts / half_mm
-    cols = []
-    for i in range(FIELD_DEGREE + 1):
-        for j in range(FIELD_DEGREE + 1 - i):
-            m = u[:, 0] ** i * u[:, 1] ** j
-            z = np.zeros_like(m)
-            cols.append(np.stack([m, z], 1).ravel())
-            cols.append(np.stack([z, m], 1).ravel())
+    n = pts.shape[0]
+    # the monomials u^i v^j (i + j <= FIELD_DEGREE) from the powers of u and v, in the order i, then j
+    pu = np.empty((n, FIELD_DEGREE + 1))
+    pv = np.empty((n, FIELD_DEGREE + 1))
+    pu[:, 0] = pv[:, 0] = 1.0
+    for q in range(1, FIELD_DEGREE + 1):  # products, not pow
+        np.multiply(pu[:, q - 1], u[:, 0], out=pu[:, q])
+        np.multiply(pv[:, q - 1], u[:, 1], out=pv[:, q])
+    ij = [(i, j) for i in range(FIELD_DEGREE + 1) for j in range(FIELD_DEGREE + 1 - i)]
+    mono = pu[:, [i for i, _ in ij]] * pv[:, [j for _, j in ij]]  # (N, n_mono)
     d = (pts - np.asarray(c_mm)) / half_mm
     r2 = np.sum(d * d, axis=1)
-    for k in (2, 3):
-        cols.append((d * r2[:, None] ** k).ravel())
-    return np.stack(cols, axis=1)
+    R = np.empty((n, 2, 2))
+    R[:, :, 0] = d * (r2 * r2)[:, None]
+    R[:, :, 1] = d * (r2 * r2 * r2)[:, None]
+    return FieldParts(mono, R.reshape(2 * n, 2))
+
+
+def _sym_eig_desc(K):
+    """Eigenvalues (descending, clipped at 0) and eigenvectors (columns) of the symmetric matrix ``K``."""
+    lam, V = np.linalg.eigh(K)
+    return np.maximum(lam[::-1], 0.0), V[:, ::-1]
 
 
 def _basis(lin: Linear, B):
-    """Orthonormal basis U of span((I - P) B) (the fields the parameters do not absorb), and the map from the
-    residuals' coordinates in U to coefficients of B's columns: ``c = W (U^T e)``."""
-    scale = np.maximum(np.linalg.norm(B, axis=0), 1e-300)
-    Bn = B / scale
-    Bp = lin.perp(Bn)
-    nb = np.linalg.norm(Bp, axis=0)
+    """The residuals' coordinates ``ute`` on an orthonormal basis U of span((I - P) B) (the fields the parameters do
+    not absorb), and the map from them to coefficients of B's columns: ``c = W ute``.
+
+    U is that of the singular value decomposition ``(I - P) B = U S V^T`` (the
+    directions with a singular value below 1e-2 of the largest dropped), found
+    from the Gram matrix ``V S^2 V^T`` (:meth:`Linear.gram_perp`): ``U^T e =
+    S^-1 V^T B^T e`` as ``e`` is itself projected off the Jacobian. U is never
+    formed (small eigenproblems instead of a tall SVD).
+    """
+    parts = isinstance(B, FieldParts)
+    btb = B.gram() if parts else B.T @ B
+    scale = np.maximum(np.sqrt(np.maximum(np.diag(btb), 0.0)), 1e-300)
+    K = lin.gram_perp(B, btb) / np.outer(scale, scale)  # that of B's columns scaled to norm 1
+    nb = np.sqrt(np.maximum(np.diag(K), 0.0))
     use = nb > 1e-4  # fields the model's parameters absorb (to 1e-4) test nothing
     if not use.any():
-        return np.zeros((B.shape[0], 0)), np.zeros((B.shape[1], 0))
-    U, s, Vt = np.linalg.svd(Bp[:, use], full_matrices=False)
+        return np.zeros(0), np.zeros((B.shape[1], 0))
+    lam, V = _sym_eig_desc(K[np.ix_(use, use)])
+    s = np.sqrt(lam)
     keep = s > 1e-2 * s[0]
-    U, s, Vt = U[:, keep], s[keep], Vt[keep]
-    W = np.zeros((B.shape[1], U.shape[1]))
-    W[use] = (Vt.T / s) / scale[use, None]
-    # U spans (I - P) B: orthogonal to the Jacobian up to the projector's round-off, which meets the residuals
-    # (themselves projected) only at round-off
-    return U, W
+    s, V = s[keep], V[:, keep]
+    bte = B.coords(lin.e[:, None])[0] if parts else B.T @ lin.e
+    ute = (V.T @ (bte[use] / scale[use])) / s
+    W = np.zeros((B.shape[1], s.size))
+    W[use] = (V / s) / scale[use, None]
+    return ute, W
 
 
 def explained(lin: Linear, B) -> tuple[float, int]:
     """Sum of squares of the residuals along span(B) minus the Jacobian's span, and its dimension."""
-    U, _ = _basis(lin, B)
-    if U.shape[1] == 0:
+    ute, _ = _basis(lin, B)
+    if ute.size == 0:
         return 0.0, 0
-    return float(np.sum((U.T @ lin.e) ** 2)), int(U.shape[1])
+    return float(ute @ ute), int(ute.size)
 
 
 def f_test(lin: Linear, B) -> tuple[float, float, int, float]:
@@ -286,26 +445,31 @@ def field_shift(lin: Linear, B, *, min_visible: float = 0.0) -> tuple[np.ndarray
     part, and extrapolating that part to the whole field multiplies the noise
     (a generic field has no model linking the two parts; a model term has).
     """
+    if isinstance(B, FieldParts):
+        B = B.dense()
     if lin.gt is None or B.shape[1] == 0:
         return np.zeros(B.shape[1]), np.zeros(len(lin.names))
     if min_visible <= 0:
-        U, W = _basis(lin, B)
-        if U.shape[1] == 0:
+        ute, W = _basis(lin, B)
+        if ute.size == 0:
             return np.zeros(B.shape[1]), np.zeros(len(lin.names))
-        c = W @ (U.T @ lin.e)
-        return c, -lin.ninv @ (lin.gt.T @ (B @ c))
+        c = W @ ute
+        return c, -lin.ninv @ ((lin.gt.T @ B) @ c)
+    # an orthonormal basis Qb = Bn M of span(B) (from B's Gram matrix), then the singular values s of (I - P) Qb
+    # (the visible fraction of each combination) from its Gram matrix M^T K M: no tall factorisation
     scale = np.maximum(np.linalg.norm(B, axis=0), 1e-300)
-    Qb, Rb = np.linalg.qr(B / scale)
-    d = np.abs(np.diag(Rb))
-    keep = d > 1e-8 * max(float(d.max()), 1e-300)
-    Qb, Rb = Qb[:, keep], Rb[keep]
-    U, s, Vt = np.linalg.svd(lin.perp(Qb), full_matrices=False)  # s: the visible fraction of each combination
+    Bn = B / scale
+    lam0, V0 = _sym_eig_desc(Bn.T @ Bn)
+    keep = lam0 > 1e-12 * max(float(lam0[0]), 1e-300)
+    M = V0[:, keep] / np.sqrt(lam0[keep])
+    lam, V = _sym_eig_desc(M.T @ lin.gram_perp(Bn) @ M)
+    s = np.sqrt(np.minimum(lam, 1.0))
     use = s > min_visible
     if not use.any():
         return np.zeros(B.shape[1]), np.zeros(len(lin.names))
-    a = Vt[use].T @ ((U[:, use].T @ lin.e) / s[use])  # coefficients on Qb
-    c = (np.linalg.pinv(Rb) @ a) / scale
-    return c, -lin.ninv @ (lin.gt.T @ (Qb @ a))
+    ute = (V[:, use].T @ (M.T @ (Bn.T @ lin.e))) / s[use]  # the residuals on (I - P) Qb's left singular vectors
+    a = M @ (V[:, use] @ (ute / s[use]))  # coefficients on Bn
+    return a / scale, -lin.ninv @ ((lin.gt.T @ Bn) @ a)
 
 
 def group_shift(lin: Linear, rows) -> np.ndarray:
@@ -344,11 +508,11 @@ def terms_test(lin: Linear):
     # each term alone too (one degree of freedom: more power for a single missing term); Bonferroni over all tests
     single = []
     Bn = lin.extra / np.maximum(np.linalg.norm(lin.extra, axis=0), 1e-300)
-    Bp = lin.perp(Bn)  # all columns projected at once
-    nb = np.linalg.norm(Bp, axis=0)
+    nb = np.sqrt(np.maximum(np.diag(lin.gram_perp(Bn)), 0.0))  # norms of the projected columns
+    bte = Bn.T @ lin.e  # = ((I - P) Bn)^T e: e is itself projected
     for k, name in enumerate(lin.extra_names):
         if nb[k] > 1e-4:  # as in explained(): a column the model absorbs tests nothing
-            ek = float((Bp[:, k] @ lin.e / nb[k]) ** 2)
+            ek = float((bte[k] / nb[k]) ** 2)
             Fk = ek / max((ssr - ek) / (dof - 1), 1e-300)
             single.append((float(_stats.f_sf(Fk, 1, dof - 1)), Fk, name))
     n_tests = 1 + len(single)
@@ -497,6 +661,7 @@ def structure_test(result, exclude=None) -> tuple[float, float]:
     return F, p
 
 
-def structure_fields(lin: Linear, result) -> np.ndarray:
-    """The structure check's fields (m, p) at the modelled points."""
-    return field_basis(lin.pts, result.intrinsics.c, np.asarray(result.sensor_mm, float) / 2)
+def structure_fields(lin: Linear, result, *, parts: bool = False):
+    """The structure check's fields (m, p) at the modelled points (``parts``: as :class:`FieldParts`)."""
+    fp = field_parts(lin.pts, result.intrinsics.c, np.asarray(result.sensor_mm, float) / 2)
+    return fp if parts else fp.dense()

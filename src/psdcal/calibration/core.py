@@ -13,6 +13,7 @@ from __future__ import annotations
 import datetime as _dt
 import math
 import functools
+import threading
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -587,12 +588,18 @@ def calibrate(
     # kernels and 9 x 9 factorisations), and the limit itself would cost some 6 us.
     needed = verdict or _n_points(points_mm) >= BLAS_THREADS_MIN_POINTS
     with _single_threaded_blas(needed):
-        res = _calibrate(
-            template_mm, points_mm, cost=cost, radial=radial, tangential=tangential, psd_radial=psd_radial,
-            skew=skew, preliminary=preliminary, normalize=normalize, aspect=aspect, fit_gains=fit_gains,
-            gains=gains, image_ids=image_ids, point_ids=point_ids, sensor_mm=sensor_mm, solver=solver,
-            f_guess_mm=f_guess_mm,
-        )
+        try:
+            res = _calibrate(
+                template_mm, points_mm, cost=cost, radial=radial, tangential=tangential, psd_radial=psd_radial,
+                skew=skew, preliminary=preliminary, normalize=normalize, aspect=aspect, fit_gains=fit_gains,
+                gains=gains, image_ids=image_ids, point_ids=point_ids, sensor_mm=sensor_mm, solver=solver,
+                f_guess_mm=f_guess_mm,
+            )
+        except ConvergenceError as exc:  # a re-run of the result it carries fails the same way
+            if exc.result is not None:
+                _remember(exc.result, exc)
+            raise
+        _remember(res)
         if verdict:
             res = with_verdict(res, noise_mm=noise_mm, diagnose=False)
         return res
@@ -677,12 +684,17 @@ def _calibrate_constrained(template_mm, points_mm, *, fix, priors, gains, fit_ga
         result = constrain(free, fix, pri, solver, merged_gain_fix=merged)
     what = "constrained " + result.cost
     if not result.converged:
-        raise ConvergenceError(f"the {what}-cost refinement did not converge in {result.iterations} iterations "
+        exc = ConvergenceError(f"the {what}-cost refinement did not converge in {result.iterations} iterations "
                                f"({result.message}); check the fixed values and priors", result=result)
+        _remember(result, exc)
+        raise exc
     why = implausible(result)
     if why:
-        raise ConvergenceError(f"the {what}-cost refinement stopped at a solution that is not a camera ({why}); "
+        exc = ConvergenceError(f"the {what}-cost refinement stopped at a solution that is not a camera ({why}); "
                                "check the fixed values and priors", result=result)
+        _remember(result, exc)
+        raise exc
+    _remember(result)
     if verdict:
         result = with_verdict(result, noise_mm=noise_mm, diagnose=False)
     return result
@@ -1317,8 +1329,48 @@ def recalibrate(calib: dict | CalibrationResult, *, verdict: bool = True) -> Cal
     return _calibrate_record(calib, verdict=verdict)
 
 
-def _calibrate_record(calib, *, verdict: bool = False, template_mm=None, drop_image=None, **changes) -> CalibrationResult:
-    """Re-run the calibration recorded in ``calib`` with ``changes`` to its options (another template, an image left out)."""
+#: The last few results :func:`calibrate` returned, by the identity of their problem record (which
+#: :func:`dataclasses.replace`, the verdict included, passes on unchanged): ``id(problem) -> (problem, result)``.
+_RECENT: dict = {}
+_RECENT_SIZE = 4
+_RECENT_LOCK = threading.Lock()  # calibrations run in threads (the studies' local clusters)
+
+
+def _remember(res: CalibrationResult, error: Exception | None = None) -> None:
+    """Keep ``res`` as the answer to a re-run of its own problem record (:func:`_calibrate_record` without changes),
+    or ``error`` when the calibration that made it raised that error (the result it carried).
+
+    The calibration is deterministic, so re-running the record of a result this
+    process has just computed gives that result (or that error) again; the
+    verdict's diagnosis (a re-run that reaches a lower cost means a local
+    minimum) then costs nothing for a fit of this process, and still re-runs a
+    result read from a file.
+    """
+    p = res.problem
+    if not isinstance(p, dict):
+        return
+    with _RECENT_LOCK:
+        _RECENT.pop(id(p), None)
+        _RECENT[id(p)] = (p, res if error is None else error)
+        while len(_RECENT) > _RECENT_SIZE:
+            _RECENT.pop(next(iter(_RECENT)))
+
+
+def _calibrate_record(calib, *, verdict: bool = False, template_mm=None, drop_image=None, reuse: bool = False,
+                      **changes) -> CalibrationResult:
+    """Re-run the calibration recorded in ``calib`` with ``changes`` to its options (another template, an image left out).
+
+    ``reuse``: a re-run without changes of a result :func:`calibrate` returned in this process is that result
+    (:func:`_remember`).
+    """
+    if reuse and not verdict and template_mm is None and drop_image is None and not changes \
+            and isinstance(calib, CalibrationResult):
+        with _RECENT_LOCK:
+            hit = _RECENT.get(id(calib.problem))
+        if hit is not None and hit[0] is calib.problem:
+            if isinstance(hit[1], Exception):
+                raise hit[1]
+            return hit[1]
     d = calib.to_dict() if isinstance(calib, CalibrationResult) else calib
     p = d["problem"]
     if p.get("kind") == "directions":  # a rotation-stage calibration (psdcal.calibration.directions)

@@ -56,6 +56,7 @@ left out: :mod:`psdcal.calibration._verdict_diagnosis`).
 """
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -101,6 +102,11 @@ EFFECT_WRONG = 10.0
 FIELD_VISIBLE = 0.3
 
 VERDICTS = ("good", "suspect", "wrong")
+
+# the checks' thresholds depend only on (alpha, degrees of freedom): computed once per size (Monte Carlo trials repeat
+# them), each an iterative inversion of a distribution function
+_f_isf = functools.lru_cache(maxsize=1024)(_stats.f_isf)
+_chi2_isf = functools.lru_cache(maxsize=1024)(_stats.chi2_isf)
 
 # the names the verdict's users import (kept from the single-module layout)
 _Linear = Linear
@@ -313,7 +319,7 @@ def _assess(result, *, noise_mm, points_kind, diagnose) -> Verdict:
         ch = _judge(
             "views", float(F[worst]), None, p, None, eff,
             f"view {vid} disagrees with the others (F = {F[worst]:.3g}, p = {p:.2g} after {n_img} views)",
-            f"RMS {per[worst]:.3g} um against a median of {np.median(others):.3g} um",
+            f"RMS {per[worst]:.3g} um against a median of {_median(others):.3g} um",
             f"view {vid} disagrees with the others: check its labels (two LEDs merged or shifted by the "
             "demodulator?) or leave it out", lead="leaving it out ",
             ok_words=f"view {vid} is the least consistent (F = {F[worst]:.3g}, p = {p:.2g} after {n_img} views): "
@@ -381,6 +387,16 @@ def _word(checks) -> str:
     return "good" if not failed else ("wrong" if any(c.severe for c in failed) else "suspect")
 
 
+def _median(x) -> float:
+    """``np.median`` of a 1-d array, without the import of ``numpy.ma`` that np.median makes (some 20 ms of a
+    fresh command-line process)."""
+    x = np.sort(np.asarray(x, dtype=float).ravel())
+    if x.size == 0 or np.isnan(x[-1]):  # NaN sorts last
+        return float("nan")
+    k = x.size // 2
+    return float(x[k]) if x.size % 2 else float(0.5 * (x[k - 1] + x[k]))
+
+
 def _um(mm: float) -> str:
     return f"{mm * 1e3:.2g} um"
 
@@ -392,7 +408,7 @@ def _noise_check(ssr: float, dof: int, noise_mm) -> Check:
         p = float(_stats.chi2_sf(stat, dof))
         ok = p >= ALPHA
         return Check(
-            "noise", stat / dof, float(_stats.chi2_isf(ALPHA, dof)) / dof, p, ALPHA, ok,
+            "noise", stat / dof, float(_chi2_isf(ALPHA, dof)) / dof, p, ALPHA, ok,
             f"residual RMS per coordinate {np.sqrt(ssr / dof) * 1e3:.3g} um against the stated noise {noise_mm * 1e3:.3g} um "
             f"(chi2/dof {stat / dof:.3g}, p = {p:.2g})" + ("" if ok else "; the standard errors use the implied noise"),
             "" if ok else "the model does not explain the points to their noise: see the other checks for the cause; "
@@ -406,12 +422,12 @@ def _noise_check(ssr: float, dof: int, noise_mm) -> Check:
 def _structure_check(result, lin: Linear, ssr: float, dof: int, cons, n_pts, alpha: float = ALPHA):
     """F-test of a smooth field over the sensor fitted to the residuals, judged by what removing the field moves
     (None when no field is testable)."""
-    B = structure_fields(lin, result)
+    B = structure_fields(lin, result, parts=True)
     F, p, p_dim, expl = f_test(lin, B)
     if p_dim == 0:
         return None
     frac = expl / ssr if ssr > 0 else 0.0
-    thr = float(_stats.f_isf(alpha, p_dim, dof - p_dim))
+    thr = float(_f_isf(alpha, p_dim, dof - p_dim))
     found = (f"a smooth field over the sensor explains {100 * frac:.3g} % of the residuals (F = {F:.3g} on {p_dim} "
              f"and {dof - p_dim} dof, p = {p:.2g})")
     eff = size = None
@@ -481,7 +497,7 @@ def assess_fit(result, jacobian, residuals, points_mm, *, noise_mm: float | None
         if p_dim:
             good = p >= ALPHA
             checks.append(Check(
-                "structure", F, float(_stats.f_isf(ALPHA, p_dim, dof - p_dim)), p, ALPHA, good,
+                "structure", F, float(_f_isf(ALPHA, p_dim, dof - p_dim)), p, ALPHA, good,
                 f"a smooth field over the sensor explains {100 * expl / max(ssr, 1e-300):.3g} % of the residuals "
                 f"(F = {F:.3g} on {p_dim} and {dof - p_dim} dof, p = {p:.2g})",
                 "" if good else "a systematic misfit over the sensor: a missing model term, ignored gains or a "
