@@ -54,6 +54,7 @@ class Bench:
 REGISTRY: dict[str, Bench] = {
     "bench_scaling": Bench(("--repeats", "9"), ("--quick", "--repeats", "1", "--scipy-max-views", "0"),
                            ("1", "2", "3"), 480),
+    "bench_default": Bench((), ("--repeats", "2", "--cli-repeats", "1"), ("1", "2"), 120),
     "bench_linear": Bench((), ("--repeats", "20"), ("1",), 20),
     "bench_startup": Bench(("--repeats", "5"), ("--repeats", "1"), ("1", "2"), 90),
     "bench_aoa": Bench(("--runs", "5"), ("--points", "100000", "--runs", "1"), ("1",), 60),
