@@ -320,3 +320,20 @@ def test_mapped_rows_equal_read_rows_and_truncation_is_named(tmp_path):
         fh.truncate(len(data) - 32 * 5_000)
     with pytest.raises(InputError, match=r"r\.npy.*truncated"):
         list(it)
+
+
+def test_median_rows_equals_numpy_median():
+    """The pre-scan's noise floor (one-pivot partition) equals ``np.median`` exactly: odd and even counts,
+    ties, NaN, one and two columns, spectra of real noise."""
+    from psdcal.signal.inspect import _median_rows
+
+    rng = np.random.default_rng(5)
+    cases = [rng.random((4, m)) for m in (1, 2, 3, 4, 5, 64, 65, 1000, 32768, 32769)]
+    cases += [rng.integers(0, 3, (4, 101)).astype(float), rng.integers(0, 3, (4, 100)).astype(float)]
+    p = np.abs(np.fft.rfft(rng.standard_normal((4, 4096)), axis=1)) ** 2
+    cases.append(p[:, 1:])
+    q = rng.random((4, 50))
+    q[2, 7] = np.nan
+    cases.append(q)
+    for c in cases:
+        np.testing.assert_array_equal(_median_rows(c), np.median(c, axis=1))
