@@ -120,7 +120,7 @@ def _fmt_float(x, bits, out, b):  # pragma: no cover - compiled
         m = 1_000_000_000
         e += 1
     # ten digits without integer division (slow here): two halves of five,
-    # each by (v * 1374389535) >> 37 == v // 100
+    # each by (v * 1374389535) >> 37 == v // 100; written straight where the text wants them
     hi = np.int64(m * 1e-5)
     lo = m - hi * 100000
     if lo < 0:
@@ -129,7 +129,13 @@ def _fmt_float(x, bits, out, b):  # pragma: no cover - compiled
     elif lo >= 100000:
         hi += 1
         lo -= 100000
-    d0 = b + _SCRATCH  # the digits, in the slot's last bytes (never reached by the text)
+    fixed = -4 <= e < 10  # %g: fixed notation
+    q = b + p
+    if fixed and e < 0:  # "0.000" then the digits after the zeros
+        out[q], out[q + 1], out[q + 2], out[q + 3], out[q + 4] = 48, 46, 48, 48, 48
+        d0 = q + 1 - e
+    else:  # the digits from the text's start (a '.' is put in below), or after one byte (exponent form)
+        d0 = q if fixed else q + 1
     for h in range(2):  # five digits of each half
         v = hi if h == 0 else lo
         at = d0 + 5 * h
@@ -145,35 +151,21 @@ def _fmt_float(x, bits, out, b):  # pragma: no cover - compiled
     nd = 10
     while nd > 1 and out[d0 + nd - 1] == 48:
         nd -= 1
-    if -4 <= e < 10:  # %g: fixed notation
-        if e >= 0:
-            for i in range(e + 1):
-                out[b + p] = out[d0 + i]
-                p += 1
-            if nd > e + 1:
-                out[b + p] = 46  # '.'
-                p += 1
-                for i in range(e + 1, nd):
-                    out[b + p] = out[d0 + i]
-                    p += 1
-        else:
-            out[b + p], out[b + p + 1] = 48, 46  # "0."
-            p += 2
-            for _ in range(-e - 1):
-                out[b + p] = 48
-                p += 1
-            for i in range(nd):
-                out[b + p] = out[d0 + i]
-                p += 1
-        return p
-    out[b + p] = out[d0 + 0]
-    p += 1
+    if fixed:
+        if e < 0:
+            return p + 1 - e + nd
+        if nd <= e + 1:  # an integer: no '.'
+            return p + e + 1
+        for i in range(nd - 1, e, -1):  # the fraction's digits one byte on, the '.' before them
+            out[q + i + 1] = out[q + i]
+        out[q + e + 1] = 46
+        return p + nd + 1
+    out[q] = out[q + 1]
     if nd > 1:
-        out[b + p] = 46
+        out[q + 1] = 46
+        p += nd + 1
+    else:
         p += 1
-        for i in range(1, nd):
-            out[b + p] = out[d0 + i]
-            p += 1
     out[b + p] = 101  # 'e'
     out[b + p + 1] = 45 if e < 0 else 43
     p += 2
