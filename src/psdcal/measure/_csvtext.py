@@ -28,9 +28,8 @@ import numpy as np
 from psdcal._jit import njit, njit_inline
 
 #: Bytes reserved per formatted value ("-1.234567891e-100" is 17; an int64 20); the ten digits
-#: of a float are worked out in the slot's last ten bytes.
+#: of a float are written in their place (at most the text's 17 bytes and a few more are touched).
 SLOT = 32
-_SCRATCH = SLOT - 10
 _P10 = np.array([10.0**i for i in range(23)])  # exact doubles
 _LUT = np.frombuffer("".join(f"{i:02d}" for i in range(100)).encode(), dtype=np.uint8).copy()  # "00".."99"
 
@@ -73,7 +72,8 @@ def _fmt_int(v, out, b):  # pragma: no cover - compiled
 @njit_inline
 def _fmt_float(x, bits, out, b):  # pragma: no cover - compiled
     """Write ``"%.10g" % x`` into ``out[b:]`` (``out`` has SLOT bytes of room after ``b``: the ten digits
-    are worked out in ``out[b + _SCRATCH:b + SLOT]`` first); its length, or -1 (left to Python)."""
+    are written in their place, the bytes after the text may be overwritten); its length, or -1 (left to
+    Python)."""
     if x != x:
         out[b + 0], out[b + 1], out[b + 2] = 110, 97, 110  # nan
         return 3
