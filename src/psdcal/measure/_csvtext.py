@@ -22,6 +22,7 @@ that use it).
 from __future__ import annotations
 
 import math
+import threading
 
 import numpy as np
 
@@ -258,9 +259,11 @@ def _table(texts):
     return table, offsets
 
 
-def _codes(a: np.ndarray):
-    """Integer codes of a text column and the UTF-8 table of its distinct values (``"%s" % v``)."""
-    values = a.tolist()
+def _codes(a: np.ndarray, values=None):
+    """Integer codes of a text column and the UTF-8 table of its distinct values (``"%s" % v``)
+    (``values``: ``a.tolist()`` when the caller has it)."""
+    if values is None:
+        values = a.tolist()
     distinct = list(dict.fromkeys(values))
     if len(distinct) <= 16:  # a few emitter names: one vectorised comparison each
         codes = np.zeros(a.shape[0], dtype=np.int64)
@@ -284,17 +287,41 @@ def rows_text(columns) -> str:
 
 def rows_bytes(columns) -> bytes:
     """:func:`rows_text` as UTF-8 bytes (what the file receives: no decoding and encoding again)."""
+    return bytes(_rows_buffer(columns))
+
+
+_scratch = threading.local()  # each thread's text buffer, reused from call to call
+
+
+def _text_buffer(size: int) -> np.ndarray:
+    """A uint8 buffer of at least ``size`` bytes, this thread's own, reused (not faulted in again each call)."""
+    buf = getattr(_scratch, "buf", None)
+    if buf is None or buf.shape[0] < size:
+        buf = np.empty(max(size, 1 << 16), dtype=np.uint8)
+        if size <= _KEEP_BYTES:  # (a one-off larger text is not kept)
+            _scratch.buf = buf
+    return buf
+
+
+#: The largest text buffer kept for the next call (locate's batches need about 1 MB).
+_KEEP_BYTES = 1 << 23
+
+
+def _rows_buffer(columns):
+    """:func:`rows_bytes`' text as a bytes-like object; a view of this thread's reused buffer, valid until
+    the thread's next call (the caller writes it at once)."""
     cols = [np.asarray(a) for a in columns]
     n = cols[0].shape[0]
     if n == 0:
         return b""
     kinds = [_kind_of(a) for a in cols]
+    lists = {j: a.tolist() for j, a in enumerate(cols) if a.dtype.kind == "O"}
     if any(a.ndim != 1 for a in cols) or any(a.dtype == np.uint64 for a in cols) or any(
-            a.dtype.kind == "O" and set(map(type, a.tolist())) != {str} for a in cols):
+            set(map(type, v)) != {str} for v in lists.values()):
         return rows_text_reference(cols).encode("utf-8")  # what the compiled path does not cover: Python's own
     fcols = [a for a, k in zip(cols, kinds) if k == "g"]
     icols = [a for a, k in zip(cols, kinds) if k == "d"]
-    scols = [a for a, k in zip(cols, kinds) if k == "s"]
+    scols = [(a, lists.get(j)) for j, (a, k) in enumerate(zip(cols, kinds)) if k == "s"]
     F = np.empty((n, max(1, len(fcols))))
     for j, a in enumerate(fcols):
         F[:, j] = a  # float16/32 -> float64 is exact: the same decimal text
@@ -311,8 +338,8 @@ def rows_bytes(columns) -> bytes:
     tables, offs, base = [], [np.zeros(1, dtype=np.int64)], 0
     n_codes = 0
     longest_text = 0
-    for j, a in enumerate(scols):
-        c, table, offsets = _codes(a)
+    for j, (a, values) in enumerate(scols):
+        c, table, offsets = _codes(a, values)
         codes[:, j] = c + n_codes
         n_codes += len(offsets) - 1
         tables.append(table[: offsets[-1]])
@@ -322,7 +349,7 @@ def rows_bytes(columns) -> bytes:
     table = np.concatenate(tables) if tables and base else np.zeros(1, dtype=np.uint8)
     offsets = np.concatenate(offs)
     # the longest text: 24 bytes a number ("-1.234567891e-100" is 17, an int64 20) and a separator
-    out = np.empty(n * (25 * (len(fcols) + len(icols)) + len(scols) + longest_text) + SLOT, dtype=np.uint8)
+    out = _text_buffer(n * (25 * (len(fcols) + len(icols)) + len(scols) + longest_text) + SLOT)
     fb_cap = 64 + (n * len(cols)) // 64
     fb_pos = np.empty(fb_cap, dtype=np.int64)
     fb_cell = np.empty(fb_cap, dtype=np.int64)
@@ -330,7 +357,7 @@ def rows_bytes(columns) -> bytes:
     if n_left < 0:  # (not expected: a 64th of the cells near a rounding tie) Python's formatting throughout
         return rows_text_reference(cols).encode("utf-8")
     if n_left == 0:
-        return out[:length].tobytes()
+        return memoryview(out)[:length]
     # the cells left to Python (rare: values near a rounding tie, extreme exponents), spliced in
     rr, jj = np.divmod(fb_cell[:n_left], len(cols))
     parts, at = [], 0
@@ -356,13 +383,13 @@ def _write_rows(fh, cols: dict, order) -> int:
     from psdcal import _jit
 
     if _jit.enabled():
-        text = rows_bytes([cols[c] for c in order])
+        text = _rows_buffer([cols[c] for c in order])
         raw = getattr(fh, "buffer", None)
         if raw is not None and getattr(fh, "encoding", "").lower().replace("-", "") == "utf8":
             fh.flush()  # the text written so far (the header) first
             raw.write(text)
         else:
-            fh.write(text.decode("utf-8"))
+            fh.write(bytes(text).decode("utf-8"))
     else:
         fh.write(_rows_text(cols, order))
     return n
