@@ -149,3 +149,42 @@ def test_bench_live_runs(capsys):
         sys.path.remove(str(bench))
     assert len(ms) >= 10 and np.all(ms > 0)
     assert "median (ms)" in capsys.readouterr().out
+
+
+def test_backlog_read_in_pieces_and_batched_equals_file(cwd, monkeypatch):
+    """A backlog (a stream whose reads fill the buffer) is read in small pieces whose windows are gathered
+    before they become rows: the same rows as the file; a bad sample late in the stream still names the
+    sample, and the rows of the pieces before it are written."""
+    import psdcal.measure.live as live
+    from psdcal.measure.locate import LocateConfig, locate_to_csv
+    from psdcal.signal.live import open_stream
+    from psdcal.signal.recording import open_recording
+
+    monkeypatch.setattr(live, "LIVE_READ_BYTES", 1 << 12)  # 128 frames a read: many pieces a window batch
+    monkeypatch.setattr(live, "BATCH_WINDOWS", 7)
+    n = 40_000
+    x = _setup(cwd, n=n, seed=3)
+    write_recording(cwd / "rec.npy", x, RATE)
+    m = model()
+    cfg = LocateConfig(carriers_hz=CARRIERS, window_s=0.01, distance_mm=3000.0, check_carriers=False)
+    locate_to_csv(open_recording(cwd / "rec.npy", RATE), m, cwd / "file.csv", cfg)
+    raw = np.ascontiguousarray(x.T).astype("<f8")
+    (cwd / "raw.bin").write_bytes(raw.tobytes())
+    with open(cwd / "raw.bin", "rb") as fh:
+        s = live.locate_stream(open_stream("-", RATE, stdin=fh), m, cwd / "live.csv", cfg)
+    assert s.n_windows == n // 200 and len(s.latency_s) == s.n_windows
+    _assert_same("file.csv", "live.csv")
+    with open(cwd / "file.csv") as fh:
+        n_file = len(fh.read().splitlines()) - 1
+    bad = 31_234  # in window 156 (200 samples a window)
+    raw[bad, 2] = np.nan
+    (cwd / "raw.bin").write_bytes(raw.tobytes())
+    from psdcal.errors import InputError
+
+    with open(cwd / "raw.bin", "rb") as fh, pytest.raises(InputError, match=f"sample {bad} of channel 3"):
+        live.locate_stream(open_stream("-", RATE, stdin=fh), m, cwd / "bad.csv", cfg)
+    _, rows = _rows(cwd / "bad.csv")
+    t_last = max(float(r[0]) for r in rows)
+    # every window of the pieces before the bad one (128 frames each) was written, none at or after it
+    assert (bad // 128 * 128) / RATE - 0.01 - 1e-9 <= t_last < bad / RATE
+    assert 0 < len(rows) < n_file

@@ -320,3 +320,38 @@ def test_mapped_rows_equal_read_rows_and_truncation_is_named(tmp_path):
         fh.truncate(len(data) - 32 * 5_000)
     with pytest.raises(InputError, match=r"r\.npy.*truncated"):
         list(it)
+
+
+def test_median_rows_equals_numpy_median():
+    """The pre-scan's noise floor (one-pivot partition) equals ``np.median`` exactly: odd and even counts,
+    ties, NaN, one and two columns, spectra of real noise."""
+    from psdcal.signal.inspect import _median_rows
+
+    rng = np.random.default_rng(5)
+    cases = [rng.random((4, m)) for m in (1, 2, 3, 4, 5, 64, 65, 1000, 32768, 32769)]
+    cases += [rng.integers(0, 3, (4, 101)).astype(float), rng.integers(0, 3, (4, 100)).astype(float)]
+    p = np.abs(np.fft.rfft(rng.standard_normal((4, 4096)), axis=1)) ** 2
+    cases.append(p[:, 1:])
+    q = rng.random((4, 50))
+    q[2, 7] = np.nan
+    cases.append(q)
+    for c in cases:
+        np.testing.assert_array_equal(_median_rows(c), np.median(c, axis=1))
+
+
+def test_prescan_spectrum_equals_abs_squared_fft():
+    """The pre-scan's power spectrum (re^2 + im^2 of the Hann-windowed, mean-removed channels) equals
+    ``|rfft|^2`` written independently, to rounding (relative 1e-12 of the largest bin), rows layout too."""
+    from psdcal.signal.inspect import spectrum
+
+    rng = np.random.default_rng(9)
+    n = 4096
+    t = np.arange(n) / 50_000.0
+    x = 0.1 + 1e-3 * rng.standard_normal((n, 4)) + np.sin(2 * np.pi * 1234.5 * t)[:, None] * [0.3, 0.2, 0.1, 0.05]
+    freq, p, wsum, w2sum = spectrum(x.T, 50_000.0)  # a (4, n) view of rows
+    w = 0.5 - 0.5 * np.cos(2 * np.pi * np.arange(n) / (n - 1))
+    for c in range(4):
+        ref = np.abs(np.fft.fft((x[:, c] - x[:, c].mean()) * w)[: n // 2 + 1]) ** 2
+        np.testing.assert_allclose(p[c], ref, rtol=0, atol=1e-12 * ref.max())
+    assert np.isclose(wsum, w.sum()) and np.isclose(w2sum, (w * w).sum())
+    np.testing.assert_allclose(freq, np.arange(n // 2 + 1) * 50_000.0 / n)

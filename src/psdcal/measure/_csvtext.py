@@ -24,15 +24,15 @@ rows in the command line's one-shot runs) never imports it.
 from __future__ import annotations
 
 import math
+import threading
 
 import numpy as np
 
 from psdcal._jit import deferred_njit as njit, deferred_njit_inline as njit_inline
 
 #: Bytes reserved per formatted value ("-1.234567891e-100" is 17; an int64 20); the ten digits
-#: of a float are worked out in the slot's last ten bytes.
+#: of a float are written in their place (at most the text's 17 bytes and a few more are touched).
 SLOT = 32
-_SCRATCH = SLOT - 10
 _P10 = np.array([10.0**i for i in range(23)])  # exact doubles
 _LUT = np.frombuffer("".join(f"{i:02d}" for i in range(100)).encode(), dtype=np.uint8).copy()  # "00".."99"
 
@@ -75,7 +75,8 @@ def _fmt_int(v, out, b):  # pragma: no cover - compiled
 @njit_inline
 def _fmt_float(x, bits, out, b):  # pragma: no cover - compiled
     """Write ``"%.10g" % x`` into ``out[b:]`` (``out`` has SLOT bytes of room after ``b``: the ten digits
-    are worked out in ``out[b + _SCRATCH:b + SLOT]`` first); its length, or -1 (left to Python)."""
+    are written in their place, the bytes after the text may be overwritten); its length, or -1 (left to
+    Python)."""
     if x != x:
         out[b + 0], out[b + 1], out[b + 2] = 110, 97, 110  # nan
         return 3
@@ -122,7 +123,7 @@ def _fmt_float(x, bits, out, b):  # pragma: no cover - compiled
         m = 1_000_000_000
         e += 1
     # ten digits without integer division (slow here): two halves of five,
-    # each by (v * 1374389535) >> 37 == v // 100
+    # each by (v * 1374389535) >> 37 == v // 100; written straight where the text wants them
     hi = np.int64(m * 1e-5)
     lo = m - hi * 100000
     if lo < 0:
@@ -131,7 +132,13 @@ def _fmt_float(x, bits, out, b):  # pragma: no cover - compiled
     elif lo >= 100000:
         hi += 1
         lo -= 100000
-    d0 = b + _SCRATCH  # the digits, in the slot's last bytes (never reached by the text)
+    fixed = -4 <= e < 10  # %g: fixed notation
+    q = b + p
+    if fixed and e < 0:  # "0.000" then the digits after the zeros
+        out[q], out[q + 1], out[q + 2], out[q + 3], out[q + 4] = 48, 46, 48, 48, 48
+        d0 = q + 1 - e
+    else:  # the digits from the text's start (a '.' is put in below), or after one byte (exponent form)
+        d0 = q if fixed else q + 1
     for h in range(2):  # five digits of each half
         v = hi if h == 0 else lo
         at = d0 + 5 * h
@@ -147,35 +154,21 @@ def _fmt_float(x, bits, out, b):  # pragma: no cover - compiled
     nd = 10
     while nd > 1 and out[d0 + nd - 1] == 48:
         nd -= 1
-    if -4 <= e < 10:  # %g: fixed notation
-        if e >= 0:
-            for i in range(e + 1):
-                out[b + p] = out[d0 + i]
-                p += 1
-            if nd > e + 1:
-                out[b + p] = 46  # '.'
-                p += 1
-                for i in range(e + 1, nd):
-                    out[b + p] = out[d0 + i]
-                    p += 1
-        else:
-            out[b + p], out[b + p + 1] = 48, 46  # "0."
-            p += 2
-            for _ in range(-e - 1):
-                out[b + p] = 48
-                p += 1
-            for i in range(nd):
-                out[b + p] = out[d0 + i]
-                p += 1
-        return p
-    out[b + p] = out[d0 + 0]
-    p += 1
+    if fixed:
+        if e < 0:
+            return p + 1 - e + nd
+        if nd <= e + 1:  # an integer: no '.'
+            return p + e + 1
+        for i in range(nd - 1, e, -1):  # the fraction's digits one byte on, the '.' before them
+            out[q + i + 1] = out[q + i]
+        out[q + e + 1] = 46
+        return p + nd + 1
+    out[q] = out[q + 1]
     if nd > 1:
-        out[b + p] = 46
+        out[q + 1] = 46
+        p += nd + 1
+    else:
         p += 1
-        for i in range(1, nd):
-            out[b + p] = out[d0 + i]
-            p += 1
     out[b + p] = 101  # 'e'
     out[b + p + 1] = 45 if e < 0 else 43
     p += 2
@@ -268,9 +261,11 @@ def _table(texts):
     return table, offsets
 
 
-def _codes(a: np.ndarray):
-    """Integer codes of a text column and the UTF-8 table of its distinct values (``"%s" % v``)."""
-    values = a.tolist()
+def _codes(a: np.ndarray, values=None):
+    """Integer codes of a text column and the UTF-8 table of its distinct values (``"%s" % v``)
+    (``values``: ``a.tolist()`` when the caller has it)."""
+    if values is None:
+        values = a.tolist()
     distinct = list(dict.fromkeys(values))
     if len(distinct) <= 16:  # a few emitter names: one vectorised comparison each
         codes = np.zeros(a.shape[0], dtype=np.int64)
@@ -294,17 +289,41 @@ def rows_text(columns) -> str:
 
 def rows_bytes(columns) -> bytes:
     """:func:`rows_text` as UTF-8 bytes (what the file receives: no decoding and encoding again)."""
+    return bytes(_rows_buffer(columns))
+
+
+_scratch = threading.local()  # each thread's text buffer, reused from call to call
+
+
+def _text_buffer(size: int) -> np.ndarray:
+    """A uint8 buffer of at least ``size`` bytes, this thread's own, reused (not faulted in again each call)."""
+    buf = getattr(_scratch, "buf", None)
+    if buf is None or buf.shape[0] < size:
+        buf = np.empty(max(size, 1 << 16), dtype=np.uint8)
+        if size <= _KEEP_BYTES:  # (a one-off larger text is not kept)
+            _scratch.buf = buf
+    return buf
+
+
+#: The largest text buffer kept for the next call (locate's batches need about 1 MB).
+_KEEP_BYTES = 1 << 23
+
+
+def _rows_buffer(columns):
+    """:func:`rows_bytes`' text as a bytes-like object; a view of this thread's reused buffer, valid until
+    the thread's next call (the caller writes it at once)."""
     cols = [np.asarray(a) for a in columns]
     n = cols[0].shape[0]
     if n == 0:
         return b""
     kinds = [_kind_of(a) for a in cols]
+    lists = {j: a.tolist() for j, a in enumerate(cols) if a.dtype.kind == "O"}
     if any(a.ndim != 1 for a in cols) or any(a.dtype == np.uint64 for a in cols) or any(
-            a.dtype.kind == "O" and set(map(type, a.tolist())) != {str} for a in cols):
+            set(map(type, v)) != {str} for v in lists.values()):
         return rows_text_reference(cols).encode("utf-8")  # what the compiled path does not cover: Python's own
     fcols = [a for a, k in zip(cols, kinds) if k == "g"]
     icols = [a for a, k in zip(cols, kinds) if k == "d"]
-    scols = [a for a, k in zip(cols, kinds) if k == "s"]
+    scols = [(a, lists.get(j)) for j, (a, k) in enumerate(zip(cols, kinds)) if k == "s"]
     F = np.empty((n, max(1, len(fcols))))
     for j, a in enumerate(fcols):
         F[:, j] = a  # float16/32 -> float64 is exact: the same decimal text
@@ -321,8 +340,8 @@ def rows_bytes(columns) -> bytes:
     tables, offs, base = [], [np.zeros(1, dtype=np.int64)], 0
     n_codes = 0
     longest_text = 0
-    for j, a in enumerate(scols):
-        c, table, offsets = _codes(a)
+    for j, (a, values) in enumerate(scols):
+        c, table, offsets = _codes(a, values)
         codes[:, j] = c + n_codes
         n_codes += len(offsets) - 1
         tables.append(table[: offsets[-1]])
@@ -332,7 +351,7 @@ def rows_bytes(columns) -> bytes:
     table = np.concatenate(tables) if tables and base else np.zeros(1, dtype=np.uint8)
     offsets = np.concatenate(offs)
     # the longest text: 24 bytes a number ("-1.234567891e-100" is 17, an int64 20) and a separator
-    out = np.empty(n * (25 * (len(fcols) + len(icols)) + len(scols) + longest_text) + SLOT, dtype=np.uint8)
+    out = _text_buffer(n * (25 * (len(fcols) + len(icols)) + len(scols) + longest_text) + SLOT)
     fb_cap = 64 + (n * len(cols)) // 64
     fb_pos = np.empty(fb_cap, dtype=np.int64)
     fb_cell = np.empty(fb_cap, dtype=np.int64)
@@ -340,7 +359,7 @@ def rows_bytes(columns) -> bytes:
     if n_left < 0:  # (not expected: a 64th of the cells near a rounding tie) Python's formatting throughout
         return rows_text_reference(cols).encode("utf-8")
     if n_left == 0:
-        return out[:length].tobytes()
+        return memoryview(out)[:length]
     # the cells left to Python (rare: values near a rounding tie, extreme exponents), spliced in
     rr, jj = np.divmod(fb_cell[:n_left], len(cols))
     parts, at = [], 0
@@ -366,13 +385,13 @@ def _write_rows(fh, cols: dict, order) -> int:
     from psdcal import _jit
 
     if _jit.use_compiled(n, _jit.AUTO_MIN_CSV_ROWS):
-        text = rows_bytes([cols[c] for c in order])
+        text = _rows_buffer([cols[c] for c in order])
         raw = getattr(fh, "buffer", None)
         if raw is not None and getattr(fh, "encoding", "").lower().replace("-", "") == "utf8":
             fh.flush()  # the text written so far (the header) first
             raw.write(text)
         else:
-            fh.write(text.decode("utf-8"))
+            fh.write(bytes(text).decode("utf-8"))
     else:
         fh.write(_rows_text(cols, order))
     return n

@@ -19,6 +19,12 @@ from psdcal.measure.locate import LocateConfig, _rows_single, _write_rows, singl
 from psdcal.signal.stream import MultiCarrierLockin, TdmSegmenter
 
 
+#: Bytes a read of a live stream asks for (a backlog is read in pieces this size, which stay in the cache).
+LIVE_READ_BYTES = 1 << 22
+#: Windows gathered from a backlog's pieces before they are turned into rows.
+BATCH_WINDOWS = 1024
+
+
 @dataclass(frozen=True)
 class LiveSummary:
     """What a live run did.
@@ -111,25 +117,15 @@ def locate_stream(stream, model, out_path, config: LocateConfig) -> LiveSummary:
         # rows read into one reused buffer, as large as what has arrived (a backlog in large blocks), checked
         # through the lock-in's sums (below); a stream without that reader: (4, m) blocks, checked on arrival
         as_rows = hasattr(stream, "check_rows")
-        for t0, block in (stream.chunks(rows=True, check_finite=False) if as_rows else stream.chunks()):
-            arrived = stream.arrivals[-1][1] if stream.arrivals else time.perf_counter()
-            if as_rows:
-                first, m = n_samples, block.shape[0]
-                n_samples += m
-                j0, coef, xx = lockin.fit_rows(t0, block)
-                # the windows' sums are finite only when every sample is; the tail held for the next window
-                # is checked now (an error names the sample before any row of this block is written)
-                if not np.isfinite(xx).all():
-                    stream.check_rows(block, first)
-                tail = min(lockin.pending_samples, m)
-                if tail:
-                    stream.check_rows(block[m - tail:], first + m - tail)
-                wb = lockin.windows(j0, coef, xx)
-            else:
-                n_samples += block.shape[1]
-                wb = lockin.process(t0, block)
-            if not len(wb):
-                continue
+        # a backlog (a read that filled the buffer: more data waiting) is read in cache-sized pieces and its
+        # windows' sums are gathered (up to BATCH_WINDOWS) before they become rows: the copy out of the
+        # pipe stays in the cache and the per-block work is paid once per batch; data arriving in real
+        # time (a read that did not fill the buffer) is turned into rows at once, as before
+        acc: list = []  # (j0, coef, xx, arrival time) of the windows gathered
+        n_acc = 0
+
+        def emit(wb, arrivals):
+            nonlocal n_windows, n_rows, n_skipped
             n_windows += len(wb)
             if seg is not None:
                 cols, skipped = seg_cols(seg.feed(wb))
@@ -140,8 +136,58 @@ def locate_stream(stream, model, out_path, config: LocateConfig) -> LiveSummary:
             if cols is not None:
                 n_rows += _write_rows(fh, cols, order)
             fh.flush()
-            lat += [time.perf_counter() - arrived] * len(wb)
+            now = time.perf_counter()
+            for nw, arrived in arrivals:
+                lat.extend([now - arrived] * nw)
             check_sums()
+
+        def flush_acc():
+            nonlocal n_acc
+            if not acc:
+                return
+            if len(acc) == 1:
+                j0, coef, xx, _ = acc[0]
+            else:
+                j0 = acc[0][0]
+                coef = np.concatenate([a[1] for a in acc])
+                xx = np.concatenate([a[2] for a in acc])
+            arrivals = [(a[2].shape[0], a[3]) for a in acc]
+            acc.clear()
+            n_acc = 0
+            emit(lockin.windows(j0, coef, xx), arrivals)
+
+        chunks = (stream.chunks(rows=True, check_finite=False, read_bytes=LIVE_READ_BYTES) if as_rows
+                  else stream.chunks())
+        for t0, block in chunks:
+            arrived = stream.arrivals[-1][1] if stream.arrivals else time.perf_counter()
+            if as_rows:
+                first, m = n_samples, block.shape[0]
+                n_samples += m
+                j0, coef, xx = lockin.fit_rows(t0, block)
+                # the windows' sums are finite only when every sample is; the tail held for the next window
+                # is checked now (an error names the sample before any row of this block is written)
+                try:
+                    if not np.isfinite(xx).all():
+                        stream.check_rows(block, first)
+                    tail = min(lockin.pending_samples, m)
+                    if tail:
+                        stream.check_rows(block[m - tail:], first + m - tail)
+                except InputError:
+                    flush_acc()  # the rows of the blocks before the bad sample are written, as they came
+                    raise
+                if xx.shape[0]:
+                    # (the sums are the kernel's own arrays or copies: not views of the read buffer)
+                    acc.append((j0, coef, xx, arrived))
+                    n_acc += xx.shape[0]
+                if n_acc >= BATCH_WINDOWS or not getattr(stream, "backlog", False):
+                    flush_acc()
+                continue
+            n_samples += block.shape[1]
+            wb = lockin.process(t0, block)
+            if not len(wb):
+                continue
+            emit(wb, [(len(wb), arrived)])
+        flush_acc()
         if seg is not None:
             cols, skipped = seg_cols(seg.finish())
             n_skipped += skipped

@@ -101,9 +101,11 @@ class RawStream:
     order: tuple | None = None
     #: ``readinto``-like reader (``readinto1`` of a file, ``recv_into`` of a socket), or None
     _readinto: object = field(default=None, repr=False)
+    #: ``rows`` blocks: whether the last block filled the read buffer (a backlog: more may be waiting)
+    backlog: bool = field(default=False, repr=False)
 
-    def chunks(self, chunk_samples: int = 0, *, rows: bool = False,
-               check_finite: bool = True) -> Iterator[tuple[float, np.ndarray]]:
+    def chunks(self, chunk_samples: int = 0, *, rows: bool = False, check_finite: bool = True,
+               read_bytes: int | None = None) -> Iterator[tuple[float, np.ndarray]]:
         """Yield ``(t0_s, block)`` as frames arrive (``chunk_samples`` is ignored: blocks are what came).
 
         ``rows``: yield ``(m, 4)`` float64 blocks (one frame a row, the documented channel order)
@@ -111,10 +113,13 @@ class RawStream:
         asked for), as large as what has arrived, up to :data:`ROWS_READ_BYTES` (a backlog is
         taken in large blocks; frames arriving in real time are yielded as they come, as without
         it).  ``check_finite=False`` (with ``rows``) leaves the finiteness check to the caller
-        (:meth:`check_rows`, same message).
+        (:meth:`check_rows`, same message).  ``read_bytes`` (with ``rows``): the most a read asks
+        for instead of :data:`ROWS_READ_BYTES` (a smaller buffer stays in the processor's cache; the
+        caller then gathers the blocks of a backlog itself: :attr:`backlog` says whether the last
+        block filled the buffer, i.e. more data may be waiting).
         """
         if rows:
-            yield from self._rows(check_finite)
+            yield from self._rows(check_finite, read_bytes)
             return
         dt = np.dtype(DTYPES[self.dtype])
         frame = 4 * dt.itemsize
@@ -158,11 +163,12 @@ class RawStream:
             raise InputError(f"sample {first_sample + int(i)} of channel {ch + 1} is not a finite number",
                              path=self.path)
 
-    def _rows(self, check: bool) -> Iterator[tuple[float, np.ndarray]]:
+    def _rows(self, check: bool, read_bytes: int | None = None) -> Iterator[tuple[float, np.ndarray]]:
         """The ``rows=True`` blocks of :meth:`chunks`."""
         dt = np.dtype(DTYPES[self.dtype])
         frame = 4 * dt.itemsize
-        cap = max(frame, (max(int(self.read_bytes), ROWS_READ_BYTES) // frame) * frame)
+        most = ROWS_READ_BYTES if read_bytes is None else int(read_bytes)
+        cap = max(frame, (max(int(self.read_bytes), most) // frame) * frame)
         ring = bytearray(cap + frame)
         mv = memoryview(ring)
         readinto = self._readinto
@@ -195,6 +201,7 @@ class RawStream:
                     if check:
                         self.check_rows(block, n)
                     self.arrivals.append((n + m, now))
+                    self.backlog = got == cap  # the buffer filled: more may be waiting
                     yield self.t0_s + n / self.rate_hz, block
                     n += m
                     del raw, block
