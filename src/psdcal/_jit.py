@@ -134,10 +134,11 @@ def _compile(fn, **options):
     if not AVAILABLE:
         return fn
     numba = _load_numba()
+    options = {"nogil": True, "error_model": "numpy", **options}
     try:
-        return numba.njit(cache=True, nogil=True, error_model="numpy", **options)(fn)
+        return numba.njit(cache=True, **options)(fn)
     except (RuntimeError, OSError):  # numba: "cannot cache function ...: no locator available"
-        return numba.njit(cache=False, nogil=True, error_model="numpy", **options)(fn)
+        return numba.njit(cache=False, **options)(fn)
 
 
 class _Lazy:

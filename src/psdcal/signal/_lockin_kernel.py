@@ -8,11 +8,10 @@ and the finiteness check).  numpy does that as one small matrix product per
 window plus a strided reduction (two passes over the samples, and BLAS's
 per-call overhead on a 3 x 1250 x 4 product).
 
-:func:`window_sums` does it in one compiled loop per window: the window's
-rows ``(n, 4)`` are first copied channel-major into a scratch ``(4, n)``
-array (in the first-level cache), then each channel is one pass over its
-contiguous samples with up to five projection rows and the sum of squares
-accumulated together.  The sums are reassociated (``fastmath`` reassoc and
+:func:`window_sums` does it in one compiled loop per window: one pass over
+the window's rows ``(n, 4)`` per group of up to five projection rows, each
+row's four channels multiplied by one table value (the channels are the SIMD
+lanes) and the sum of squares accumulated in the first pass.  The sums are reassociated (``fastmath`` reassoc and
 contract only: no assumption about NaN or infinities, so a non-finite sample
 still gives a non-finite sum), which lets the compiler use SIMD lanes: the
 result differs from numpy's by rounding (relative 1e-15 of ``|P| |x|``),
@@ -51,7 +50,10 @@ def _window_sums(P, x, n, coef, xx, xt):  # pragma: no cover - compiled
     """``coef[w] = P[:J] @ x[w n:(w + 1) n]`` (J, 4) and ``xx[w] = sum x^2`` (4,) for each window ``w``.
 
     ``P`` (5 n5 + 3 n3, n): the table padded by :func:`padded_table`; ``x`` (nw n, 4) the
-    windows' rows (any strides); ``coef`` (nw, J, 4), ``xx`` (nw, 4) written; ``xt`` (4, n) scratch.
+    windows' rows (any strides); ``coef`` (nw, J, 4), ``xx`` (nw, 4) written; ``xt`` unused (kept
+    for the signature).  One pass over a window's rows per group of five (or three) table rows:
+    each sample row's four channels are multiplied by one table value (the four channels are the
+    SIMD lanes; no channel-major copy, the table read once per group).
     """
     nw = x.shape[0] // n
     J = coef.shape[1]
@@ -62,85 +64,155 @@ def _window_sums(P, x, n, coef, xx, xt):  # pragma: no cover - compiled
         n3 = 1
     if r == 4:
         n3 = 2
-    n4 = n - n % 4
     for w in range(nw):
         b = w * n
-        # channel-major copy, four rows at a time (a 4 x 4 block: fewer, wider stores)
-        for t in range(0, n4, 4):
-            a0, a1, a2, a3 = x[b + t, 0], x[b + t, 1], x[b + t, 2], x[b + t, 3]
-            b0, b1, b2, b3 = x[b + t + 1, 0], x[b + t + 1, 1], x[b + t + 1, 2], x[b + t + 1, 3]
-            c0, c1, c2, c3 = x[b + t + 2, 0], x[b + t + 2, 1], x[b + t + 2, 2], x[b + t + 2, 3]
-            d0, d1, d2, d3 = x[b + t + 3, 0], x[b + t + 3, 1], x[b + t + 3, 2], x[b + t + 3, 3]
-            xt[0, t], xt[0, t + 1], xt[0, t + 2], xt[0, t + 3] = a0, b0, c0, d0
-            xt[1, t], xt[1, t + 1], xt[1, t + 2], xt[1, t + 3] = a1, b1, c1, d1
-            xt[2, t], xt[2, t + 1], xt[2, t + 2], xt[2, t + 3] = a2, b2, c2, d2
-            xt[3, t], xt[3, t + 1], xt[3, t + 2], xt[3, t + 3] = a3, b3, c3, d3
-        for t in range(n4, n):
-            xt[0, t] = x[b + t, 0]
-            xt[1, t] = x[b + t, 1]
-            xt[2, t] = x[b + t, 2]
-            xt[3, t] = x[b + t, 3]
-        for c in range(4):
-            xc = xt[c]
-            first = True
-            s = 0.0
-            for g in range(n5):
-                j = 5 * g
-                p0 = P[j]
-                p1 = P[j + 1]
-                p2 = P[j + 2]
-                p3 = P[j + 3]
-                p4 = P[j + 4]
-                a0 = a1 = a2 = a3 = a4 = 0.0
-                if first:
-                    for t in range(n):
-                        v = xc[t]
-                        a0 += p0[t] * v
-                        a1 += p1[t] * v
-                        a2 += p2[t] * v
-                        a3 += p3[t] * v
-                        a4 += p4[t] * v
-                        s += v * v
-                    first = False
-                else:
-                    for t in range(n):
-                        v = xc[t]
-                        a0 += p0[t] * v
-                        a1 += p1[t] * v
-                        a2 += p2[t] * v
-                        a3 += p3[t] * v
-                        a4 += p4[t] * v
-                coef[w, j, c] = a0
-                coef[w, j + 1, c] = a1
-                coef[w, j + 2, c] = a2
-                coef[w, j + 3, c] = a3
-                coef[w, j + 4, c] = a4
-            for g in range(n3):
-                j = 5 * n5 + 3 * g
-                p0 = P[j]
-                p1 = P[j + 1]
-                p2 = P[j + 2]
-                a0 = a1 = a2 = 0.0
-                if first:
-                    for t in range(n):
-                        v = xc[t]
-                        a0 += p0[t] * v
-                        a1 += p1[t] * v
-                        a2 += p2[t] * v
-                        s += v * v
-                    first = False
-                else:
-                    for t in range(n):
-                        v = xc[t]
-                        a0 += p0[t] * v
-                        a1 += p1[t] * v
-                        a2 += p2[t] * v
-                coef[w, j, c] = a0
-                if j + 1 < J:
-                    coef[w, j + 1, c] = a1
-                if j + 2 < J:
-                    coef[w, j + 2, c] = a2
-            xx[w, c] = s
+        first = True
+        s0 = s1 = s2 = s3 = 0.0
+        for g in range(n5):
+            j = 5 * g
+            q0 = P[j]
+            q1 = P[j + 1]
+            q2 = P[j + 2]
+            q3 = P[j + 3]
+            q4 = P[j + 4]
+            a00 = a01 = a02 = a03 = 0.0
+            a10 = a11 = a12 = a13 = 0.0
+            a20 = a21 = a22 = a23 = 0.0
+            a30 = a31 = a32 = a33 = 0.0
+            a40 = a41 = a42 = a43 = 0.0
+            if first:
+                for t in range(n):
+                    v0 = x[b + t, 0]
+                    v1 = x[b + t, 1]
+                    v2 = x[b + t, 2]
+                    v3 = x[b + t, 3]
+                    p = q0[t]
+                    a00 += p * v0
+                    a01 += p * v1
+                    a02 += p * v2
+                    a03 += p * v3
+                    p = q1[t]
+                    a10 += p * v0
+                    a11 += p * v1
+                    a12 += p * v2
+                    a13 += p * v3
+                    p = q2[t]
+                    a20 += p * v0
+                    a21 += p * v1
+                    a22 += p * v2
+                    a23 += p * v3
+                    p = q3[t]
+                    a30 += p * v0
+                    a31 += p * v1
+                    a32 += p * v2
+                    a33 += p * v3
+                    p = q4[t]
+                    a40 += p * v0
+                    a41 += p * v1
+                    a42 += p * v2
+                    a43 += p * v3
+                    s0 += v0 * v0
+                    s1 += v1 * v1
+                    s2 += v2 * v2
+                    s3 += v3 * v3
+                first = False
+            else:
+                for t in range(n):
+                    v0 = x[b + t, 0]
+                    v1 = x[b + t, 1]
+                    v2 = x[b + t, 2]
+                    v3 = x[b + t, 3]
+                    p = q0[t]
+                    a00 += p * v0
+                    a01 += p * v1
+                    a02 += p * v2
+                    a03 += p * v3
+                    p = q1[t]
+                    a10 += p * v0
+                    a11 += p * v1
+                    a12 += p * v2
+                    a13 += p * v3
+                    p = q2[t]
+                    a20 += p * v0
+                    a21 += p * v1
+                    a22 += p * v2
+                    a23 += p * v3
+                    p = q3[t]
+                    a30 += p * v0
+                    a31 += p * v1
+                    a32 += p * v2
+                    a33 += p * v3
+                    p = q4[t]
+                    a40 += p * v0
+                    a41 += p * v1
+                    a42 += p * v2
+                    a43 += p * v3
+            coef[w, j, 0], coef[w, j, 1], coef[w, j, 2], coef[w, j, 3] = a00, a01, a02, a03
+            coef[w, j + 1, 0], coef[w, j + 1, 1], coef[w, j + 1, 2], coef[w, j + 1, 3] = a10, a11, a12, a13
+            coef[w, j + 2, 0], coef[w, j + 2, 1], coef[w, j + 2, 2], coef[w, j + 2, 3] = a20, a21, a22, a23
+            coef[w, j + 3, 0], coef[w, j + 3, 1], coef[w, j + 3, 2], coef[w, j + 3, 3] = a30, a31, a32, a33
+            coef[w, j + 4, 0], coef[w, j + 4, 1], coef[w, j + 4, 2], coef[w, j + 4, 3] = a40, a41, a42, a43
+        for g in range(n3):
+            j = 5 * n5 + 3 * g
+            q0 = P[j]
+            q1 = P[j + 1]
+            q2 = P[j + 2]
+            a00 = a01 = a02 = a03 = 0.0
+            a10 = a11 = a12 = a13 = 0.0
+            a20 = a21 = a22 = a23 = 0.0
+            if first:
+                for t in range(n):
+                    v0 = x[b + t, 0]
+                    v1 = x[b + t, 1]
+                    v2 = x[b + t, 2]
+                    v3 = x[b + t, 3]
+                    p = q0[t]
+                    a00 += p * v0
+                    a01 += p * v1
+                    a02 += p * v2
+                    a03 += p * v3
+                    p = q1[t]
+                    a10 += p * v0
+                    a11 += p * v1
+                    a12 += p * v2
+                    a13 += p * v3
+                    p = q2[t]
+                    a20 += p * v0
+                    a21 += p * v1
+                    a22 += p * v2
+                    a23 += p * v3
+                    s0 += v0 * v0
+                    s1 += v1 * v1
+                    s2 += v2 * v2
+                    s3 += v3 * v3
+                first = False
+            else:
+                for t in range(n):
+                    v0 = x[b + t, 0]
+                    v1 = x[b + t, 1]
+                    v2 = x[b + t, 2]
+                    v3 = x[b + t, 3]
+                    p = q0[t]
+                    a00 += p * v0
+                    a01 += p * v1
+                    a02 += p * v2
+                    a03 += p * v3
+                    p = q1[t]
+                    a10 += p * v0
+                    a11 += p * v1
+                    a12 += p * v2
+                    a13 += p * v3
+                    p = q2[t]
+                    a20 += p * v0
+                    a21 += p * v1
+                    a22 += p * v2
+                    a23 += p * v3
+            coef[w, j, 0], coef[w, j, 1], coef[w, j, 2], coef[w, j, 3] = a00, a01, a02, a03
+            if j + 1 < J:
+                coef[w, j + 1, 0], coef[w, j + 1, 1], coef[w, j + 1, 2], coef[w, j + 1, 3] = a10, a11, a12, a13
+            if j + 2 < J:
+                coef[w, j + 2, 0], coef[w, j + 2, 1], coef[w, j + 2, 2], coef[w, j + 2, 3] = a20, a21, a22, a23
+        xx[w, 0], xx[w, 1], xx[w, 2], xx[w, 3] = s0, s1, s2, s3
 
 
 _compiled = None
@@ -152,7 +224,9 @@ def window_sums(P, x, n, coef, xx, xt) -> None:
     if _compiled is None:
         from psdcal import _jit
 
-        _compiled = _jit._compile(_window_sums, fastmath=set(FASTMATH))
+        # error_model "python": the kernel divides nothing, and numpy's error model (the project's
+        # default) keeps LLVM from vectorising its loops across the four channels (3x slower)
+        _compiled = _jit._compile(_window_sums, fastmath=set(FASTMATH), error_model="python")
     _compiled(P, x, n, coef, xx, xt)
 
 
