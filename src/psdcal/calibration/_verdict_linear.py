@@ -565,7 +565,66 @@ class Consequences:
 
 
 def consequences(lin: Linear, result, cov=None) -> Consequences:
-    """The angles' sensitivities (finite differences) and standard errors over the field of view.
+    """The angles' sensitivities (analytic: one :func:`~psdcal.model.distortion.undistort` with its Jacobians) and
+    standard errors over the field of view.
+
+    ``cov`` is the covariance of ``lin.names`` (default ``s^2 Ninv``); the extra
+    terms' sensitivities are included (``names`` = free parameters then extra terms).
+    :func:`consequences_reference` is the same by finite differences.
+    """
+    grid = angle_grid(lin)
+    names = tuple(lin.names) + tuple(lin.extra_names)
+    cov = lin.s2 * lin.ninv if cov is None else np.asarray(cov, dtype=float)
+    A, D = angle_jacobians(result, grid, names)
+    Af = A[:, : len(lin.names)]
+    sd = np.sqrt(np.maximum(np.einsum("ij,jk,ik->i", Af, cov, Af), 0.0))
+    return Consequences(names, A, D, sd, cov, grid)
+
+
+def angle_jacobians(result, d_mm, names) -> tuple[np.ndarray, np.ndarray]:
+    """d(angles)/d(parameters) (2K, len(names)), rows (x0, y0, x1, ...), and d(angles)/d(sensor point) (K, 2, 2)
+    of the angles of :func:`_angles` at the sensor points ``d_mm`` (K, 2); a name that is no intrinsic or
+    distortion parameter (a gain) has a zero column. ``f_mm`` moves ``fy`` too when the model has no ``fy_mm``."""
+    from psdcal.model.distortion import undistort
+    from psdcal.model.params import DISTORTION_NAMES
+
+    intr = result.intrinsics
+    f, fy, sk = float(intr.f_mm), float(intr.fy), float(intr.skew)
+    c = np.array([intr.cx_mm, intr.cy_mm], dtype=float)
+    x, dx_dd, dx_dc, dx_dcoef = undistort(np.asarray(d_mm, dtype=float), result.distortion, c, jacobians=True)
+    ty = (x[:, 1] - c[1]) / fy
+    tx = (x[:, 0] - c[0] - sk * ty) / f
+    wx = 1.0 / (1.0 + tx * tx)  # d arctan(t) / dt
+    wy = 1.0 / (1.0 + ty * ty)
+
+    def chain(dx0=0.0, dx1=0.0, dcx=0.0, dcy=0.0, dsk=0.0, df=0.0, dfy=0.0):
+        # tx = (x0 - cx - skew ty) / f, ty = (x1 - cy) / fy
+        dty = (dx1 - dcy - ty * dfy) / fy
+        dtx = (dx0 - dcx - dsk * ty - sk * dty - tx * df) / f
+        return np.stack([np.broadcast_to(wx * dtx, tx.shape), np.broadcast_to(wy * dty, ty.shape)], axis=1).ravel()
+
+    A = np.zeros((2 * x.shape[0], len(names)))
+    for k, n in enumerate(names):
+        if n == "f_mm":
+            A[:, k] = chain(df=1.0, dfy=1.0 if intr.fy_mm is None else 0.0)
+        elif n == "fy_mm":
+            A[:, k] = chain(dfy=1.0)
+        elif n == "cx_mm":
+            A[:, k] = chain(dx_dc[:, 0, 0], dx_dc[:, 1, 0], dcx=1.0)
+        elif n == "cy_mm":
+            A[:, k] = chain(dx_dc[:, 0, 1], dx_dc[:, 1, 1], dcy=1.0)
+        elif n == "skew":
+            A[:, k] = chain(dsk=1.0)
+        elif n in DISTORTION_NAMES:
+            j = DISTORTION_NAMES.index(n)
+            A[:, k] = chain(dx_dcoef[:, 0, j], dx_dcoef[:, 1, j])
+    D = np.stack([chain(dx_dd[:, 0, j], dx_dd[:, 1, j]).reshape(-1, 2) for j in range(2)], axis=2)
+    return A, D
+
+
+def consequences_reference(lin: Linear, result, cov=None) -> Consequences:
+    """The angles' sensitivities by finite differences (the reference of :func:`consequences`, tested equal to it)
+    and standard errors over the field of view.
 
     ``cov`` is the covariance of ``lin.names`` (default ``s^2 Ninv``); the extra
     terms' sensitivities are included (``names`` = free parameters then extra terms).
