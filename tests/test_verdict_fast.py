@@ -209,7 +209,7 @@ def _angles_written_out(intr, dist, d):
     return np.stack([np.arctan(tx), np.arctan(ty)], axis=1)
 
 
-@pytest.mark.parametrize("kw", [dict(radial=1, tangential=False), dict(skew=True, psd_radial=1), dict(aspect=True)])
+@pytest.mark.parametrize("kw", [{"radial": 1, "tangential": False}, {"skew": True, "psd_radial": 1}, {"aspect": True}])
 def test_analytic_angle_sensitivities_equal_central_differences(kw):
     """consequences()' d(angle)/d(parameter) and d(angle)/d(sensor point), analytic, against central differences of
     the angles written out here (relative 1e-6 of each column's largest entry; the differences' own error ~1e-9)."""
