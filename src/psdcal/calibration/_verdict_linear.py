@@ -62,7 +62,16 @@ class Linear:
         """(k, k) the Gram matrix of ``(I - P) B``: ``B^T B`` (``btb`` when given) less its part on the Jacobian's
         span."""
         if self.pgram is not None:
-            return self.pgram(B if isinstance(B, FieldParts) else np.asarray(B, dtype=float), btb)
+            if isinstance(B, FieldParts):  # the fields' projected Gram matrix, once per linearisation (F-test, shift)
+                memo = getattr(B, "_pgram", None)
+                if memo is not None and memo[0] is self and (btb is None or btb is B.gram()):
+                    return memo[1]
+                K = self.pgram(B, btb)
+                if btb is None or btb is B.gram():
+                    K.flags.writeable = False
+                    B._pgram = (self, K)
+                return K
+            return self.pgram(np.asarray(B, dtype=float), btb)
         Bp = self.perp(B.dense() if isinstance(B, FieldParts) else np.asarray(B, dtype=float))
         return Bp.T @ Bp
 
@@ -346,7 +355,14 @@ class FieldParts:
         return np.concatenate([poly, rad], axis=2).reshape(v * s_, -1)
 
     def gram(self) -> np.ndarray:
-        """``B^T B`` (k, k)."""
+        """``B^T B`` (k, k) (computed once: the parts are not changed after construction)."""
+        if getattr(self, "_gram", None) is None:
+            g = self._gram_of_parts()
+            g.flags.writeable = False
+            self._gram = g
+        return self._gram
+
+    def _gram_of_parts(self) -> np.ndarray:
         p = self.mono.shape[1]
         G = np.zeros((self.shape[1],) * 2)
         mm = self.mono.T @ self.mono
@@ -445,31 +461,40 @@ def field_shift(lin: Linear, B, *, min_visible: float = 0.0) -> tuple[np.ndarray
     part, and extrapolating that part to the whole field multiplies the noise
     (a generic field has no model linking the two parts; a model term has).
     """
-    if isinstance(B, FieldParts):
-        B = B.dense()
+    parts = isinstance(B, FieldParts)
+    if not parts:
+        B = np.asarray(B, dtype=float)
     if lin.gt is None or B.shape[1] == 0:
         return np.zeros(B.shape[1]), np.zeros(len(lin.names))
+
+    def gt_b(c):  # Gt^T B c (the fields' parts give Gt^T B without the dense fields)
+        return (B.coords(lin.gt) if parts else lin.gt.T @ B) @ c
+
     if min_visible <= 0:
         ute, W = _basis(lin, B)
         if ute.size == 0:
             return np.zeros(B.shape[1]), np.zeros(len(lin.names))
         c = W @ ute
-        return c, -lin.ninv @ ((lin.gt.T @ B) @ c)
+        return c, -lin.ninv @ gt_b(c)
     # an orthonormal basis Qb = Bn M of span(B) (from B's Gram matrix), then the singular values s of (I - P) Qb
-    # (the visible fraction of each combination) from its Gram matrix M^T K M: no tall factorisation
-    scale = np.maximum(np.linalg.norm(B, axis=0), 1e-300)
-    Bn = B / scale
-    lam0, V0 = _sym_eig_desc(Bn.T @ Bn)
+    # (the visible fraction of each combination) from its Gram matrix M^T K M: no tall factorisation. Bn is B with
+    # columns scaled to norm 1: its Gram matrices are B's scaled (one Gram of B serves the F-test and this).
+    btb = B.gram() if parts else B.T @ B
+    scale = np.maximum(np.sqrt(np.maximum(np.diag(btb), 0.0)), 1e-300)
+    ss = np.outer(scale, scale)
+    lam0, V0 = _sym_eig_desc(btb / ss)
     keep = lam0 > 1e-12 * max(float(lam0[0]), 1e-300)
     M = V0[:, keep] / np.sqrt(lam0[keep])
-    lam, V = _sym_eig_desc(M.T @ lin.gram_perp(Bn) @ M)
+    lam, V = _sym_eig_desc(M.T @ (lin.gram_perp(B, btb) / ss) @ M)
     s = np.sqrt(np.minimum(lam, 1.0))
     use = s > min_visible
     if not use.any():
         return np.zeros(B.shape[1]), np.zeros(len(lin.names))
-    ute = (V[:, use].T @ (M.T @ (Bn.T @ lin.e))) / s[use]  # the residuals on (I - P) Qb's left singular vectors
+    bte = (B.coords(lin.e[:, None])[0] if parts else B.T @ lin.e) / scale  # Bn^T e
+    ute = (V[:, use].T @ (M.T @ bte)) / s[use]  # the residuals on (I - P) Qb's left singular vectors
     a = M @ (V[:, use] @ (ute / s[use]))  # coefficients on Bn
-    return a / scale, -lin.ninv @ ((lin.gt.T @ Bn) @ a)
+    c = a / scale
+    return c, -lin.ninv @ gt_b(c)
 
 
 def group_shift(lin: Linear, rows) -> np.ndarray:
