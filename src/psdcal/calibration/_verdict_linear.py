@@ -622,28 +622,33 @@ def angle_jacobians(result, d_mm, names) -> tuple[np.ndarray, np.ndarray]:
     wx = 1.0 / (1.0 + tx * tx)  # d arctan(t) / dt
     wy = 1.0 / (1.0 + ty * ty)
 
-    def chain(dx0=0.0, dx1=0.0, dcx=0.0, dcy=0.0, dsk=0.0, df=0.0, dfy=0.0):
+    K = x.shape[0]
+    A3 = np.zeros((K, 2, len(names)))  # A's rows (x0, y0, x1, ...) as (point, axis)
+    D = np.empty((K, 2, 2))
+
+    def chain(out, dx0=0.0, dx1=0.0, dcx=0.0, dcy=0.0, dsk=0.0, df=0.0, dfy=0.0):
         # tx = (x0 - cx - skew ty) / f, ty = (x1 - cy) / fy
         dty = (dx1 - dcy - ty * dfy) / fy
-        dtx = (dx0 - dcx - dsk * ty - sk * dty - tx * df) / f
-        return np.stack([np.broadcast_to(wx * dtx, tx.shape), np.broadcast_to(wy * dty, ty.shape)], axis=1).ravel()
+        out[:, 0] = wx * ((dx0 - dcx - dsk * ty - sk * dty - tx * df) / f)
+        out[:, 1] = wy * dty
 
-    A = np.zeros((2 * x.shape[0], len(names)))
     for k, n in enumerate(names):
         if n == "f_mm":
-            A[:, k] = chain(df=1.0, dfy=1.0 if intr.fy_mm is None else 0.0)
+            chain(A3[:, :, k], df=1.0, dfy=1.0 if intr.fy_mm is None else 0.0)
         elif n == "fy_mm":
-            A[:, k] = chain(dfy=1.0)
+            chain(A3[:, :, k], dfy=1.0)
         elif n == "cx_mm":
-            A[:, k] = chain(dx_dc[:, 0, 0], dx_dc[:, 1, 0], dcx=1.0)
+            chain(A3[:, :, k], dx_dc[:, 0, 0], dx_dc[:, 1, 0], dcx=1.0)
         elif n == "cy_mm":
-            A[:, k] = chain(dx_dc[:, 0, 1], dx_dc[:, 1, 1], dcy=1.0)
+            chain(A3[:, :, k], dx_dc[:, 0, 1], dx_dc[:, 1, 1], dcy=1.0)
         elif n == "skew":
-            A[:, k] = chain(dsk=1.0)
+            chain(A3[:, :, k], dsk=1.0)
         elif n in DISTORTION_NAMES:
             j = DISTORTION_NAMES.index(n)
-            A[:, k] = chain(dx_dcoef[:, 0, j], dx_dcoef[:, 1, j])
-    D = np.stack([chain(dx_dd[:, 0, j], dx_dd[:, 1, j]).reshape(-1, 2) for j in range(2)], axis=2)
+            chain(A3[:, :, k], dx_dcoef[:, 0, j], dx_dcoef[:, 1, j])
+    for j in range(2):
+        chain(D[:, :, j], dx_dd[:, 0, j], dx_dd[:, 1, j])
+    A = A3.reshape(2 * K, len(names))
     return A, D
 
 
