@@ -532,7 +532,7 @@ def terms_test(lin: Linear):
         return None
     # each term alone too (one degree of freedom: more power for a single missing term); Bonferroni over all tests
     single = []
-    Bn = lin.extra / np.maximum(np.linalg.norm(lin.extra, axis=0), 1e-300)
+    Bn = lin.extra / np.maximum(np.sqrt(np.einsum("ij,ij->j", lin.extra, lin.extra)), 1e-300)
     nb = np.sqrt(np.maximum(np.diag(lin.gram_perp(Bn)), 0.0))  # norms of the projected columns
     bte = Bn.T @ lin.e  # = ((I - P) Bn)^T e: e is itself projected
     for k, name in enumerate(lin.extra_names):
@@ -569,10 +569,17 @@ def _angles(values: dict, result, d_mm) -> np.ndarray:
 
 def angle_grid(lin: Linear) -> np.ndarray:
     """(K, 2) sensor points on a grid over the observed points' extent, mm."""
-    lo, hi = np.min(lin.pts, axis=0), np.max(lin.pts, axis=0)
-    g = np.linspace(0.0, 1.0, ANGLE_GRID)
-    gx, gy = np.meshgrid(lo[0] + g * (hi[0] - lo[0]), lo[1] + g * (hi[1] - lo[1]))
-    return np.stack([gx.ravel(), gy.ravel()], axis=1)
+    q = lin.pts.T.copy()  # numpy reduces a (2, N) array along its rows some 15 times faster than (N, 2) along axis 0
+    lo, hi = q.min(axis=1), q.max(axis=1)
+    g = _UNIT_GRID
+    out = np.empty((ANGLE_GRID * ANGLE_GRID, 2))
+    # np.meshgrid's order, raveled: x runs fastest
+    out[:, 0] = np.tile(lo[0] + g * (hi[0] - lo[0]), ANGLE_GRID)
+    out[:, 1] = np.repeat(lo[1] + g * (hi[1] - lo[1]), ANGLE_GRID)
+    return out
+
+
+_UNIT_GRID = np.linspace(0.0, 1.0, ANGLE_GRID)
 
 
 @dataclass(frozen=True)
