@@ -201,11 +201,13 @@ def determination(result, cov, names, half) -> Check:
 def _normals(rvecs) -> np.ndarray:
     """(n, 3) the template's normal (its z axis) in the sensor frame of each view: ``R(rvec) e_z`` (Rodrigues)."""
     r = np.asarray(rvecs, dtype=float).reshape(-1, 3)
-    th = np.linalg.norm(r, axis=1)
+    th = np.sqrt(r[:, 0] * r[:, 0] + r[:, 1] * r[:, 1] + r[:, 2] * r[:, 2])
     k = r / np.where(th > 0, th, 1.0)[:, None]
-    ez = np.array([0.0, 0.0, 1.0])
-    c, s = np.cos(th)[:, None], np.sin(th)[:, None]
-    return ez * c + np.cross(k, ez) * s + k * k[:, 2:3] * (1.0 - c)
+    c, s = np.cos(th), np.sin(th)
+    # e_z c + (k x e_z) s + k k_z (1 - c), with k x e_z = (k_y, -k_x, 0) written out
+    kx, ky, kz = k[:, 0], k[:, 1], k[:, 2]
+    omc = 1.0 - c
+    return np.stack([ky * s + kx * kz * omc, -kx * s + ky * kz * omc, c + kz * kz * omc], axis=1)
 
 
 def _tilt_spread_deg(result) -> float | None:
