@@ -258,7 +258,7 @@ def read_points(path, template_ids, *, sensor_mm=(LX_MM, LY_MM), check_on_sensor
             amps[i, j] = v
             xy = impact_point(v, *sensor_mm)
         else:
-            xy = np.array(vals)
+            xy = vals  # two floats (a list: no array per row)
         if check_on_sensor:
             for k, (name, h) in enumerate(((kind_header[2] if kind == "points" else "x", hx), (kind_header[3] if kind == "points" else "y", hy))):
                 if abs(xy[k]) > h * (1 + 1e-9):
