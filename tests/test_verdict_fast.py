@@ -196,3 +196,49 @@ def test_field_parts_products_equal_the_dense_fields(fit):
     np.testing.assert_allclose(fp.coords_blocks(Qbt), ref, rtol=1e-12, atol=1e-12)
     np.testing.assert_allclose(lin.gram_perp(fp), lin.gram_perp(B), rtol=0, atol=1e-9 * np.abs(B.T @ B).max())
     assert L.explained(lin, fp) == pytest.approx(L.explained(lin, B), rel=1e-10)
+
+
+def _angles_written_out(intr, dist, d):
+    """Angles of arrival (K, 2) of sensor points d (K, 2): the ideal point by undistortion, then the ray of
+    x = f X/Z + skew Y/Z + cx, y = fy Y/Z + cy."""
+    from psdcal.model.distortion import undistort
+
+    x = undistort(d, dist, np.array([intr.cx_mm, intr.cy_mm]))
+    ty = (x[:, 1] - intr.cy_mm) / intr.fy
+    tx = (x[:, 0] - intr.cx_mm - intr.skew * ty) / intr.f_mm
+    return np.stack([np.arctan(tx), np.arctan(ty)], axis=1)
+
+
+@pytest.mark.parametrize("kw", [{"radial": 1, "tangential": False}, {"skew": True, "psd_radial": 1}, {"aspect": True}])
+def test_analytic_angle_sensitivities_equal_central_differences(kw):
+    """consequences()' d(angle)/d(parameter) and d(angle)/d(sensor point), analytic, against central differences of
+    the angles written out here (relative 1e-6 of each column's largest entry; the differences' own error ~1e-9)."""
+    from dataclasses import replace
+
+    s = simulate_set("lens2", n_images=8, noise_mm=1e-3, seed=5)
+    res = calibrate(s.template_mm, s.points_mm, verdict=False, **kw)
+    lin = L.linearise(res)
+    cons = L.consequences(lin, res)
+    g = cons.grid
+    intr, dist = res.intrinsics, res.distortion
+    for k, n in enumerate(cons.names):
+        if n in ("f_mm", "fy_mm", "cx_mm", "cy_mm", "skew"):
+            v = intr.fy if n == "fy_mm" else getattr(intr, n)
+            h = 1e-6 * max(abs(v), 1e-2)
+            up = _angles_written_out(replace(intr, **{n: v + h}), dist, g)
+            dn = _angles_written_out(replace(intr, **{n: v - h}), dist, g)
+        else:
+            v = getattr(dist, n)
+            h = 1e-7 * max(abs(v), 1e-2)
+            up = _angles_written_out(intr, replace(dist, **{n: v + h}), g)
+            dn = _angles_written_out(intr, replace(dist, **{n: v - h}), g)
+        ref = ((up - dn) / (2 * h)).ravel()
+        np.testing.assert_allclose(cons.A[:, k], ref, rtol=0, atol=1e-6 * np.abs(ref).max(), err_msg=n)
+    for j in range(2):
+        dg = np.zeros(2)
+        dg[j] = 1e-6
+        ref = (_angles_written_out(intr, dist, g + dg) - _angles_written_out(intr, dist, g - dg)) / 2e-6
+        np.testing.assert_allclose(cons.D[:, :, j], ref, rtol=0, atol=1e-6 * np.abs(ref).max())
+    # and the previous finite-difference version (one-sided steps of 1e-2 sigma) to its truncation error
+    old = L.consequences_reference(lin, res)
+    np.testing.assert_allclose(cons.sd, old.sd, rtol=1e-3)

@@ -117,7 +117,8 @@ class Problem:
     valid: np.ndarray = field(init=False, repr=False)
 
     def __post_init__(self):
-        object.__setattr__(self, "valid", np.all(np.isfinite(self.points_mm), axis=-1))
+        p = np.asarray(self.points_mm)  # both coordinates finite (written out: a reduction over a last axis of 2 is slow)
+        object.__setattr__(self, "valid", np.isfinite(p[..., 0]) & np.isfinite(p[..., 1]))
 
     @property
     def n_images(self) -> int:

@@ -62,7 +62,16 @@ class Linear:
         """(k, k) the Gram matrix of ``(I - P) B``: ``B^T B`` (``btb`` when given) less its part on the Jacobian's
         span."""
         if self.pgram is not None:
-            return self.pgram(B if isinstance(B, FieldParts) else np.asarray(B, dtype=float), btb)
+            if isinstance(B, FieldParts):  # the fields' projected Gram matrix, once per linearisation (F-test, shift)
+                memo = getattr(B, "_pgram", None)
+                if memo is not None and memo[0] is self and (btb is None or btb is B.gram()):
+                    return memo[1]
+                K = self.pgram(B, btb)
+                if btb is None or btb is B.gram():
+                    K.flags.writeable = False
+                    B._pgram = (self, K)
+                return K
+            return self.pgram(np.asarray(B, dtype=float), btb)
         Bp = self.perp(B.dense() if isinstance(B, FieldParts) else np.asarray(B, dtype=float))
         return Bp.T @ Bp
 
@@ -346,7 +355,14 @@ class FieldParts:
         return np.concatenate([poly, rad], axis=2).reshape(v * s_, -1)
 
     def gram(self) -> np.ndarray:
-        """``B^T B`` (k, k)."""
+        """``B^T B`` (k, k) (computed once: the parts are not changed after construction)."""
+        if getattr(self, "_gram", None) is None:
+            g = self._gram_of_parts()
+            g.flags.writeable = False
+            self._gram = g
+        return self._gram
+
+    def _gram_of_parts(self) -> np.ndarray:
         p = self.mono.shape[1]
         G = np.zeros((self.shape[1],) * 2)
         mm = self.mono.T @ self.mono
@@ -373,7 +389,7 @@ def field_parts(pts, c_mm, half_mm) -> FieldParts:
     ij = [(i, j) for i in range(FIELD_DEGREE + 1) for j in range(FIELD_DEGREE + 1 - i)]
     mono = pu[:, [i for i, _ in ij]] * pv[:, [j for _, j in ij]]  # (N, n_mono)
     d = (pts - np.asarray(c_mm)) / half_mm
-    r2 = np.sum(d * d, axis=1)
+    r2 = d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1]
     R = np.empty((n, 2, 2))
     R[:, :, 0] = d * (r2 * r2)[:, None]
     R[:, :, 1] = d * (r2 * r2 * r2)[:, None]
@@ -445,31 +461,40 @@ def field_shift(lin: Linear, B, *, min_visible: float = 0.0) -> tuple[np.ndarray
     part, and extrapolating that part to the whole field multiplies the noise
     (a generic field has no model linking the two parts; a model term has).
     """
-    if isinstance(B, FieldParts):
-        B = B.dense()
+    parts = isinstance(B, FieldParts)
+    if not parts:
+        B = np.asarray(B, dtype=float)
     if lin.gt is None or B.shape[1] == 0:
         return np.zeros(B.shape[1]), np.zeros(len(lin.names))
+
+    def gt_b(c):  # Gt^T B c (the fields' parts give Gt^T B without the dense fields)
+        return (B.coords(lin.gt) if parts else lin.gt.T @ B) @ c
+
     if min_visible <= 0:
         ute, W = _basis(lin, B)
         if ute.size == 0:
             return np.zeros(B.shape[1]), np.zeros(len(lin.names))
         c = W @ ute
-        return c, -lin.ninv @ ((lin.gt.T @ B) @ c)
+        return c, -lin.ninv @ gt_b(c)
     # an orthonormal basis Qb = Bn M of span(B) (from B's Gram matrix), then the singular values s of (I - P) Qb
-    # (the visible fraction of each combination) from its Gram matrix M^T K M: no tall factorisation
-    scale = np.maximum(np.linalg.norm(B, axis=0), 1e-300)
-    Bn = B / scale
-    lam0, V0 = _sym_eig_desc(Bn.T @ Bn)
+    # (the visible fraction of each combination) from its Gram matrix M^T K M: no tall factorisation. Bn is B with
+    # columns scaled to norm 1: its Gram matrices are B's scaled (one Gram of B serves the F-test and this).
+    btb = B.gram() if parts else B.T @ B
+    scale = np.maximum(np.sqrt(np.maximum(np.diag(btb), 0.0)), 1e-300)
+    ss = np.outer(scale, scale)
+    lam0, V0 = _sym_eig_desc(btb / ss)
     keep = lam0 > 1e-12 * max(float(lam0[0]), 1e-300)
     M = V0[:, keep] / np.sqrt(lam0[keep])
-    lam, V = _sym_eig_desc(M.T @ lin.gram_perp(Bn) @ M)
+    lam, V = _sym_eig_desc(M.T @ (lin.gram_perp(B, btb) / ss) @ M)
     s = np.sqrt(np.minimum(lam, 1.0))
     use = s > min_visible
     if not use.any():
         return np.zeros(B.shape[1]), np.zeros(len(lin.names))
-    ute = (V[:, use].T @ (M.T @ (Bn.T @ lin.e))) / s[use]  # the residuals on (I - P) Qb's left singular vectors
+    bte = (B.coords(lin.e[:, None])[0] if parts else B.T @ lin.e) / scale  # Bn^T e
+    ute = (V[:, use].T @ (M.T @ bte)) / s[use]  # the residuals on (I - P) Qb's left singular vectors
     a = M @ (V[:, use] @ (ute / s[use]))  # coefficients on Bn
-    return a / scale, -lin.ninv @ ((lin.gt.T @ Bn) @ a)
+    c = a / scale
+    return c, -lin.ninv @ gt_b(c)
 
 
 def group_shift(lin: Linear, rows) -> np.ndarray:
@@ -483,8 +508,10 @@ def group_f(lin: Linear, groups, n_groups, ssr, dof):
     """Per-group F statistics of the residual variance against the other groups', and the p-value of the
     largest (``pv`` is NaN for the other groups)."""
     q = lin.e.reshape(-1, 2)
-    lev = np.bincount(groups, weights=(1.0 - lin.h).reshape(-1, 2).sum(axis=1), minlength=n_groups)
-    sq = np.bincount(groups, weights=np.sum(q * q, axis=1), minlength=n_groups)
+    # per point: the sums of its two coordinates written out (numpy's reductions over a last axis of 2 are slow)
+    om = 1.0 - lin.h
+    lev = np.bincount(groups, weights=om[0::2] + om[1::2], minlength=n_groups)
+    sq = np.bincount(groups, weights=q[:, 0] * q[:, 0] + q[:, 1] * q[:, 1], minlength=n_groups)
     usable = (lev >= 0.5) & (dof - lev >= 0.5)
     d_g = np.where(usable, lev, 1.0)
     d_r = np.where(usable, dof - lev, 1.0)
@@ -507,7 +534,7 @@ def terms_test(lin: Linear):
         return None
     # each term alone too (one degree of freedom: more power for a single missing term); Bonferroni over all tests
     single = []
-    Bn = lin.extra / np.maximum(np.linalg.norm(lin.extra, axis=0), 1e-300)
+    Bn = lin.extra / np.maximum(np.sqrt(np.einsum("ij,ij->j", lin.extra, lin.extra)), 1e-300)
     nb = np.sqrt(np.maximum(np.diag(lin.gram_perp(Bn)), 0.0))  # norms of the projected columns
     bte = Bn.T @ lin.e  # = ((I - P) Bn)^T e: e is itself projected
     for k, name in enumerate(lin.extra_names):
@@ -544,10 +571,17 @@ def _angles(values: dict, result, d_mm) -> np.ndarray:
 
 def angle_grid(lin: Linear) -> np.ndarray:
     """(K, 2) sensor points on a grid over the observed points' extent, mm."""
-    lo, hi = np.min(lin.pts, axis=0), np.max(lin.pts, axis=0)
-    g = np.linspace(0.0, 1.0, ANGLE_GRID)
-    gx, gy = np.meshgrid(lo[0] + g * (hi[0] - lo[0]), lo[1] + g * (hi[1] - lo[1]))
-    return np.stack([gx.ravel(), gy.ravel()], axis=1)
+    q = lin.pts.T.copy()  # numpy reduces a (2, N) array along its rows some 15 times faster than (N, 2) along axis 0
+    lo, hi = q.min(axis=1), q.max(axis=1)
+    g = _UNIT_GRID
+    out = np.empty((ANGLE_GRID * ANGLE_GRID, 2))
+    # np.meshgrid's order, raveled: x runs fastest
+    out[:, 0] = np.tile(lo[0] + g * (hi[0] - lo[0]), ANGLE_GRID)
+    out[:, 1] = np.repeat(lo[1] + g * (hi[1] - lo[1]), ANGLE_GRID)
+    return out
+
+
+_UNIT_GRID = np.linspace(0.0, 1.0, ANGLE_GRID)
 
 
 @dataclass(frozen=True)
@@ -565,7 +599,71 @@ class Consequences:
 
 
 def consequences(lin: Linear, result, cov=None) -> Consequences:
-    """The angles' sensitivities (finite differences) and standard errors over the field of view.
+    """The angles' sensitivities (analytic: one :func:`~psdcal.model.distortion.undistort` with its Jacobians) and
+    standard errors over the field of view.
+
+    ``cov`` is the covariance of ``lin.names`` (default ``s^2 Ninv``); the extra
+    terms' sensitivities are included (``names`` = free parameters then extra terms).
+    :func:`consequences_reference` is the same by finite differences.
+    """
+    grid = angle_grid(lin)
+    names = tuple(lin.names) + tuple(lin.extra_names)
+    cov = lin.s2 * lin.ninv if cov is None else np.asarray(cov, dtype=float)
+    A, D = angle_jacobians(result, grid, names)
+    Af = A[:, : len(lin.names)]
+    sd = np.sqrt(np.maximum(np.einsum("ij,jk,ik->i", Af, cov, Af), 0.0))
+    return Consequences(names, A, D, sd, cov, grid)
+
+
+def angle_jacobians(result, d_mm, names) -> tuple[np.ndarray, np.ndarray]:
+    """d(angles)/d(parameters) (2K, len(names)), rows (x0, y0, x1, ...), and d(angles)/d(sensor point) (K, 2, 2)
+    of the angles of :func:`_angles` at the sensor points ``d_mm`` (K, 2); a name that is no intrinsic or
+    distortion parameter (a gain) has a zero column. ``f_mm`` moves ``fy`` too when the model has no ``fy_mm``."""
+    from psdcal.model.distortion import undistort
+    from psdcal.model.params import DISTORTION_NAMES
+
+    intr = result.intrinsics
+    f, fy, sk = float(intr.f_mm), float(intr.fy), float(intr.skew)
+    c = np.array([intr.cx_mm, intr.cy_mm], dtype=float)
+    x, dx_dd, dx_dc, dx_dcoef = undistort(np.asarray(d_mm, dtype=float), result.distortion, c, jacobians=True)
+    ty = (x[:, 1] - c[1]) / fy
+    tx = (x[:, 0] - c[0] - sk * ty) / f
+    wx = 1.0 / (1.0 + tx * tx)  # d arctan(t) / dt
+    wy = 1.0 / (1.0 + ty * ty)
+
+    K = x.shape[0]
+    A3 = np.zeros((K, 2, len(names)))  # A's rows (x0, y0, x1, ...) as (point, axis)
+    D = np.empty((K, 2, 2))
+
+    def chain(out, dx0=0.0, dx1=0.0, dcx=0.0, dcy=0.0, dsk=0.0, df=0.0, dfy=0.0):
+        # tx = (x0 - cx - skew ty) / f, ty = (x1 - cy) / fy
+        dty = (dx1 - dcy - ty * dfy) / fy
+        out[:, 0] = wx * ((dx0 - dcx - dsk * ty - sk * dty - tx * df) / f)
+        out[:, 1] = wy * dty
+
+    for k, n in enumerate(names):
+        if n == "f_mm":
+            chain(A3[:, :, k], df=1.0, dfy=1.0 if intr.fy_mm is None else 0.0)
+        elif n == "fy_mm":
+            chain(A3[:, :, k], dfy=1.0)
+        elif n == "cx_mm":
+            chain(A3[:, :, k], dx_dc[:, 0, 0], dx_dc[:, 1, 0], dcx=1.0)
+        elif n == "cy_mm":
+            chain(A3[:, :, k], dx_dc[:, 0, 1], dx_dc[:, 1, 1], dcy=1.0)
+        elif n == "skew":
+            chain(A3[:, :, k], dsk=1.0)
+        elif n in DISTORTION_NAMES:
+            j = DISTORTION_NAMES.index(n)
+            chain(A3[:, :, k], dx_dcoef[:, 0, j], dx_dcoef[:, 1, j])
+    for j in range(2):
+        chain(D[:, :, j], dx_dd[:, 0, j], dx_dd[:, 1, j])
+    A = A3.reshape(2 * K, len(names))
+    return A, D
+
+
+def consequences_reference(lin: Linear, result, cov=None) -> Consequences:
+    """The angles' sensitivities by finite differences (the reference of :func:`consequences`, tested equal to it)
+    and standard errors over the field of view.
 
     ``cov`` is the covariance of ``lin.names`` (default ``s^2 Ninv``); the extra
     terms' sensitivities are included (``names`` = free parameters then extra terms).

@@ -10,6 +10,7 @@ false-alarm rate is :data:`psdcal.calibration.verdict.ALPHA`).
 """
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
@@ -38,7 +39,7 @@ def plausibility(result, lin, sensor, half) -> list:
     """The physical-plausibility checks: points' scale, f, C, convergence, a one-to-one distortion."""
     checks = []
     X = lin.pts
-    span = float(np.max(np.ptp(X, axis=0))) if len(X) > 1 else 0.0
+    span = float(np.max(np.ptp(X.T.copy(), axis=1))) if len(X) > 1 else 0.0  # (2, N) rows: fast reduction
     frac = span / float(np.max(sensor))
     ok = frac >= SPAN_SUSPECT
     checks.append(Check(
@@ -123,21 +124,35 @@ def template_side(result) -> Check | None:
                  f"check the labels of view(s) {ids} (a row listed in reverse?)", effect_sigma=0.0)
 
 
+_CORNER_SIGNS = np.array([[sx, sy] for sx in (-1.0, 1.0) for sy in (-1.0, 1.0)])
+
+
+@functools.lru_cache(maxsize=8)
+def _rays(n_dir: int, n_r: int):
+    """(n_dir, 2) unit directions and (n_r,) radii from 0.02 to 1 (read-only: shared by every call)."""
+    ang = np.linspace(0, 2 * np.pi, n_dir, endpoint=False)
+    dirs = np.stack([np.cos(ang), np.sin(ang)], 1)
+    unit = np.linspace(0.02, 1.0, n_r)
+    dirs.flags.writeable = unit.flags.writeable = False
+    return dirs, unit
+
+
 def _monotonic(result, n_dir: int = 16, n_r: int = 60) -> bool:
     """Whether the undistorted radius grows along rays from C out to the sensor's farthest corner."""
     from psdcal.model.distortion import undistort
 
     c = np.asarray(result.intrinsics.c, dtype=float)
     half = np.asarray(result.sensor_mm, dtype=float) / 2
-    corners = np.array([[sx * half[0], sy * half[1]] for sx in (-1, 1) for sy in (-1, 1)])
+    corners = _CORNER_SIGNS * half
     rmax = float(np.max(np.hypot(*(corners - c).T)))
-    ang = np.linspace(0, 2 * np.pi, n_dir, endpoint=False)
-    rad = np.linspace(0.02, 1.0, n_r) * rmax
-    dirs = np.stack([np.cos(ang), np.sin(ang)], 1)
+    dirs, unit = _rays(n_dir, n_r)
+    rad = unit * rmax
     d = c + rad[None, :, None] * dirs[:, None, :]
-    inside = np.all(np.abs(d) <= half * 1.0001, axis=-1)
+    lim = half * 1.0001
+    # the two coordinates written out: numpy's reductions over a last axis of length 2 are slow
+    inside = (np.abs(d[..., 0]) <= lim[0]) & (np.abs(d[..., 1]) <= lim[1])
     x = undistort(d, result.distortion, c)
-    proj = np.sum((x - c) * dirs[:, None, :], axis=-1)
+    proj = (x[..., 0] - c[0]) * dirs[:, None, 0] + (x[..., 1] - c[1]) * dirs[:, None, 1]
     step = np.diff(proj, axis=1)
     both = inside[:, 1:] & inside[:, :-1]
     return bool(np.all(np.isfinite(proj[inside])) and np.all(step[both] > 0))
@@ -186,11 +201,13 @@ def determination(result, cov, names, half) -> Check:
 def _normals(rvecs) -> np.ndarray:
     """(n, 3) the template's normal (its z axis) in the sensor frame of each view: ``R(rvec) e_z`` (Rodrigues)."""
     r = np.asarray(rvecs, dtype=float).reshape(-1, 3)
-    th = np.linalg.norm(r, axis=1)
+    th = np.sqrt(r[:, 0] * r[:, 0] + r[:, 1] * r[:, 1] + r[:, 2] * r[:, 2])
     k = r / np.where(th > 0, th, 1.0)[:, None]
-    ez = np.array([0.0, 0.0, 1.0])
-    c, s = np.cos(th)[:, None], np.sin(th)[:, None]
-    return ez * c + np.cross(k, ez) * s + k * k[:, 2:3] * (1.0 - c)
+    c, s = np.cos(th), np.sin(th)
+    # e_z c + (k x e_z) s + k k_z (1 - c), with k x e_z = (k_y, -k_x, 0) written out
+    kx, ky, kz = k[:, 0], k[:, 1], k[:, 2]
+    omc = 1.0 - c
+    return np.stack([ky * s + kx * kz * omc, -kx * s + ky * kz * omc, c + kz * kz * omc], axis=1)
 
 
 def _tilt_spread_deg(result) -> float | None:

@@ -18,7 +18,6 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from psdcal import __version__
 from psdcal.calibration._closed_form import intrinsics_from_homographies, poses_from_homographies
 from psdcal.calibration._homography import homographies
 from psdcal.calibration._refine import Problem, SolverOptions, refine
@@ -63,6 +62,13 @@ class InitialEstimate:
         """The preliminary k1, k2 as a start for a model with ``radial`` lens terms."""
         return Distortion(k1=float(self.preliminary_k[0]) if radial >= 1 else 0.0,
                           k2=float(self.preliminary_k[1]) if radial >= 2 else 0.0)
+
+
+def _software_version() -> str:
+    """psdcal's version, read on first use (not at import: a process that writes no calibration never reads it)."""
+    from psdcal import __version__
+
+    return __version__
 
 
 def _check_inputs(template_mm, points_mm, image_ids, min_images):
@@ -348,7 +354,7 @@ class CalibrationResult:
             "sensor": {"lx_mm": float(self.sensor_mm[0]), "ly_mm": float(self.sensor_mm[1])},
             "stages": _jsonable(self.stages),
             "problem": _jsonable(self.problem),
-            "software": {"name": "psdcal", "version": __version__},
+            "software": {"name": "psdcal", "version": _software_version()},
             "created": self.created,
             "warnings": self.warnings(),
             **({"verdict": self.verdict["verdict"], "checks": self.verdict["checks"]} if self.verdict else {}),

@@ -338,7 +338,8 @@ def _assess(result, *, noise_mm, points_kind, diagnose) -> Verdict:
         eff = effect(cons, group_shift(lin, np.repeat(lin.led == worst, 2)))
     q = lin.e.reshape(-1, 2)
     sel = lin.led == worst
-    off = np.sqrt(np.mean(np.sum(q[sel] ** 2, axis=1))) if sel.any() else 0.0
+    qs = q[sel]
+    off = np.sqrt(np.mean(qs[:, 0] ** 2 + qs[:, 1] ** 2)) if sel.any() else 0.0
     checks.append(_judge(
         "leds", float(F[worst]), None, p, None, eff,
         f"template LED {pid} is off in every view (F = {F[worst]:.3g}, p = {p:.2g} after {M} LEDs)",
