@@ -43,33 +43,17 @@ import resource  # noqa: E402
 import subprocess  # noqa: E402
 import sys  # noqa: E402
 import tempfile  # noqa: E402
-import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _table import print_table  # noqa: E402
-from _timing import WARMUP_CALLS, WARMUP_S  # noqa: E402
+from _timing import median_cpu_seconds as cpu_seconds  # noqa: E402
+from _zhang import ZHANG, load_zhang  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
-ZHANG = ROOT / "tests" / "data" / "zhang1998"
 PITCH_MM = 0.010
-
-
-def cpu_seconds(fn, repeats: int) -> float:
-    """Median process CPU time (s) of ``repeats`` calls of ``fn()`` after the warm-up of benchmarks/_timing.py."""
-    t_end = time.process_time() + WARMUP_S
-    for k in range(10_000):
-        fn()
-        if k + 1 >= WARMUP_CALLS and time.process_time() >= t_end:
-            break
-    ts = []
-    for _ in range(repeats):
-        t0 = time.process_time()
-        fn()
-        ts.append(time.process_time() - t0)
-    return float(np.median(ts))
 
 
 def grid_template(m: int) -> np.ndarray:
@@ -93,19 +77,10 @@ def _opencv_inputs(template, points, origin_px):
 def cases(cv2):
     """[(name, psdcal call with the verdict, psdcal call without, OpenCV call)]."""
     from psdcal.calibration.core import calibrate
-    from psdcal.io import read_points, read_template
     from psdcal.study.simulate import simulate_set
 
     out = []
-    ids, T = read_template(ZHANG / "template.csv")
-    pts = read_points(ZHANG / "points.csv", ids, sensor_mm=(6.4, 4.8)).points_mm
-    px = np.loadtxt(ZHANG / "points_px.csv", delimiter=",", skiprows=1)
-    obj = np.concatenate([T, np.zeros((len(T), 1))], axis=1).astype(np.float32)
-    objs, imgs = [], []
-    for i in np.unique(px[:, 0]):
-        sel = px[px[:, 0] == i]
-        objs.append(obj[sel[:, 1].astype(int)])
-        imgs.append(sel[:, 2:4].astype(np.float32).reshape(-1, 1, 2))
+    T, pts, objs, imgs = load_zhang()
     kw = dict(aspect=True, sensor_mm=(6.4, 4.8))
     out.append(("zhang1998 (real), 5 x 256, general model",
                 lambda: calibrate(T, pts, **kw), lambda: calibrate(T, pts, verdict=False, **kw),

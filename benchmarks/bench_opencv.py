@@ -52,6 +52,7 @@ from pathlib import Path  # noqa: E402
 import numpy as np  # noqa: E402
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # benchmarks/_table.py, also when imported by the tests
 from _table import print_table  # noqa: E402
+from _zhang import ZHANG, load_zhang  # noqa: E402
 
 import psdcal  # noqa: E402
 from psdcal.calibration.core import calibrate  # noqa: E402
@@ -59,7 +60,6 @@ from psdcal.model.readout import LX_MM, LY_MM  # noqa: E402
 from psdcal.study.simulate import simulate_set  # noqa: E402
 
 CONFIGS = (("lens1", 9), ("lens1", 12), ("lens2", 9), ("lens2", 12))
-ZHANG = Path(__file__).resolve().parent.parent / "tests" / "data" / "zhang1998"
 #: Zhang's published alpha, beta, u0, v0 (pixels) of these data
 ZHANG_PUBLISHED_PX = (832.5, 832.53, 303.959, 206.585)
 
@@ -103,18 +103,9 @@ def psdcal_calibrate(sset):
 
 def zhang_row(cv2, repeats: int) -> dict:
     """Both libraries on Zhang's real data; errors against his published f and C (mm)."""
-    from psdcal.io import read_points, read_template
 
     pitch, origin, size = 0.010, np.array([320.0, 240.0]), (640, 480)
-    ids, template = read_template(ZHANG / "template.csv")
-    pts = read_points(ZHANG / "points.csv", ids, sensor_mm=(6.4, 4.8)).points_mm
-    px = np.loadtxt(ZHANG / "points_px.csv", delimiter=",", skiprows=1)
-    obj = np.concatenate([template, np.zeros((len(template), 1))], axis=1).astype(np.float32)
-    objs, imgs = [], []
-    for i in np.unique(px[:, 0]):
-        rows = px[px[:, 0] == i]
-        objs.append(obj[rows[:, 1].astype(int)])
-        imgs.append(rows[:, 2:4].astype(np.float32).reshape(-1, 1, 2))
+    template, pts, objs, imgs = load_zhang()
     a, b, u0, v0 = ZHANG_PUBLISHED_PX
     f_ref = 0.5 * (a + b) * pitch
     c_ref = (np.array([u0, v0]) - origin) * pitch

@@ -44,13 +44,13 @@ import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _table import print_table  # noqa: E402
+from _zhang import ZHANG, load_zhang  # noqa: E402
 from _timing import median_seconds  # noqa: E402
 
 from psdcal.calibration.core import calibrate  # noqa: E402
 from psdcal.study.simulate import simulate_set  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
-ZHANG = ROOT / "tests" / "data" / "zhang1998"
 CHESS = ROOT / "tests" / "data" / "chessboards"
 PITCH_MM = 0.010
 
@@ -124,17 +124,8 @@ def synthetic_rows(cv2, sizes, repeats, scipy_max_views):
 
 
 def zhang_row(cv2, repeats):
-    from psdcal.io import read_points, read_template
 
-    ids, T = read_template(ZHANG / "template.csv")
-    pts = read_points(ZHANG / "points.csv", ids, sensor_mm=(6.4, 4.8)).points_mm
-    px = np.loadtxt(ZHANG / "points_px.csv", delimiter=",", skiprows=1)
-    obj = np.concatenate([T, np.zeros((len(T), 1))], axis=1).astype(np.float32)
-    objs, imgs = [], []
-    for i in np.unique(px[:, 0]):
-        sel = px[px[:, 0] == i]
-        objs.append(obj[sel[:, 1].astype(int)])
-        imgs.append(sel[:, 2:4].astype(np.float32).reshape(-1, 1, 2))
+    T, pts, objs, imgs = load_zhang()
     kw = dict(cost="image", radial=2, tangential=True, aspect=True, sensor_mm=(6.4, 4.8))
     t_p = _timed(lambda: calibrate(T, pts, verdict=False, **kw), repeats)
     t_v = _timed(lambda: calibrate(T, pts, **kw), repeats)

@@ -300,3 +300,25 @@ def test_initial_estimate_degenerate_views_still_raise(numpy_only):
         with pytest.raises(DegenerateViewsError):
             initial_estimate(s.template_mm, flat)
         numpy_only()
+
+
+def test_find_lines_in_blocks_equals_the_loop(rng):
+    """The blocked search (what find_lines memoises) gives the loop's lines in the loop's order, whatever
+    the block: grids (many ties of angle), random and rounded points, coincident points, a near-line."""
+    from psdcal.calibration._straightness import _find_lines_blocked
+
+    grid = np.array([(x, y) for y in range(4) for x in range(5)], dtype=float)
+    big = np.array([(x, y) for y in range(20) for x in range(20)], dtype=float) * 0.5
+    templates = [default_template(), grid, grid * 3.7 + 1.0, rng.uniform(0, 10, (12, 2)), grid[:2], big,
+                 np.round(rng.uniform(0, 6, (60, 2))), np.zeros((5, 2)),
+                 np.array([[0, 0], [1, 0], [2, 0], [3, 1e-9]], dtype=float)]
+    for T in templates:
+        for kw in ({}, dict(max_lines=5), dict(min_points=4), dict(tol_rel=1e-3), dict(min_points=2)):
+            ref = find_lines_reference(T, **kw)
+            opts = dict(dict(min_points=3, tol_rel=1e-6, max_lines=None), **kw)
+            for block in (1, 7, 128):
+                got = _find_lines_blocked(np.asarray(T, dtype=float), block=block, **opts)
+                assert len(got) == len(ref)
+                for a, b in zip(got, ref):
+                    np.testing.assert_array_equal(a, b)
+                    assert a.dtype == b.dtype

@@ -59,7 +59,7 @@ def find_lines(template_mm, *, min_points: int = 3, tol_rel: float = 1e-6, max_l
 def _find_lines_cached(template_bytes: bytes, shape: tuple, min_points: int, tol_rel: float, max_lines):
     """Memoised :func:`find_lines_reference` on a template given as its bytes (float64) and shape."""
     P = np.frombuffer(template_bytes, dtype=float).reshape(shape)
-    lines = find_lines_reference(P, min_points=min_points, tol_rel=tol_rel, max_lines=max_lines)
+    lines = _find_lines_blocked(P, min_points=min_points, tol_rel=tol_rel, max_lines=max_lines)
     for ln in lines:
         ln.setflags(write=False)
     return tuple(lines)
@@ -84,7 +84,7 @@ def find_lines_reference(template_mm, *, min_points: int = 3, tol_rel: float = 1
         if js.size < min_points - 1:
             continue
         ang = np.mod(np.arctan2(v[keep, 1], v[keep, 0]), np.pi)
-        order = np.argsort(ang)
+        order = np.argsort(ang, kind="stable")
         a = ang[order]
         angtol = tol / dist[keep][order]
         gid = np.concatenate([[0], np.cumsum(np.diff(a) > np.maximum(angtol[1:], angtol[:-1]))])
@@ -96,6 +96,68 @@ def find_lines_reference(template_mm, *, min_points: int = 3, tol_rel: float = 1
             members = js[order[gid == g]]
             if members.min() > i:
                 lines.append(np.concatenate([[i], np.sort(members)]))
+    if max_lines is not None and len(lines) > max_lines:
+        order = sorted(range(len(lines)), key=lambda k: -len(lines[k]))[:max_lines]
+        lines = [lines[k] for k in sorted(order)]
+    return lines
+
+
+def _find_lines_blocked(P: np.ndarray, *, min_points: int, tol_rel: float, max_lines: int | None,
+                        block: int = 128) -> list[np.ndarray]:
+    """:func:`find_lines_reference`'s search for blocks of ``block`` points at once (the same lines in
+    the same order; numpy over ``(block, M)`` arrays instead of a Python loop over the points)."""
+    M = P.shape[0]
+    if P.ndim != 2 or P.shape[1] != 2 or M < min_points:
+        return find_lines_reference(P, min_points=min_points, tol_rel=tol_rel, max_lines=max_lines)
+    extent = float(np.ptp(P, axis=0).max())
+    tol = tol_rel * max(extent, 1e-300)
+    need = min_points - 1
+    lines = []
+    for i0 in range(0, M - min_points + 1, block):
+        rows = np.arange(i0, min(i0 + block, M - min_points + 1))
+        B = rows.size
+        vx = P[None, :, 0] - P[rows, 0][:, None]  # (B, M): P[j] - P[i]
+        vy = P[None, :, 1] - P[rows, 1][:, None]
+        dist = np.hypot(vx, vy)
+        keep = dist > tol
+        keep[np.arange(B), rows] = False
+        with np.errstate(invalid="ignore"):
+            ang = np.where(keep, np.mod(np.arctan2(vy, vx), np.pi), np.inf)  # the others sort last
+        order = np.argsort(ang, axis=1, kind="stable")
+        a = np.take_along_axis(ang, order, 1)
+        with np.errstate(divide="ignore"):
+            angtol = tol / np.take_along_axis(dist, order, 1)
+        nk = keep.sum(axis=1)
+        valid = np.arange(M)[None, :] < nk[:, None]  # sorted positions of kept points
+        with np.errstate(invalid="ignore"):
+            brk = np.diff(a, axis=1) > np.maximum(angtol[:, 1:], angtol[:, :-1])
+        brk &= valid[:, 1:]
+        gid = np.zeros((B, M), dtype=np.int64)
+        np.cumsum(brk, axis=1, out=gid[:, 1:])
+        # angles near pi and near 0 are the same direction: the last group joins the first
+        last = np.maximum(nk - 1, 0)
+        r = np.arange(B)
+        g_last = gid[r, last]
+        with np.errstate(invalid="ignore"):
+            wrap = (nk > 0) & (g_last > 0) & (
+                (np.pi - a[r, last]) + a[:, 0] <= np.maximum(angtol[:, 0], angtol[r, last]))
+        gid = np.where(wrap[:, None] & (gid == g_last[:, None]), 0, gid)
+        key = (r[:, None] * (M + 1) + gid)[valid]  # (row, group) of each kept point, row-major
+        member = order[valid]
+        counts = np.bincount(key, minlength=B * (M + 1))
+        low = np.full(B * (M + 1), M, dtype=np.int64)
+        np.minimum.at(low, key, member)
+        owner = np.repeat(rows, M + 1)
+        chosen = (counts >= need) & (low > owner)
+        sel = chosen[key]
+        if not sel.any():
+            continue
+        k_sel, m_sel = key[sel], member[sel]
+        srt = np.lexsort((m_sel, k_sel))
+        k_sel, m_sel = k_sel[srt], m_sel[srt]
+        cut = np.flatnonzero(np.diff(k_sel)) + 1
+        for kk, mem in zip(k_sel[np.concatenate([[0], cut])], np.split(m_sel, cut)):
+            lines.append(np.concatenate([[int(owner[kk])], mem]))
     if max_lines is not None and len(lines) > max_lines:
         order = sorted(range(len(lines)), key=lambda k: -len(lines[k]))[:max_lines]
         lines = [lines[k] for k in sorted(order)]
