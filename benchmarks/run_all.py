@@ -58,7 +58,7 @@ REGISTRY: dict[str, Bench] = {
     "bench_linear": Bench((), ("--repeats", "20"), ("1",), 20),
     "bench_startup": Bench(("--repeats", "5", "--clone"), ("--repeats", "1"), ("1", "2", "3"), 240),
     "bench_aoa": Bench(("--runs", "5"), ("--points", "100000", "--runs", "1"), ("1",), 60),
-    "bench_locate": Bench(("--seconds", "60", "--repeats", "5"), ("--seconds", "2", "--repeats", "1"), ("1",), 120),
+    "bench_locate": Bench(("--seconds", "60", "--repeats", "15"), ("--seconds", "2", "--repeats", "1"), ("1",), 120),
     # (its start-up table compiles every kernel three times in fresh caches: minutes; not in --quick)
     "bench_opencv": Bench(("--sets", "20", "--repeats", "3"), ("--sets", "2", "--repeats", "1", "--no-startup"),
                           ("1", "2"), 300),
