@@ -53,7 +53,8 @@ def _window_sums(P, x, n, coef, xx, xt):  # pragma: no cover - compiled
     windows' rows (any strides); ``coef`` (nw, J, 4), ``xx`` (nw, 4) written; ``xt`` unused (kept
     for the signature).  One pass over a window's rows per group of five (or three) table rows:
     each sample row's four channels are multiplied by one table value (the four channels are the
-    SIMD lanes; no channel-major copy, the table read once per group).
+    SIMD lanes; no channel-major copy, the table read once per group); the sums of squares are
+    those of the first pass.
     """
     nw = x.shape[0] // n
     J = coef.shape[1]
@@ -67,7 +68,6 @@ def _window_sums(P, x, n, coef, xx, xt):  # pragma: no cover - compiled
     for w in range(nw):
         b = w * n
         first = True
-        s0 = s1 = s2 = s3 = 0.0
         for g in range(n5):
             j = 5 * g
             q0 = P[j]
@@ -75,144 +75,95 @@ def _window_sums(P, x, n, coef, xx, xt):  # pragma: no cover - compiled
             q2 = P[j + 2]
             q3 = P[j + 3]
             q4 = P[j + 4]
+            s0 = s1 = s2 = s3 = 0.0
             a00 = a01 = a02 = a03 = 0.0
             a10 = a11 = a12 = a13 = 0.0
             a20 = a21 = a22 = a23 = 0.0
             a30 = a31 = a32 = a33 = 0.0
             a40 = a41 = a42 = a43 = 0.0
-            if first:
-                for t in range(n):
-                    v0 = x[b + t, 0]
-                    v1 = x[b + t, 1]
-                    v2 = x[b + t, 2]
-                    v3 = x[b + t, 3]
-                    p = q0[t]
-                    a00 += p * v0
-                    a01 += p * v1
-                    a02 += p * v2
-                    a03 += p * v3
-                    p = q1[t]
-                    a10 += p * v0
-                    a11 += p * v1
-                    a12 += p * v2
-                    a13 += p * v3
-                    p = q2[t]
-                    a20 += p * v0
-                    a21 += p * v1
-                    a22 += p * v2
-                    a23 += p * v3
-                    p = q3[t]
-                    a30 += p * v0
-                    a31 += p * v1
-                    a32 += p * v2
-                    a33 += p * v3
-                    p = q4[t]
-                    a40 += p * v0
-                    a41 += p * v1
-                    a42 += p * v2
-                    a43 += p * v3
-                    s0 += v0 * v0
-                    s1 += v1 * v1
-                    s2 += v2 * v2
-                    s3 += v3 * v3
-                first = False
-            else:
-                for t in range(n):
-                    v0 = x[b + t, 0]
-                    v1 = x[b + t, 1]
-                    v2 = x[b + t, 2]
-                    v3 = x[b + t, 3]
-                    p = q0[t]
-                    a00 += p * v0
-                    a01 += p * v1
-                    a02 += p * v2
-                    a03 += p * v3
-                    p = q1[t]
-                    a10 += p * v0
-                    a11 += p * v1
-                    a12 += p * v2
-                    a13 += p * v3
-                    p = q2[t]
-                    a20 += p * v0
-                    a21 += p * v1
-                    a22 += p * v2
-                    a23 += p * v3
-                    p = q3[t]
-                    a30 += p * v0
-                    a31 += p * v1
-                    a32 += p * v2
-                    a33 += p * v3
-                    p = q4[t]
-                    a40 += p * v0
-                    a41 += p * v1
-                    a42 += p * v2
-                    a43 += p * v3
+            for t in range(n):
+                v0 = x[b + t, 0]
+                v1 = x[b + t, 1]
+                v2 = x[b + t, 2]
+                v3 = x[b + t, 3]
+                p = q0[t]
+                a00 += p * v0
+                a01 += p * v1
+                a02 += p * v2
+                a03 += p * v3
+                p = q1[t]
+                a10 += p * v0
+                a11 += p * v1
+                a12 += p * v2
+                a13 += p * v3
+                p = q2[t]
+                a20 += p * v0
+                a21 += p * v1
+                a22 += p * v2
+                a23 += p * v3
+                p = q3[t]
+                a30 += p * v0
+                a31 += p * v1
+                a32 += p * v2
+                a33 += p * v3
+                p = q4[t]
+                a40 += p * v0
+                a41 += p * v1
+                a42 += p * v2
+                a43 += p * v3
+                s0 += v0 * v0
+                s1 += v1 * v1
+                s2 += v2 * v2
+                s3 += v3 * v3
             coef[w, j, 0], coef[w, j, 1], coef[w, j, 2], coef[w, j, 3] = a00, a01, a02, a03
             coef[w, j + 1, 0], coef[w, j + 1, 1], coef[w, j + 1, 2], coef[w, j + 1, 3] = a10, a11, a12, a13
             coef[w, j + 2, 0], coef[w, j + 2, 1], coef[w, j + 2, 2], coef[w, j + 2, 3] = a20, a21, a22, a23
             coef[w, j + 3, 0], coef[w, j + 3, 1], coef[w, j + 3, 2], coef[w, j + 3, 3] = a30, a31, a32, a33
             coef[w, j + 4, 0], coef[w, j + 4, 1], coef[w, j + 4, 2], coef[w, j + 4, 3] = a40, a41, a42, a43
+            if first:  # the sums of squares of the first pass (every pass makes them: no second loop body)
+                xx[w, 0], xx[w, 1], xx[w, 2], xx[w, 3] = s0, s1, s2, s3
+                first = False
         for g in range(n3):
             j = 5 * n5 + 3 * g
             q0 = P[j]
             q1 = P[j + 1]
             q2 = P[j + 2]
+            s0 = s1 = s2 = s3 = 0.0
             a00 = a01 = a02 = a03 = 0.0
             a10 = a11 = a12 = a13 = 0.0
             a20 = a21 = a22 = a23 = 0.0
-            if first:
-                for t in range(n):
-                    v0 = x[b + t, 0]
-                    v1 = x[b + t, 1]
-                    v2 = x[b + t, 2]
-                    v3 = x[b + t, 3]
-                    p = q0[t]
-                    a00 += p * v0
-                    a01 += p * v1
-                    a02 += p * v2
-                    a03 += p * v3
-                    p = q1[t]
-                    a10 += p * v0
-                    a11 += p * v1
-                    a12 += p * v2
-                    a13 += p * v3
-                    p = q2[t]
-                    a20 += p * v0
-                    a21 += p * v1
-                    a22 += p * v2
-                    a23 += p * v3
-                    s0 += v0 * v0
-                    s1 += v1 * v1
-                    s2 += v2 * v2
-                    s3 += v3 * v3
-                first = False
-            else:
-                for t in range(n):
-                    v0 = x[b + t, 0]
-                    v1 = x[b + t, 1]
-                    v2 = x[b + t, 2]
-                    v3 = x[b + t, 3]
-                    p = q0[t]
-                    a00 += p * v0
-                    a01 += p * v1
-                    a02 += p * v2
-                    a03 += p * v3
-                    p = q1[t]
-                    a10 += p * v0
-                    a11 += p * v1
-                    a12 += p * v2
-                    a13 += p * v3
-                    p = q2[t]
-                    a20 += p * v0
-                    a21 += p * v1
-                    a22 += p * v2
-                    a23 += p * v3
+            for t in range(n):
+                v0 = x[b + t, 0]
+                v1 = x[b + t, 1]
+                v2 = x[b + t, 2]
+                v3 = x[b + t, 3]
+                p = q0[t]
+                a00 += p * v0
+                a01 += p * v1
+                a02 += p * v2
+                a03 += p * v3
+                p = q1[t]
+                a10 += p * v0
+                a11 += p * v1
+                a12 += p * v2
+                a13 += p * v3
+                p = q2[t]
+                a20 += p * v0
+                a21 += p * v1
+                a22 += p * v2
+                a23 += p * v3
+                s0 += v0 * v0
+                s1 += v1 * v1
+                s2 += v2 * v2
+                s3 += v3 * v3
             coef[w, j, 0], coef[w, j, 1], coef[w, j, 2], coef[w, j, 3] = a00, a01, a02, a03
             if j + 1 < J:
                 coef[w, j + 1, 0], coef[w, j + 1, 1], coef[w, j + 1, 2], coef[w, j + 1, 3] = a10, a11, a12, a13
             if j + 2 < J:
                 coef[w, j + 2, 0], coef[w, j + 2, 1], coef[w, j + 2, 2], coef[w, j + 2, 3] = a20, a21, a22, a23
-        xx[w, 0], xx[w, 1], xx[w, 2], xx[w, 3] = s0, s1, s2, s3
+            if first:
+                xx[w, 0], xx[w, 1], xx[w, 2], xx[w, 3] = s0, s1, s2, s3
+                first = False
 
 
 _compiled = None
