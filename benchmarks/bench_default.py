@@ -51,27 +51,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _table import print_table  # noqa: E402
 from _timing import median_cpu_seconds as cpu_seconds  # noqa: E402
 from _zhang import ZHANG, load_zhang  # noqa: E402
+from bench_scaling import _opencv_inputs, grid_template  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 PITCH_MM = 0.010
 
-
-def grid_template(m: int) -> np.ndarray:
-    """A square grid of about ``m`` points spanning 80 mm, (m, 2) mm."""
-    k = int(round(np.sqrt(m)))
-    a = np.linspace(-40.0, 40.0, k)
-    X, Y = np.meshgrid(a, a)
-    return np.stack([X.ravel(), Y.ravel()], axis=1)
-
-
-def _opencv_inputs(template, points, origin_px):
-    obj = np.concatenate([template, np.zeros((len(template), 1))], axis=1).astype(np.float32)
-    objs, imgs = [], []
-    for p in points:
-        ok = np.all(np.isfinite(p), axis=1)
-        objs.append(obj[ok])
-        imgs.append((p[ok] / PITCH_MM + origin_px).astype(np.float32).reshape(-1, 1, 2))
-    return objs, imgs
 
 
 def cases(cv2):
