@@ -120,3 +120,26 @@ def test_bench_startup_light_commands_table(capsys):
         assert 0.0 < float(cpu) < 60.0, name
         if name.startswith(("locate", "aoa", "pose")):
             assert float(above) == pytest.approx(float(cpu) - float(rows[1][1]), abs=2e-3)
+
+
+def test_bench_default_times_the_calibration_with_and_without_the_verdict_against_opencv(capsys):
+    """bench_default's three cases: the psdcal calls give the same f with and without the verdict, OpenCV's
+    call converges on the same points, and the printed ratios are the times' ratios."""
+    cv2 = pytest.importorskip("cv2")
+    bench = _load("bench_default")
+    cases = bench.cases(cv2)
+    assert [c[0].split(",")[0] for c in cases] == ["zhang1998 (real)", "synthetic", "synthetic"]
+    for name, with_v, fit, ocv in cases:
+        a, b = with_v(), fit()
+        assert a.intrinsics.f_mm == pytest.approx(b.intrinsics.f_mm, rel=1e-12), name
+        assert a.verdict is not None and b.verdict is None
+        rms = ocv()[0]
+        assert 0 < rms < 5, name  # pixels
+    assert bench.main(["--repeats", "1", "--no-cli", "--markdown"]) == 0
+    rows = [r for r in capsys.readouterr().out.splitlines() if r.startswith("| zhang") or r.startswith("| synth")]
+    assert len(rows) == 3
+    for r in rows:
+        cells = [c.strip() for c in r.strip("|").split("|")]
+        fit_ms, both_ms, ocv_ms = (float(c) for c in cells[1:4])
+        assert float(cells[4].rstrip("x")) == pytest.approx(fit_ms / ocv_ms, abs=0.006)
+        assert float(cells[5].rstrip("x")) == pytest.approx(both_ms / ocv_ms, abs=0.006)
