@@ -29,6 +29,27 @@ def corner_currents(xy_mm, l_mm=9.0):
     return 0.25 * np.stack([1 - a - b, 1 + a + b, 1 + a - b, 1 - a + b], axis=-1)
 
 
+def one_run(rng, label: str = "run") -> tuple[bool, bool, bool]:
+    """One run: (false alarm on the documented order, wiring vx1,vy1,vx2,vy2 relevant, and caught)."""
+    g_std = rng.uniform(5e-4, 5e-3)
+    cov = np.eye(3) * g_std ** 2
+    g_cal = np.r_[1.0, 1 + rng.uniform(-0.05, 0.05, 3)]
+    g_true = g_cal.copy()
+    g_true[1:] += g_std * rng.standard_normal(3)
+    xy = rng.uniform(-3.5, 3.5, (50, 2))
+    sigma = 0.25 * 10 ** (-rng.uniform(30, 80) / 20)
+    amp = corner_currents(xy) * g_true + sigma * rng.standard_normal((50, 4))
+    var = np.full_like(amp, sigma ** 2)
+    ok = SumCheck(g_cal, 9.0, label, cov)
+    ok.add(amp, var)
+    bad = SumCheck(g_cal, 9.0, label, cov)
+    bad.add(amp[:, [0, 2, 1, 3]], var)
+    # the y error of that wiring, in sigmas of a row's y (sigma_y ~ 4.5 mm * sigma / (1/4 * 2))
+    y_err = np.abs(xy[:, 1]).max()
+    relevant = y_err / (4.5 * sigma * math.sqrt(2) / 0.5) > 3 and g_std * 9.0 < y_err
+    return ok.warning() is not None, bool(relevant), bool(relevant) and bad.warning() is not None
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--runs", type=int, default=3000)
@@ -37,24 +58,10 @@ def main(argv=None):
     rng = np.random.default_rng(a.seed)
     alarms = relevant = caught = 0
     for _ in range(a.runs):
-        g_std = rng.uniform(5e-4, 5e-3)
-        cov = np.eye(3) * g_std ** 2
-        g_cal = np.r_[1.0, 1 + rng.uniform(-0.05, 0.05, 3)]
-        g_true = g_cal.copy()
-        g_true[1:] += g_std * rng.standard_normal(3)
-        xy = rng.uniform(-3.5, 3.5, (50, 2))
-        sigma = 0.25 * 10 ** (-rng.uniform(30, 80) / 20)
-        amp = corner_currents(xy) * g_true + sigma * rng.standard_normal((50, 4))
-        var = np.full_like(amp, sigma ** 2)
-        ok = SumCheck(g_cal, 9.0, "run", cov)
-        ok.add(amp, var)
-        alarms += ok.warning() is not None
-        bad = SumCheck(g_cal, 9.0, "run", cov)
-        bad.add(amp[:, [0, 2, 1, 3]], var)
-        y_err = np.abs(xy[:, 1]).max()
-        if y_err / (4.5 * sigma * math.sqrt(2) / 0.5) > 3 and g_std * 9.0 < y_err:
-            relevant += 1
-            caught += bad.warning() is not None
+        alarm, rel, hit = one_run(rng)
+        alarms += alarm
+        relevant += rel
+        caught += hit
     print(f"{a.runs} runs: false alarms {alarms}/{a.runs}; wiring vx1,vy1,vx2,vy2 caught {caught}/{relevant}")
 
 

@@ -1,13 +1,13 @@
 """The benchmark scripts stay runnable and measure what they claim."""
 from __future__ import annotations
 
-import importlib.util
 import subprocess
 import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+from _bench import load_benchmark
 
 from psdcal.model.params import Distortion, Intrinsics
 from psdcal.study.simulate import simulate_set
@@ -16,10 +16,7 @@ BENCH = Path(__file__).resolve().parent.parent / "benchmarks"
 
 
 def _load(name):
-    spec = importlib.util.spec_from_file_location(f"_bench_{name}", BENCH / f"{name}.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_benchmark(name, "_bench_")
 
 
 def test_opencv_conversion_recovers_the_truth_without_distortion():

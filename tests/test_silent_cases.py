@@ -2,11 +2,11 @@
 from __future__ import annotations
 
 import json
-import math
 import re
 
 import numpy as np
 import pytest
+from _bench import load_benchmark
 
 from psdcal.cli import main
 
@@ -19,19 +19,6 @@ def _one_error_line(err: str) -> str:
 
 
 # --------------------------------------------------------------------------- TDM carrier check
-def _tdm_record(rng, *, on_s, gap_s, snr_db, f_hz=1000.0, rate_hz=50_000.0, n_led=8):
-    """Written here, independently of psdcal's simulator: LEDs one at a time, each slot its own random phase."""
-    n_on, n_gap = round(on_s * rate_hz), round(gap_s * rate_hz)
-    n = n_gap + n_led * (n_on + n_gap)
-    t = np.arange(n) / rate_hz
-    x = np.zeros((4, n)) + rng.uniform(0.05, 0.15, (4, 1))
-    for j in range(n_led):
-        a0 = n_gap + j * (n_on + n_gap)
-        x[:, a0:a0 + n_on] += rng.uniform(0.1, 0.4, 4)[:, None] * np.sin(
-            2 * np.pi * f_hz * t[a0:a0 + n_on] + rng.uniform(0, 2 * np.pi))
-    return x + 0.25 / 4 / math.sqrt(2) / 10 ** (snr_db / 20) * rng.standard_normal(x.shape)
-
-
 def test_tdm_carrier_check_no_false_alarm_and_catches_a_real_offset():
     """Issue 19: the tutorial's TDM views warned 'measured at 985 Hz' (a keying side-band) in 5 of 8 views.
 
@@ -40,15 +27,15 @@ def test_tdm_carrier_check_no_false_alarm_and_catches_a_real_offset():
     is 0.2-1 % off is caught, with the offset measured within 1 %."""
     from psdcal.signal.inspect import check_carrier, measure_carrier
 
+    study = load_benchmark("study_tdm_carrier")  # records written there, independently of psdcal's simulator
     rng = np.random.default_rng(19)
     alarms, caught = 0, 0
     for _ in range(40):
-        snr, on, gap = rng.uniform(30, 70), rng.uniform(0.01, 0.05), rng.uniform(0.0, 0.008)
-        w = min(on / 4, 0.005)
-        x = _tdm_record(rng, on_s=on, gap_s=gap, snr_db=snr)
+        snr, on, gap, w = study.draw(rng)
+        x = study.tdm_record(rng, on_s=on, gap_s=gap, snr_db=snr)
         alarms += not check_carrier(1000.0, measure_carrier(x, 50_000.0, 1000.0, tdm=True), w, tdm=True).ok
         f = 1000.0 * (1 + rng.choice([-1, 1]) * rng.uniform(0.002, 0.01))
-        chk = check_carrier(1000.0, measure_carrier(_tdm_record(rng, on_s=on, gap_s=gap, snr_db=snr, f_hz=f),
+        chk = check_carrier(1000.0, measure_carrier(study.tdm_record(rng, on_s=on, gap_s=gap, snr_db=snr, f_hz=f),
                                                     50_000.0, 1000.0, tdm=True), w, tdm=True)
         caught += (not chk.ok) and abs(chk.offset_hz - (f - 1000.0)) < 0.01 * abs(f - 1000.0)
     assert alarms == 0
@@ -409,41 +396,19 @@ def test_amplitudes_on_a_corrupt_hdf5_is_one_line(tmp_path, capsys):
     assert hits > 0
 
 
-def _corner_currents(xy_mm, l_mm=9.0):
-    """The four anode currents of a spot, written from docs/model.md's split I (1 -+ a -+ b) / 4."""
-    a, b = 2 * xy_mm[:, 0] / l_mm, 2 * xy_mm[:, 1] / l_mm
-    return 0.25 * np.stack([1 - a - b, 1 + a + b, 1 + a - b, 1 - a + b], axis=-1)
-
-
 def test_channel_sums_check_false_alarms_and_detection():
     """False alarms of the sums check in 400 runs of 50 rows (SNR 30-80 dB per channel, calibrated gains
     known to 0.05-0.5 % with that covariance): the chi2 is at a 1e-3 false-alarm rate and needs 1 sigma of
     effect besides, so at most 2 (0.4 expected at 1e-3; benchmarks/study_channel_sums.py: 0 of 3000).
     Detection of frames wired vx1,vy1,vx2,vy2: every run whose spots' y error reaches 3 row sigmas is caught."""
-    from psdcal.measure.channel_order import SumCheck
-
+    study = load_benchmark("study_channel_sums")
     rng = np.random.default_rng(7)
     alarms, missed, relevant = 0, 0, 0
     for _ in range(400):
-        g_std = rng.uniform(5e-4, 5e-3)
-        cov = np.eye(3) * g_std ** 2
-        g_cal = np.r_[1.0, 1 + rng.uniform(-0.05, 0.05, 3)]
-        g_true = g_cal.copy()
-        g_true[1:] += g_std * rng.standard_normal(3)
-        xy = rng.uniform(-3.5, 3.5, (50, 2))
-        sigma = 0.25 * 10 ** (-rng.uniform(30, 80) / 20)
-        a = _corner_currents(xy) * g_true + sigma * rng.standard_normal((50, 4))
-        var = np.full_like(a, sigma ** 2)
-        ok = SumCheck(g_cal, 9.0, "r", cov)
-        ok.add(a, var)
-        alarms += ok.warning() is not None
-        bad = SumCheck(g_cal, 9.0, "r", cov)
-        bad.add(a[:, [0, 2, 1, 3]], var)
-        # the y error of that wiring, in sigmas of a row's y (sigma_y ~ 4.5 mm * sigma / (1/4 * 2))
-        err_sigma = np.abs(xy[:, 1]).max() / (9.0 / 2 * sigma * math.sqrt(2) / 0.5)
-        if err_sigma > 3 and g_std * 9.0 < np.abs(xy[:, 1]).max():
-            relevant += 1
-            missed += bad.warning() is None
+        alarm, rel, caught = study.one_run(rng, "r")
+        alarms += alarm
+        relevant += rel
+        missed += rel and not caught
     assert alarms <= 2
     assert relevant > 300 and missed == 0
 
