@@ -209,3 +209,31 @@ def test_identifiers_are_escaped():
     for raw in ("<b>img&0</b>", "<i>p0</i>", "img<3"):
         assert raw not in text
     assert html.escape("<b>img&0</b>") in text
+
+
+
+def test_report_shows_the_verdicts_notes_and_inflation(made):
+    """A good verdict with notes (effects below one sigma) names each, with its size and the covariance inflation.
+
+    The fixture's raw calibration keeps the planted 50-sigma outlier: its verdict is good, with notes on the view
+    and the LED that hold it; the calibration with ``--reject 5`` has none.
+    """
+    import math
+
+    from psdcal.calibration.verdict import Verdict
+    from psdcal.io import load_calibration
+    from psdcal.report.page import build_report
+
+    raw = load_calibration(made / "raw.json")
+    v = Verdict.from_dict(raw.verdict)
+    assert v.verdict == "good" and len(v.notes) >= 1 and v.inflation > 1.0
+    page = build_report(raw)
+    assert f"({len(v.notes)} note(s) below)" in page
+    for c in v.notes:
+        assert f"Note ({html.escape(c.name)}): {html.escape(c.message)}" in page
+        assert f'<td class="">{c.effect_sigma:.3g}</td><td class="">x{c.inflation:.3g}</td>' in page
+    assert f"Covariance inflated x{v.inflation:.3g} (standard errors x{math.sqrt(v.inflation):.3g})" in page
+    rej = load_calibration(made / "rej.json")
+    clean = build_report(rej)
+    assert not Verdict.from_dict(rej.verdict).notes
+    assert "note(s)" not in clean and "Covariance inflated" not in clean and "every self-check passed" in clean

@@ -26,6 +26,7 @@ import hashlib
 import html
 import io
 import json
+import math
 import platform
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -53,6 +54,7 @@ figure{margin:.8em 0;text-align:center}figure img{max-width:100%;height:auto;bor
 figcaption{font-size:.85em;color:#57606a;max-width:900px;margin:.3em auto}
 .warn{background:#fff4e5;border-left:4px solid #e8590c;padding:.5em .9em;margin:.4em 0}
 .ok{background:#e8f6ec;border-left:4px solid #2b8a3e;padding:.5em .9em;margin:.4em 0}
+.note{background:#eef3fb;border-left:4px solid #1c7ed6;padding:.5em .9em;margin:.4em 0}
 .info{color:#57606a;font-size:.9em}code,pre{font-family:ui-monospace,Menlo,Consolas,monospace;font-size:.85em}
 pre{background:#f6f8fa;padding:.6em;overflow-x:auto;text-align:left}
 .grid{display:flex;flex-wrap:wrap;gap:1em;justify-content:center;align-items:flex-start}.grid figure{flex:1 1 460px}.side{flex:0 1 440px}
@@ -183,21 +185,36 @@ def report_verdict(result):
 
 
 def _verdict_html(verdict) -> list:
-    """The report's first section: the verdict and the table of checks."""
+    """The report's first section: the verdict, its advice and notes, the covariance inflation, the checks.
+
+    The notes are the checks that passed with an effect below one standard error: the effect is stated in its
+    own sigmas and the covariance inflation it brings (``1 + effect^2``) is named, as the text summary does.
+    """
     if verdict is None:
         return ['<h2 id="verdict">Verdict</h2>', '<div class="warn">No verdict: the calibration file holds no problem '
                 'record (points, template) to check it against.</div>']
     cls = {"good": "ok", "suspect": "warn", "wrong": "warn"}[verdict.verdict]
-    head = {"good": "GOOD: every self-check passed", "suspect": "SUSPECT: " + "; ".join(verdict.reasons),
+    notes = verdict.notes
+    good = "GOOD: every self-check passed" + (f" ({len(notes)} note(s) below)" if notes else "")
+    head = {"good": good, "suspect": "SUSPECT: " + "; ".join(verdict.reasons),
             "wrong": "WRONG: " + "; ".join(verdict.reasons)}[verdict.verdict]
     out = ['<h2 id="verdict">Verdict</h2>', f'<div class="{cls}"><b>{_esc(head)}</b></div>']
     out += [f'<div class="warn">Advice ({_esc(c.name)}): {_esc(c.advice)}</div>' for c in verdict.failed if c.advice]
+    out += [f'<div class="note">Note ({_esc(c.name)}): {_esc(c.message)}</div>' for c in notes]
+    f = verdict.inflation
+    if f > 1.0:
+        why = ", ".join(c.name for c in verdict.checks if (c.inflation or 1.0) == f)
+        out.append(f'<div class="note">Covariance inflated x{f:.3g} (standard errors x{math.sqrt(f):.3g}) to cover '
+                   f'the effect found by {_esc(why)}: the uncertainties in this report include it.</div>')
     rows = []
     for c in verdict.checks:
         state = "n/a" if c.passed is None else ("passed" if c.passed else "FAILED")
         rows.append([_esc(c.name), state, "-" if c.p_value is None else f"{c.p_value:.2g}",
-                     f"{c.false_alarm:.2g}" if c.false_alarm else "rule", _esc(c.message)])
-    out.append(_table(["check", "result", "p-value", "false-alarm rate", "finding"], rows, left=(0, 1, 4)))
+                     f"{c.false_alarm:.2g}" if c.false_alarm else "rule",
+                     "-" if c.effect_sigma is None else f"{c.effect_sigma:.3g}",
+                     "-" if not c.inflation or c.inflation <= 1.0 else f"x{c.inflation:.3g}", _esc(c.message)])
+    out.append(_table(["check", "result", "p-value", "false-alarm rate", "effect (sigma)", "covariance inflation",
+                       "finding"], rows, left=(0, 1, 6)))
     return out
 
 
