@@ -1,7 +1,7 @@
 """The block (Schur complement) normal equations against dense linear algebra.
 
 The LM step and the covariance of a calibration eliminate the 6 x 6 pose
-blocks (:class:`psdcal.calibration._refine.BlockNormal`); these tests compare
+blocks (:class:`psdcal.calibration._normal.BlockNormal`); these tests compare
 the compiled kernels and their numpy references with the dense ``J^T J``
 built from the dense Jacobian, and the refinement with the dense reference.
 """
@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 
 from psdcal import _jit
-from psdcal.calibration._refine import (BlockNormal, DenseNormal, Evaluator, Problem, block_normal_reference,
-                                        compact_from_dense, refine, schur_covariance_reference,
-                                        schur_solve_reference)
+from psdcal.calibration._normal import (BlockNormal, DenseNormal, block_normal_reference, compact_from_dense,
+                                        schur_covariance_reference, schur_solve_reference)
+from psdcal.calibration._refine import Evaluator, Problem, refine
 from psdcal.model.params import Distortion, ModelSpec
 from psdcal.study.simulate import simulate_set
 

@@ -29,7 +29,7 @@ covariance eliminate the poses view by view through the Schur complement
 ``S = U - sum_v W_v V_v^-1 W_v^T`` (the reduced camera system, Triggs et al.,
 *Bundle adjustment - a modern synthesis*, 2000, Section 6.1), so their cost is
 linear in the number of views. The numpy reference of these steps is
-:mod:`psdcal.calibration._refine` (``block_normal_reference``,
+:mod:`psdcal.calibration._normal` (``block_normal_reference``,
 ``schur_solve_reference``, ``schur_covariance_reference``).
 """
 from __future__ import annotations
