@@ -190,7 +190,7 @@ def test_compiled_undistort_is_the_numpy_one_to_the_bit():
 
 
 def test_extent_skips_missing_points():
-    from psdcal.calibration.core import _extent
+    from psdcal.calibration.starts import _extent
 
     X = np.array([[[1.0, -3.0], [np.nan, np.nan]], [[0.5, 2.0], [np.nan, np.nan]]])
     assert _extent(X) == 6.0
