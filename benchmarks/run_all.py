@@ -6,7 +6,9 @@ with the arguments its documented numbers were measured with, and ``--markdown``
 output as it comes, and then rewrites every generated region of README.md and docs/ whose
 benchmark succeeded: the table, with the command, the date, the machine (CPU model, cores,
 load) and the library versions under it (see ``benchmarks/_docgen.py``). A benchmark that fails
-leaves its regions as they were; the exit status is then non-zero.
+leaves its regions as they were; the exit status is then non-zero. A table that a benchmark says it
+skipped (``<!-- table: ID skipped: REASON -->``: a real-data study without ``../shared/data``) leaves
+its region as it was, with a note, and is no failure.
 
 Usage::
 
@@ -70,6 +72,18 @@ REGISTRY: dict[str, Bench] = {
     "bench_pose": Bench((), ("--right", "6", "--wrong", "2", "--repeats", "5"), ("1", "2", "3", "4"), 90),
     "bench_dashboard": Bench(("--reps", "3", "--seconds", "10"), ("--reps", "1", "--seconds", "2"), ("1", "2"), 120),
     "efficiency": Bench((), ("--trials", "20"), ("1",), 60),
+    # the accuracy studies (false alarms, detections, NEES, errors against the truth): their figures in the docs
+    "study_verdict": Bench(("--correct", "1000", "--faults", "100", "--advice", "30"), ("--quick",),
+                           ("correct", "faults", "real", "advice"), 300),
+    "study_minima": Bench(("--fits", "1000"), ("--quick",), ("1",), 120),
+    "capture_study": Bench((), ("--quick",), ("views", "sweep"), 60),
+    "export_fit": Bench((), ("--quick",), ("1",), 20),
+    "study_selfcal": Bench(("--rooms", "300"), ("--quick",), ("sim", "sim_check", "timing", "lighthouse"), 120),
+    "study_tracking": Bench(("--scenes", "200"), ("--quick",), ("sim", "lighthouse"), 60),
+    "study_consistency_rows": Bench(("--files", "20000"), ("--quick",), ("rates", "lighthouse"), 60),
+    "study_reflections": Bench(("--rooms", "400"), ("--quick",), ("strong", "weak", "weak_other"), 90),
+    "study_tdm_carrier": Bench(("--records", "400"), ("--quick",), ("1",), 60),
+    "study_channel_sums": Bench(("--runs", "3000"), ("--quick",), ("1",), 15),
 }
 
 
@@ -173,7 +187,10 @@ def main(argv: list[str]) -> int:
                 got = _docgen.parse_tables(out)
             except ValueError as exc:
                 got, status, rc = {}, f"FAILED ({exc})", 1
-            missing = [t for t in bench.tables if t not in got]
+            skipped = _docgen.skipped_tables(out) if rc == 0 else {}
+            for t, why in skipped.items():
+                print(f"note: {script}.py skipped table {t} ({why}): its region is left as it was")
+            missing = [t for t in bench.tables if t not in got and t not in skipped]
             if rc == 0 and missing and (passthrough or quick):  # other arguments may leave a table out
                 print(f"note: {script}.py printed no table {', '.join(missing)}")
             elif rc == 0 and missing:
