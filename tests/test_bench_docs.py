@@ -1,8 +1,9 @@
-"""Numbers that hold: every timing figure of README.md and docs/ is written by ``python3 tasks.py bench``.
+"""Numbers that hold: every timing and accuracy figure of README.md and docs/ is written by ``python3 tasks.py bench``.
 
 Fast (no benchmark runs): the docs' generated regions against the registry of
-``benchmarks/run_all.py``, a scan of the pages for hand-written timing figures outside those
-regions, and the writing machinery itself on a fake benchmark in a temporary tree.
+``benchmarks/run_all.py``, a scan of the pages for hand-written timing figures and accuracy
+figures (false alarms, detections, NEES, errors, Monte Carlo means +- their standard errors)
+outside those regions, and the writing machinery itself on a fake benchmark in a temporary tree.
 """
 from __future__ import annotations
 
@@ -97,6 +98,123 @@ def test_the_scan_finds_the_figures_that_did_not_reproduce(docgen):
     page = "<!-- bench:bench_locate/1 begin -->\n| x real time |\n|---|\n| 918x real time |\n<!-- bench:bench_locate/1 end -->\n"
     prose = _prose(page, docgen)
     assert not any(re.search(p, prose) for p in TIMING_FIGURES) and not TIME_HEADER.search(prose.replace("bench:", ""))
+
+
+#: Accuracy figures a person would write by hand: a measured rate, count, mean, error or coverage.
+#: (Design rates, thresholds and test bands are inputs: they carry no measured number of these shapes.)
+_UNIT = r"(?:mm|deg|um|µm|mrad|urad|px|sigma|standard errors?)"
+ACCURACY_FIGURES = [
+    r"\b\d+\s*/\s*\d{2,}\b(?!\s*(?:s|Hz|px|mm)\b)",  # 0/3000, 400/400, 19/80: a count of a study
+    r"\b\d[\d,]* of \d[\d,]*\s+(?:\w+\s+){0,2}?(?:rooms|runs|fits|records|kills|sets|rows|sweeps|cases|poses|views|"
+    r"files|points|trials|scenes|flights)\b",
+    r"\b\d[\d,]*\s+false alarms?\b",
+    r"\bfalse alarms?\s+(?:on|in|of)\s+\d",
+    r"\bfalse alarms?\s+\d+(?:\.\d+)?\s*%",
+    r"\(\d[\d,]* of \d[\d,]*\)",
+    r"\b(?:detected|caught|found|fired|flagged|refused)\s+(?:in\s+)?\d[\d,]*\s*(?:/|of\b|times\b|%)",
+    r"(?:\d\.\d+\s*)?(?:\+-|±|\+/-)\s*\d*\.\d+",  # a Monte Carlo mean +- its standard error
+    r"\b(?:NEES|NIS|chi2/dof|chi2 per dof)\b[^.|\n]{0,40}?(?<![\w.])\d+\.\d+",  # a measured NEES / NIS value
+    r"\b(?:NEES|NIS)\b (?:of |median |averages |mean )+\d",
+    r"\bmedian\b[^.|\n]{0,30}?(?<![\w.])\d+(?:\.\d+)?\s*(?:and \d+(?:\.\d+)?\s*)?" + _UNIT + r"\b",
+    r"\b\d+(?:\.\d+)?\s*" + _UNIT + r"\s+(?:median|RMS|worst|p95|off\b(?! the))",
+    r"\b(?:RMS|p95|worst(?: AoA)? 1-sigma(?: is)?|error)\s+(?:of\s+)?\d+(?:\.\d+)?\s*" + _UNIT + r"\b",
+    r"\b\d+(?:\.\d+)?\s*%\s+(?:or more\s+)?of the (?:errors|z-scores|predicted|rows|points|angles|positions|residuals)\b",
+    r"\bratios?\s+(?:of\s+)?\d\.\d+",
+    r"\b\d+(?:\.\d+)?\s*% \((?:false alarm|detected)\)",
+]
+#: A table whose header names a measured accuracy is a result table (it must be generated).
+ACCURACY_HEADER = re.compile(r"NEES|NIS\b|false alarm|detect|\bcaught\b|\bmedian\b|\bp95\b|\bRMS\b|error\b|"
+                             r"\bcoverage\b|\brate\b|wrong minima|verdict not good|std of|\bspread\b", re.I)
+
+#: Figures of the prose that are no measurement of ours, or that a test recomputes on every run: the page, the
+#: exact text the scan finds, and why it may stay. Anything else the scan finds must go into a generated region.
+ACCURACY_ALLOWED = {
+}
+
+
+def _asserted_numbers(text: str) -> set[str]:
+    """Numbers written in the page's own checks: ``assert`` lines of its code blocks and hidden comments."""
+    nums = set()
+    for block in re.findall(r"^```.*?^```|<!--.*?-->", text, flags=re.S | re.M):
+        for line in block.splitlines():
+            if "assert" in line or line.lstrip().startswith("shown"):
+                nums |= set(re.findall(r"\d+(?:\.\d+)?", line))
+    return nums
+
+
+def accuracy_findings(page_text: str, rel: str, docgen) -> list[str]:
+    """Hand-written accuracy figures of one page outside the generated regions: one line each."""
+    prose = _prose(page_text, docgen)
+    asserted = _asserted_numbers(page_text)
+    allowed = ACCURACY_ALLOWED.get(rel, {})
+    found = []
+    for pat in ACCURACY_FIGURES:
+        for m in re.finditer(pat, prose):
+            text = m.group(0)
+            if text in allowed:
+                continue
+            nums = re.findall(r"\d+(?:\.\d+)?", text.replace(",", ""))
+            if nums and all(n in asserted for n in nums):  # the page's own test recomputes it
+                continue
+            line = prose[: m.start()].count("\n") + 1
+            found.append(f"{rel}: {text!r} (prose line {line})")
+    for m in re.finditer(r"^\|(.+)\|\n\|[-:| ]+\|$", prose, re.M):
+        if ACCURACY_HEADER.search(m.group(1)) and m.group(1).strip() not in allowed:
+            found.append(f"{rel}: a hand-written table of measured accuracy: {m.group(1).strip()!r}")
+    return found
+
+
+def test_no_hand_written_accuracy_figures_outside_the_generated_regions(docgen):
+    found = []
+    for page in docgen.doc_pages(ROOT):
+        found += accuracy_findings(page.read_text(encoding="utf-8"), page.relative_to(ROOT).as_posix(), docgen)
+    assert found == [], "\n".join(found)
+
+
+def test_every_allowed_accuracy_figure_is_still_on_its_page(docgen):
+    # an allow-list entry whose text has gone would let the same words back in unseen: prune it
+    for rel, entries in ACCURACY_ALLOWED.items():
+        text = (ROOT / rel).read_text(encoding="utf-8")
+        for figure in entries:
+            assert figure in text, f"{rel}: allowed figure {figure!r} is no longer on the page"
+
+
+def test_the_accuracy_scan_finds_the_figures_it_is_for(docgen):
+    # the examples of the issue and the kinds of figure the studies print, each in a sentence of prose
+    for sentence in ("the verdict raised false alarms 0.10 % (1 of 1000)",
+                     "the pose NEES averages 6.19 for 6 expected",
+                     "the NEES of the 911 poses is 5.83 +- 0.11",
+                     "rates +- 0.08",
+                     "per-point flags 0.00097 +- 0.00005 of 400000 points",
+                     "psdcal triangulates at 16.9 mm median against 16.6",
+                     "a median of 4.68 mm on the odd blocks",
+                     "**0/3000 false alarms**, and the wiring caught in 3000/3000 runs",
+                     "the chi2 check passed in 300 of 300 rooms",
+                     "3 false alarms in 1,000 correct fits",
+                     "98 % of the errors are within 3 sigma",
+                     "At 6 views the worst AoA 1-sigma is 0.43 deg near",
+                     "ratios 0.42 and 0.44 (chi2/dof 36)",
+                     "an RMS error of 0.071 deg with balanced channels",
+                     "the offset is 1.06 mm off without the gains"):
+        page = f"# p\n\n{sentence}.\n"
+        assert accuracy_findings(page, "docs/p.md", docgen), sentence
+    # a hand-written result table is caught by its header
+    assert accuracy_findings("| case | fits | false alarms |\n|---|---|---|\n| a | 1 | 0 |\n", "docs/p.md", docgen)
+    # ... but not inputs, design rates and thresholds, nor anything inside a generated region
+    for sentence in ("each statistical check is designed for a false-alarm rate of 1e-3",
+                     "Lens 2 (f = 8 mm, k1 = 1e-2), 12 views, 3 um noise, 2-6 sensors on a ring 3 m out",
+                     "the test's band 6 +- 0.5 is about 2.5 standard errors",
+                     "the chi2 above its 99.9 % quantile, 1/120 s apart",
+                     "within 3 standard errors of the truth"):
+        assert accuracy_findings(f"# p\n\n{sentence}.\n", "docs/p.md", docgen) == [], sentence
+    page = ("<!-- bench:study_verdict/correct begin -->\n| case | false alarms |\n|---|---|\n| x | 0.10 % (false alarm) |\n"
+            "<!-- bench:study_verdict/correct end -->\nNEES 6.19, 5.83 +- 0.11\n")
+    assert accuracy_findings(page, "docs/p.md", docgen) == [
+        "docs/p.md: 'NEES 6.19' (prose line 3)", "docs/p.md: '5.83 +- 0.11' (prose line 3)"][::-1] or \
+        len(accuracy_findings(page, "docs/p.md", docgen)) == 2
+    # a figure the page's own hidden test asserts is recomputed on every run: it may stay
+    page = "# p\n\npredicts to 2.13 um RMS\n<!--\nassert abs(cv - 2.13) < 0.006\n-->\n"
+    assert accuracy_findings(page, "docs/p.md", docgen) == []
 
 
 def test_tables_are_parsed_by_explicit_id_or_by_order(docgen):
