@@ -107,6 +107,11 @@ ACCURACY_FIGURES = [
     r"\b\d+\s*/\s*\d{2,}\b(?!\s*(?:s|Hz|px|mm)\b)",  # 0/3000, 400/400, 19/80: a count of a study
     r"\b\d[\d,]* of \d[\d,]*\s+(?:\w+\s+){0,2}?(?:rooms|runs|fits|records|kills|sets|rows|sweeps|cases|poses|views|"
     r"files|points|trials|scenes|flights)\b",
+    r"\b\d[\d,]* in \d[\d,]*\s+(?:\w+\s+){0,2}?(?:rooms|runs|fits|records|sets|rows|sweeps|cases|poses|views|files|"
+    r"trials|scenes)\b",
+    r"(?<!within )(?<!than )(?<!least )(?<!most )\b\d+(?:\.\d+)?\s*%\s+of (?:the |them|its )?(?:\w+\s+)?(?:rooms|runs|fits|"
+    r"records|rows|sets|cases|views|files|trials)\b",
+    r"\bof \d[\d,]* (?:rooms|runs|fits|records|sets|cases|views|files|trials),? \d[\d,]* (?:are|were|is)\b",
     r"\b\d[\d,]*\s+false alarms?\b",
     r"\bfalse alarms?\s+(?:on|in|of)\s+\d",
     r"\bfalse alarms?\s+\d+(?:\.\d+)?\s*%",
@@ -216,7 +221,9 @@ def test_every_allowed_accuracy_figure_is_still_on_its_page(docgen):
     # an allow-list entry whose text has gone would let the same words back in unseen: prune it
     for rel, entries in ACCURACY_ALLOWED.items():
         text = (ROOT / rel).read_text(encoding="utf-8")
-        for figure in entries:
+        for figure, why in entries.items():
+            if why.startswith("pending"):  # goes when the edit it waits for is made
+                continue
             assert figure in text, f"{rel}: allowed figure {figure!r} is no longer on the page"
 
 
@@ -236,7 +243,10 @@ def test_the_accuracy_scan_finds_the_figures_it_is_for(docgen):
                      "At 6 views the worst AoA 1-sigma is 0.43 deg near",
                      "ratios 0.42 and 0.44 (chi2/dof 36)",
                      "an RMS error of 0.071 deg with balanced channels",
-                     "the offset is 1.06 mm off without the gains"):
+                     "the offset is 1.06 mm off without the gains",
+                     "false-alarm rate 0.1 %; measured 1 in 2000 rooms",
+                     "the inflated one stays below it in 87 % of the rooms",
+                     "of 60 rooms 45 are refused as ambiguous"):
         page = f"# p\n\n{sentence}.\n"
         assert accuracy_findings(page, "docs/p.md", docgen), sentence
     # a hand-written result table is caught by its header
