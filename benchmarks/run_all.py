@@ -47,7 +47,7 @@ class Bench:
     quick: tuple[str, ...] = ()
     tables: tuple[str, ...] = ("1",)
     #: full-size duration on the 2-core development machine, s (for --list): measured for bench_scaling,
-    #: bench_pose and efficiency (at load 3-4), estimated from the quick run for the others
+    #: bench_pose, efficiency and the studies (at load 3-5), estimated from the quick run for the others
     about_s: int = 60
 
 
@@ -74,20 +74,20 @@ REGISTRY: dict[str, Bench] = {
     "efficiency": Bench((), ("--trials", "20"), ("1",), 60),
     # the accuracy studies (false alarms, detections, NEES, errors against the truth): their figures in the docs
     "study_verdict": Bench(("--correct", "1000", "--faults", "100", "--advice", "30"), ("--quick",),
-                           ("correct", "faults", "real", "advice"), 300),
-    "study_minima": Bench(("--fits", "1000"), ("--quick",), ("1",), 120),
-    "capture_study": Bench((), ("--quick",), ("views", "sweep"), 60),
-    "export_fit": Bench((), ("--quick",), ("1",), 20),
-    "study_selfcal": Bench(("--rooms", "300"), ("--quick",), ("sim", "sim_check", "timing", "lighthouse"), 120),
-    "study_tracking": Bench(("--scenes", "200"), ("--quick",), ("sim", "lighthouse"), 60),
-    "study_consistency_rows": Bench(("--files", "20000"), ("--quick",), ("rates", "lighthouse"), 60),
-    "study_reflections": Bench(("--rooms", "400"), ("--quick",), ("strong", "weak", "weak_other"), 90),
-    "study_tdm_carrier": Bench(("--records", "400"), ("--quick",), ("1",), 60),
-    "study_channel_sums": Bench(("--runs", "3000"), ("--quick",), ("1",), 15),
-    "study_angles_lighthouse": Bench((), ("--quick",), ("1",), 30),
-    "study_signal_noise": Bench(("--records", "4000"), ("--quick",), ("1", "2"), 60),
-    "zhang_real": Bench((), ("--quick",), ("1",), 10),
-    "reproduce_paper": Bench(("--trials", "200", "--gain-trials", "25"), ("--quick",), ("tables34", "remedies"), 300),
+                           ("correct", "faults", "real", "advice"), 110),
+    "study_minima": Bench(("--fits", "1000"), ("--quick",), ("1",), 50),
+    "capture_study": Bench((), ("--quick",), ("views", "sweep"), 50),
+    "export_fit": Bench((), ("--quick",), ("1",), 5),
+    "study_selfcal": Bench(("--rooms", "300"), ("--quick",), ("sim", "sim_check", "timing", "lighthouse"), 50),
+    "study_tracking": Bench(("--scenes", "200"), ("--quick",), ("sim", "lighthouse"), 45),
+    "study_consistency_rows": Bench(("--files", "20000"), ("--quick",), ("rates", "lighthouse"), 20),
+    "study_reflections": Bench(("--rooms", "400"), ("--quick",), ("strong", "weak", "weak_other"), 60),
+    "study_tdm_carrier": Bench(("--records", "400"), ("--quick",), ("1",), 15),
+    "study_channel_sums": Bench(("--runs", "3000"), ("--quick",), ("1",), 5),
+    "study_angles_lighthouse": Bench((), ("--quick",), ("1",), 10),
+    "study_signal_noise": Bench(("--records", "4000"), ("--quick",), ("1", "2"), 40),
+    "zhang_real": Bench((), ("--quick",), ("1",), 5),
+    "reproduce_paper": Bench(("--trials", "200", "--gain-trials", "25"), ("--quick",), ("tables34", "remedies"), 80),
 }
 
 

@@ -37,8 +37,8 @@ def test_every_region_names_a_registered_table_and_every_table_has_a_region(run_
 
 
 def test_every_benchmark_script_is_registered(run_all):
-    scripts = {p.stem for p in BENCH.glob("bench_*.py")}
-    assert scripts - set(run_all.REGISTRY) == set(), "a bench_*.py that tasks.py bench would not run"
+    scripts = {p.stem for p in [*BENCH.glob("bench_*.py"), *BENCH.glob("study_*.py")]}
+    assert scripts - set(run_all.REGISTRY) == set(), "a bench_*.py or study_*.py that tasks.py bench would not run"
     for name, bench in run_all.REGISTRY.items():
         src = (BENCH / f"{name}.py").read_text(encoding="utf-8")
         assert '"--markdown"' in src, f"{name}.py takes no --markdown"
@@ -320,6 +320,13 @@ print("|---|")
 print("| 7 |")
 '''
 FAKE_FAIL = 'import sys\nprint("| half |")\nsys.exit(1)\n'
+FAKE_SKIP = '''
+print("<!-- table: sim -->")
+print("| sim |")
+print("|---|")
+print("| 6.0 |")
+print("<!-- table: real skipped: lighthouse-lh1 is not in ../shared/data -->")
+'''
 
 
 def _fake_tree(tmp_path, docgen, monkeypatch, run_all):
@@ -382,6 +389,26 @@ def test_quick_mode_writes_only_when_asked_and_says_so(tmp_path, monkeypatch, ru
     # arguments after -- replace the registry's and write nothing unless asked
     assert run_all.main(["ok", "--", "5"]) == 0
     assert (tmp_path / "README.md").read_text() == new
+
+
+def test_a_table_a_study_skips_leaves_its_region_and_is_no_failure(tmp_path, monkeypatch, run_all, docgen, capsys):
+    # a real-data study without ../shared/data: its other tables are written, the skipped one keeps its region
+    _fake_tree(tmp_path, docgen, monkeypatch, run_all)
+    (tmp_path / "benchmarks" / "study_fake.py").write_text(FAKE_SKIP)
+    page = ("<!-- bench:study_fake/sim begin -->\n<!-- bench:study_fake/sim end -->\n"
+            "<!-- bench:study_fake/real begin -->\nthe last real-data table\n<!-- bench:study_fake/real end -->\n")
+    (tmp_path / "docs" / "guide" / "s.md").write_text(page)
+    monkeypatch.setattr(run_all, "REGISTRY", {"study_fake": run_all.Bench(tables=("sim", "real"))})
+    assert run_all.main(["study_fake"]) == 0
+    out = capsys.readouterr().out
+    assert "skipped table real (lighthouse-lh1 is not in ../shared/data)" in out
+    new = (tmp_path / "docs" / "guide" / "s.md").read_text()
+    assert "| 6.0 |" in new
+    assert "<!-- bench:study_fake/real begin -->\nthe last real-data table\n<!-- bench:study_fake/real end -->" in new
+    assert docgen.skipped_tables("<!-- table: a skipped: why -->\n| x |\n") == {"a": "why"}
+    # a table neither printed nor skipped is still a failure
+    (tmp_path / "benchmarks" / "study_fake.py").write_text(FAKE_SKIP.replace("skipped: lighthouse", "left: lighthouse"))
+    assert run_all.main(["study_fake"]) == 1
 
 
 def test_check_reports_unknown_tables_and_tables_without_a_region(tmp_path, monkeypatch, run_all, docgen):
