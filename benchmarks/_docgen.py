@@ -34,7 +34,7 @@ REGION_RE = re.compile(
 MARKER_RE = re.compile(r"^<!-- bench:(\S+) (begin|end) -->", re.M)
 #: An explicit table id printed by a benchmark just before its table (``_table.print_table(table_id=...)``).
 TABLE_ID_RE = re.compile(r"^<!-- table: ([A-Za-z0-9_.-]+) -->$")
-#: A table a benchmark could not produce on this machine (a real-data study without ``../shared/data``):
+#: A table a benchmark could not produce on this machine (a real-data study without the shared data folder beside the repository):
 #: ``<!-- table: ID skipped: REASON -->``; its region is left as it was (``_table.print_skipped``).
 SKIPPED_RE = re.compile(r"^<!-- table: ([A-Za-z0-9_.-]+) skipped: (.*) -->$")
 

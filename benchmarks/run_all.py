@@ -7,7 +7,7 @@ output as it comes, and then rewrites every generated region of README.md and do
 benchmark succeeded: the table, with the command, the date, the machine (CPU model, cores,
 load) and the library versions under it (see ``benchmarks/_docgen.py``). A benchmark that fails
 leaves its regions as they were; the exit status is then non-zero. A table that a benchmark says it
-skipped (``<!-- table: ID skipped: REASON -->``: a real-data study without ``../shared/data``) leaves
+skipped (``<!-- table: ID skipped: REASON -->``: a real-data study without the shared data folder beside the repository) leaves
 its region as it was, with a note, and is no failure.
 
 Usage::

@@ -70,7 +70,7 @@ def main(argv=None) -> int:
     a = ap.parse_args(argv)
     t = _tests()
     if not all((t.DATA / f / "angles.csv").exists() for f in FLIGHTS):
-        print_skipped("1", "lighthouse-lh1 is not in ../shared/data", a.markdown)
+        print_skipped("1", "lighthouse-lh1 is not in the shared data folder", a.markdown)
         return 0
     from psdcal.measure.angles_locate import load_angle_sensors, triangulate_table
     from psdcal.measure.angles_table import align_to_sensor, read_angles

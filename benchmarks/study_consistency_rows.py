@@ -57,7 +57,7 @@ def lighthouse(md: bool = False):
     from psdcal.measure.tracking import track
 
     if not lh.available():
-        print_skipped("lighthouse", "lighthouse-lh1 is not in ../shared/data", md)
+        print_skipped("lighthouse", "lighthouse-lh1 is not in the shared data folder", md)
         return
     g = lh.geometry()
     lines = []

@@ -198,7 +198,7 @@ def main(argv=None) -> int:
     if a.no_lighthouse:
         print_skipped("lighthouse", "run with --no-lighthouse", md)
     elif missing:
-        print_skipped("lighthouse", "lighthouse-lh1 is not in ../shared/data", md)
+        print_skipped("lighthouse", "lighthouse-lh1 is not in the shared data folder", md)
     else:
         print_table(["flight", "angle times", "chi2/dof", "frame fitted on", "steps scored",
                      "psdcal selfcal: median / p95 (mm)", "scale of the fit", "Crazyflie's estimate: median / p95 (mm)",

@@ -22,7 +22,7 @@ Usage::
 
     .venv/bin/python benchmarks/study_tracking.py [--scenes 200] [--seed0 0] [--lighthouse DIR] [--markdown]
 
-Without ``--lighthouse`` the flights are read from ``../shared/data/lighthouse-lh1`` beside the
+Without ``--lighthouse`` the flights are read from ``lighthouse-lh1`` of the shared data folder beside the
 repository when it is there (``--no-lighthouse``: never); otherwise that table is skipped.
 """
 from __future__ import annotations
@@ -42,8 +42,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))  # benchmarks/_table.py
 from _table import print_skipped  # noqa: E402
 
 H_S = 2.5e-4
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+import _lighthouse  # noqa: E402
+
 #: the Lighthouse data where the tests look for it: the shared data folder beside the repository
-LIGHTHOUSE = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "lighthouse-lh1"
+LIGHTHOUSE = _lighthouse.ROOT
 
 
 def scene(rng, *, n_emitters=3, n=200, d=3, q=1e6, sigma_v=500.0):
@@ -165,7 +168,7 @@ def main(argv=None) -> None:
     if args.no_lighthouse:
         print_skipped("lighthouse", "run with --no-lighthouse", True)
     elif args.lighthouse is None and not folder.is_dir():
-        print_skipped("lighthouse", "lighthouse-lh1 is not in ../shared/data", True)
+        print_skipped("lighthouse", "lighthouse-lh1 is not in the shared data folder", True)
     else:
         lighthouse(folder)
 

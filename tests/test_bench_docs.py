@@ -325,7 +325,7 @@ print("<!-- table: sim -->")
 print("| sim |")
 print("|---|")
 print("| 6.0 |")
-print("<!-- table: real skipped: lighthouse-lh1 is not in ../shared/data -->")
+print("<!-- table: real skipped: lighthouse-lh1 is not in the shared data folder -->")
 '''
 
 
@@ -392,7 +392,7 @@ def test_quick_mode_writes_only_when_asked_and_says_so(tmp_path, monkeypatch, ru
 
 
 def test_a_table_a_study_skips_leaves_its_region_and_is_no_failure(tmp_path, monkeypatch, run_all, docgen, capsys):
-    # a real-data study without ../shared/data: its other tables are written, the skipped one keeps its region
+    # a real-data study without the shared data folder: its other tables are written, the skipped one keeps its region
     _fake_tree(tmp_path, docgen, monkeypatch, run_all)
     (tmp_path / "benchmarks" / "study_fake.py").write_text(FAKE_SKIP)
     page = ("<!-- bench:study_fake/sim begin -->\n<!-- bench:study_fake/sim end -->\n"
@@ -401,7 +401,7 @@ def test_a_table_a_study_skips_leaves_its_region_and_is_no_failure(tmp_path, mon
     monkeypatch.setattr(run_all, "REGISTRY", {"study_fake": run_all.Bench(tables=("sim", "real"))})
     assert run_all.main(["study_fake"]) == 0
     out = capsys.readouterr().out
-    assert "skipped table real (lighthouse-lh1 is not in ../shared/data)" in out
+    assert "skipped table real (lighthouse-lh1 is not in the shared data folder)" in out
     new = (tmp_path / "docs" / "guide" / "s.md").read_text()
     assert "| 6.0 |" in new
     assert "<!-- bench:study_fake/real begin -->\nthe last real-data table\n<!-- bench:study_fake/real end -->" in new
