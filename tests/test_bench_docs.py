@@ -126,6 +126,7 @@ ACCURACY_FIGURES = [
     r"\b(?:RMS|p95|worst(?: AoA)? 1-sigma(?: is)?|error)\s+(?:of\s+)?\d+(?:\.\d+)?\s*" + _UNIT + r"\b",
     r"\b\d+(?:\.\d+)?\s*%\s+(?:or more\s+)?of the (?:errors|z-scores|predicted|rows|points|angles|positions|residuals)\b",
     r"\bratios?\s+(?:of\s+)?\d\.\d+",
+    r"\bmoves?\s+(?:\w+\s+){1,2}?by\s+\d+(?:\.\d+)?(?:-\d+)?\s*(?:standard errors?|sigma|px)\b",
     r"\b\d+(?:\.\d+)?\s*% \((?:false alarm|detected)\)",
 ]
 #: A table whose header names a measured accuracy is a result table (it must be generated).
@@ -149,6 +150,7 @@ ACCURACY_ALLOWED = {
         "8.00018 +- 0.00072": "an example of the held_values message's wording",
         "0.69 um RMS": "an example of a note's wording",
         "RMS of 3.3 um": "an example of a note's wording",
+        "moves cx_mm by 0.46 sigma": "an example of a note's wording",
     },
     "docs/guide/positioning.md": {
         "+- 0.3": "the band tests/test_pose_rooms.py asserts (6 +- 0.3), an input",
@@ -246,7 +248,8 @@ def test_the_accuracy_scan_finds_the_figures_it_is_for(docgen):
                      "the offset is 1.06 mm off without the gains",
                      "false-alarm rate 0.1 %; measured 1 in 2000 rooms",
                      "the inflated one stays below it in 87 % of the rooms",
-                     "of 60 rooms 45 are refused as ambiguous"):
+                     "of 60 rooms 45 are refused as ambiguous",
+                     "--reject 5 moves f by 3.3 standard errors"):
         page = f"# p\n\n{sentence}.\n"
         assert accuracy_findings(page, "docs/p.md", docgen), sentence
     # a hand-written result table is caught by its header
