@@ -23,6 +23,7 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_var, "1")
 
 import argparse
+import sys
 import importlib.util
 import tempfile
 import time
@@ -31,6 +32,8 @@ from pathlib import Path
 import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO / "benchmarks"))  # benchmarks/_table.py
+from _table import print_skipped, print_table  # noqa: E402
 
 
 def _sim():
@@ -146,36 +149,61 @@ def main(argv=None) -> int:
     ap.add_argument("--rooms", type=int, default=300)
     ap.add_argument("--steps", type=int, nargs=2, default=(15, 60))
     ap.add_argument("--no-lighthouse", action="store_true")
-    ap.add_argument("--markdown", action="store_true")
+    ap.add_argument("--no-timing", action="store_true", help="skip the 60 s paths' timing")
+    ap.add_argument("--quick", action="store_true", help="a smoke run: 12 rooms, no timing")
+    ap.add_argument("--markdown", action="store_true", help="the tables as Markdown (ids: sim, timing, lighthouse)")
     a = ap.parse_args(argv)
+    if a.quick:
+        a.rooms, a.no_timing = 12, True
+    md = a.markdown
     with tempfile.TemporaryDirectory() as d:
         tmp = Path(d)
         r = rooms(a.rooms, tuple(a.steps), tmp)
         all_nees = np.concatenate([np.array(v) for v in r["by_k"].values() if v])
-        print(f"{r['n']} rooms, {a.steps[0]}-{a.steps[1]} steps: NEES of {len(all_nees)} sensor poses "
-              f"mean {all_nees.mean():.3f} +- {all_nees.std(ddof=1) / np.sqrt(len(all_nees)):.3f} (ideal 6); "
-              f"chi2 check passed {r['passed']}/{r['n']}; median time {np.median(r['times']):.2f} s")
-        for k, v in r["by_k"].items():
-            if v:
-                v = np.array(v)
-                print(f"  {k} sensors: {len(v)} poses, mean NEES {v.mean():.3f} +- {v.std(ddof=1) / np.sqrt(len(v)):.3f}")
-        for k in (2, 4):
-            print(f"60 s path at 30 Hz, {k} sensors: self-calibration {timing_60s(tmp, k):.2f} s")
+
+        def cell(v):
+            v = np.asarray(v)
+            se = v.std(ddof=1) / np.sqrt(len(v)) if len(v) > 1 else float("nan")
+            return [str(len(v)), f"{v.mean():.2f} +- {se:.2f}"]
+
+        lines = [[f"{k}", *cell(v)] for k, v in r["by_k"].items() if v]
+        lines.append(["all", *cell(all_nees)])
+        print(f"{r['n']} rooms, {a.steps[0]}-{a.steps[1]} steps; the chi2 check passed in {r['passed']} of {r['n']} "
+              f"rooms; median time {np.median(r['times']):.2f} s")
+        print_table(["sensors", "sensor poses", "mean NEES (6 dof, ideal 6) +- its Monte Carlo standard error"],
+                    lines, md, "sim")
+        print()
+        print_table(["rooms", "steps", "chi2 check passed (design false-alarm rate 0.1 %)"],
+                    [[str(r["n"]), f"{a.steps[0]}-{a.steps[1]}", f"{r['passed']} of {r['n']}"]], md, "sim_check")
+        print()
+        if a.no_timing:
+            print_skipped("timing", "run with --no-timing", md)
+        else:
+            print_table(["60 s path at 30 Hz", "self-calibration (s, wall)"],
+                        [[f"{k} sensors", f"{timing_60s(tmp, k):.2f}"] for k in (2, 4)], md, "timing")
     runs = [(f, o) for f in ("lh1_crossingBeam_flight_00", "lh1_crossingBeam_flight_01") for o in (None, SWEEPS)]
+    lines, missing = [], False
     for folder, offsets in () if a.no_lighthouse else runs:
         lh = lighthouse(folder, offsets)
         if lh is None:
-            print("lighthouse-lh1 not present: skipped")
-        else:
-            how = "sweep times 1/120 s apart" if offsets else "one time per row"
-            print(f"lighthouse {lh['folder']} ({how}): {lh['steps']} steps, self-calibration {lh['time_s']:.2f} s, "
-                  f"chi2/dof {lh['chi2_per_dof']:.1f}")
-            for h in lh["halves"]:
-                print(f"  fit on {h['fit_on']}, {h['n']} steps scored: deck centre median {h['median_mm']:.2f} mm, "
-                      f"p95 {h['p95_mm']:.2f} mm (scale {h['scale']:.4f}); Crazyflie median {h['cf_median_mm']:.2f} "
-                      f"mm, p95 {h['cf_p95_mm']:.2f} mm; ratio {h['median_mm'] / h['cf_median_mm']:.2f}; with a "
-                      f"clock offset fitted on that half ({1000 * h['clock_offset_s']:+.0f} ms): median "
-                      f"{h['median_clock_mm']:.2f} mm, p95 {h['p95_clock_mm']:.2f} mm")
+            missing = True
+            break
+        how = "sweep times 1/120 s apart" if offsets else "one time per row"
+        for h in lh["halves"]:
+            lines.append([f"`{folder.replace('lh1_crossingBeam_', '')}`", how, f"{lh['chi2_per_dof']:.1f}",
+                          h["fit_on"], str(h["n"]), f"{h['median_mm']:.2f} / {h['p95_mm']:.2f}", f"{h['scale']:.4f}",
+                          f"{h['cf_median_mm']:.2f} / {h['cf_p95_mm']:.2f}", f"{h['median_mm'] / h['cf_median_mm']:.2f}",
+                          f"{1000 * h['clock_offset_s']:+.0f} ms: {h['median_clock_mm']:.2f} / {h['p95_clock_mm']:.2f}"])
+    print()
+    if a.no_lighthouse:
+        print_skipped("lighthouse", "run with --no-lighthouse", md)
+    elif missing:
+        print_skipped("lighthouse", "lighthouse-lh1 is not in the shared data folder", md)
+    else:
+        print_table(["flight", "angle times", "chi2/dof", "frame fitted on", "steps scored",
+                     "psdcal selfcal: median / p95 (mm)", "scale of the fit", "Crazyflie's estimate: median / p95 (mm)",
+                     "ratio of medians", "with a clock offset fitted on that half: median / p95 (mm)"], lines, md,
+                    "lighthouse")
     return 0
 
 
