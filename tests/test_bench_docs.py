@@ -139,13 +139,6 @@ MEASURED_CELL = re.compile(r"[-+~]?\d+\.\d+(?:e[-+]?\d+)?(?:\s*\S{0,4})?(?:\s*[(
 #: Figures of the prose that are no measurement of ours, or that a test recomputes on every run: the page, the
 #: exact text the scan finds, and why it may stay. Anything else the scan finds must go into a generated region.
 ACCURACY_ALLOWED = {
-    "README.md": {
-        # pending: the coordinator replaces this README paragraph by the text of bench-studies' report (the
-        # figures are those of study_consistency_rows/lighthouse); remove these three entries then
-        "16.6 mm\nmedian": "pending README edit (issue 22)",
-        "NEES of 3.1": "pending README edit (issue 22)",
-        "NEES of 3": "pending README edit (issue 22)",
-    },
     "docs/guide/verdict.md": {
         "8.00018 +- 0.00072": "an example of the held_values message's wording",
         "0.69 um RMS": "an example of a note's wording",
