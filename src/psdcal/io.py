@@ -335,6 +335,20 @@ _float_repr = float.__repr__
 _isfinite = math.isfinite
 
 
+_NUMBERS = frozenset((int, float))
+
+
+class _NotFinite(Exception):
+    """A NaN or infinity in a row of :func:`_number_repr` (the row is written by the general path: null)."""
+
+
+def _number_repr(v) -> str:
+    """JSON of a finite float or an int (``repr`` of either, exactly as :func:`_json_fast` writes them)."""
+    if v.__class__ is float and not _isfinite(v):
+        raise _NotFinite
+    return v.__repr__()
+
+
 def _json_fast(o, ind: str) -> str:
     t = type(o)
     if t is float:
@@ -356,6 +370,16 @@ def _json_fast(o, ind: str) -> str:
             return "[]"
         if all(type(v) is float for v in o) and all(map(_isfinite, o)):  # a numeric column: one join
             return "[\n" + inner + sep.join(map(_float_repr, o)) + "\n" + ind + "]"
+        if type(o[0]) is list and all(type(v) is list and v and _NUMBERS.issuperset(map(type, v)) for v in o):
+            # a table of numeric rows (the residuals, the points): each row joined at once
+            sep2 = ",\n" + inner + "  "
+            open_, close = "[\n" + inner + "  ", "\n" + inner + "]"
+            try:
+                rows = [open_ + sep2.join(map(_number_repr, v)) + close for v in o]
+            except _NotFinite:
+                pass
+            else:
+                return "[\n" + inner + sep.join(rows) + "\n" + ind + "]"
         parts = []
         for v in o:  # the scalars of a row inline (ints and floats), anything else by recursion
             tv = type(v)
