@@ -12,7 +12,6 @@ Writers are atomic: an output file is replaced only when writing succeeded.
 from __future__ import annotations
 
 import csv
-import json
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -323,6 +322,8 @@ def json_text(obj) -> str:
 
 def _json_reference(obj) -> str:
     """The reference of :func:`json_text`: the json module's indented encoder after :func:`_nan_to_none`."""
+    import json
+
     return json.dumps(_nan_to_none(obj), indent=2)
 
 
@@ -330,7 +331,10 @@ class _NotPlain(Exception):
     """A value :func:`_json_fast` leaves to the json module."""
 
 
-_json_str = json.encoder.encode_basestring_ascii  # json.dumps' default (ensure_ascii)
+try:  # json.dumps' default string encoder (ensure_ascii): the C function json.encoder uses, without loading json
+    from _json import encode_basestring_ascii as _json_str
+except ImportError:  # pragma: no cover - an interpreter without the C accelerator
+    from json.encoder import encode_basestring_ascii as _json_str
 _float_repr = float.__repr__
 _isfinite = math.isfinite
 
@@ -416,6 +420,8 @@ def read_json(path, what: str = "JSON file") -> dict:
     text = read_text_file(path, what)
     if not text.strip():
         raise InputError("empty file", path=path)
+
+    import json
 
     def no_constant(name):
         raise ValueError(f"{name} is not JSON (write null)")
