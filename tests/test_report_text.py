@@ -147,3 +147,23 @@ def test_table_is_riches_on_random_cells():
         buf = io.StringIO()
         rich_console.Console(file=buf, width=width, color_system=None).print(t)
         assert plain == buf.getvalue(), (title, header, rows, width)
+
+
+@pytest.mark.parametrize("columns", [None, "100", "abc", "25"])
+@pytest.mark.parametrize("terminal", [None, (0, 0), (123, 40)])
+def test_width_is_riches(monkeypatch, columns, terminal):
+    """The console width (COLUMNS, else a terminal on stdin/stdout/stderr, else 80) is rich's Console().width."""
+    import os
+
+    for k in ("COLUMNS", "FORCE_COLOR", "TTY_COMPATIBLE", "LINES"):
+        monkeypatch.delenv(k, raising=False)
+    if columns is not None:
+        monkeypatch.setenv("COLUMNS", columns)
+
+    def size(fd=1):
+        if terminal is None or fd != 0:
+            raise OSError("not a terminal")
+        return os.terminal_size(terminal)
+
+    monkeypatch.setattr(os, "get_terminal_size", size)
+    assert rt._plain_width() == rich_console.Console().width
