@@ -29,7 +29,7 @@ from functools import cached_property
 
 import numpy as np
 
-from psdcal import _stats
+from psdcal import _jit, _stats
 
 #: Polynomial degree of the smooth residual field of the ``structure`` check.
 FIELD_DEGREE = 3
@@ -74,6 +74,13 @@ class Linear:
             return self.pgram(np.asarray(B, dtype=float), btb)
         Bp = self.perp(B.dense() if isinstance(B, FieldParts) else np.asarray(B, dtype=float))
         return Bp.T @ Bp
+
+    @cached_property
+    def extra_gram(self) -> tuple[np.ndarray, np.ndarray]:
+        """(``extra^T extra``, the Gram matrix of ``(I - P) extra``): the left-out terms' test and their single
+        tests share them."""
+        btb = self.extra.T @ self.extra
+        return btb, self.gram_perp(self.extra, btb)
 
     @cached_property
     def gt(self) -> np.ndarray | None:
@@ -148,10 +155,17 @@ def linearise(result, exclude=None) -> Linear:
 
 
 def _pinv_sym(N) -> np.ndarray:
-    """Pseudo-inverse of a symmetric positive semi-definite matrix, scaled for conditioning."""
+    """Pseudo-inverse of a symmetric positive semi-definite matrix, scaled for conditioning.
+
+    ``np.linalg.pinv(Ns, rcond=1e-12, hermitian=True)`` of the scaled matrix written out (its eigenvalues below
+    1e-12 of the largest in magnitude dropped), without its checks and wrappers (some 50 us a call)."""
     d = np.sqrt(np.maximum(np.diag(N), 1e-300))
-    Ns = N / np.outer(d, d)
-    return np.linalg.pinv(Ns, rcond=1e-12, hermitian=True) / np.outer(d, d)
+    dd = d[:, None] * d[None, :]
+    lam, U = np.linalg.eigh(N / dd)
+    a = np.abs(lam)
+    big = a > 1e-12 * (a.max() if a.size else 0.0)
+    inv = np.divide(1.0, lam, out=np.zeros_like(lam), where=big)
+    return (U * inv) @ U.T / dd
 
 
 def _held(free, fixed, prior_names, G, Gh, gt, perp_pose, e_raw, e, rank):
@@ -203,6 +217,10 @@ def projector(G, Jpose, row_img, n_img, gram: bool = False):
     if dense:
         pos = None
         blocks = np.ascontiguousarray(Jpose).reshape(n_img, nr, 6)
+        if _jit.use_compiled(m // 2):
+            fast = _compiled_projector(blocks, G, gram)
+            if fast is not None:
+                return fast
     else:
         starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
         pos = np.arange(m) - starts[row_img]
@@ -270,6 +288,43 @@ def projector(G, Jpose, row_img, n_img, gram: bool = False):
         cb = np.matmul(Qbt, to_blocks(B)).reshape(-1, B.shape[1])
         cg = Qg.T @ B
         return (B.T @ B if btb is None else btb) - cb.T @ cb - cg.T @ cg
+
+    return perp, h, rank, perp_pose, pgram
+
+
+def _compiled_projector(blocks, G, gram):
+    """:func:`projector`'s functions from the compiled kernels (:mod:`psdcal.calibration._verdict_kernel`), for the
+    dense layout; None when a conditioning test sends the work to the numpy code."""
+    from psdcal.calibration import _verdict_kernel as vk
+
+    G = np.ascontiguousarray(G, dtype=float)
+    ok, Qb, Qg, h = vk.bases(blocks, G, float(CHOLQR_MAX_COND), float(CHOLQR_ONE_PASS_COND))
+    if not ok:
+        return None
+    rank = 6 * blocks.shape[0] + Qg.shape[1]
+
+    def perp_pose(B):
+        return vk.perp_pose(Qb, np.ascontiguousarray(B, dtype=float))
+
+    def perp(B):
+        return vk.perp(Qb, Qg, np.ascontiguousarray(B, dtype=float))
+
+    if not gram:
+        return perp, h, rank, perp_pose
+
+    Qbt = None
+
+    def pgram(B, btb=None):
+        nonlocal Qbt
+        if isinstance(B, FieldParts):  # the parts' coordinates, as the numpy reference (no dense fields)
+            if Qbt is None:
+                Qbt = np.ascontiguousarray(Qb.transpose(0, 2, 1))
+            cb = B.coords_blocks(Qbt)
+            cg = B.coords(Qg)
+            return (B.gram() if btb is None else btb) - cb.T @ cb - cg.T @ cg
+        B = np.ascontiguousarray(B, dtype=float)
+        btb = B.T @ B if btb is None else btb
+        return vk.pgram(Qb, Qg, B, np.ascontiguousarray(btb, dtype=float))
 
     return perp, h, rank, perp_pose, pgram
 
@@ -413,9 +468,13 @@ def _basis(lin: Linear, B):
     formed (small eigenproblems instead of a tall SVD).
     """
     parts = isinstance(B, FieldParts)
-    btb = B.gram() if parts else B.T @ B
+    if B is lin.extra:
+        btb, K = lin.extra_gram
+    else:
+        btb = B.gram() if parts else B.T @ B
+        K = lin.gram_perp(B, btb)
     scale = np.maximum(np.sqrt(np.maximum(np.diag(btb), 0.0)), 1e-300)
-    K = lin.gram_perp(B, btb) / np.outer(scale, scale)  # that of B's columns scaled to norm 1
+    K = K / np.outer(scale, scale)  # that of B's columns scaled to norm 1
     nb = np.sqrt(np.maximum(np.diag(K), 0.0))
     use = nb > 1e-4  # fields the model's parameters absorb (to 1e-4) test nothing
     if not use.any():
@@ -534,9 +593,10 @@ def terms_test(lin: Linear):
         return None
     # each term alone too (one degree of freedom: more power for a single missing term); Bonferroni over all tests
     single = []
-    Bn = lin.extra / np.maximum(np.sqrt(np.einsum("ij,ij->j", lin.extra, lin.extra)), 1e-300)
-    nb = np.sqrt(np.maximum(np.diag(lin.gram_perp(Bn)), 0.0))  # norms of the projected columns
-    bte = Bn.T @ lin.e  # = ((I - P) Bn)^T e: e is itself projected
+    btb, K = lin.extra_gram
+    norms = np.maximum(np.sqrt(np.maximum(np.diag(btb), 0.0)), 1e-300)
+    nb = np.sqrt(np.maximum(np.diag(K), 0.0)) / norms  # norms of the projected unit columns
+    bte = (lin.extra.T @ lin.e) / norms  # = ((I - P) Bn)^T e for the unit columns Bn: e is itself projected
     for k, name in enumerate(lin.extra_names):
         if nb[k] > 1e-4:  # as in explained(): a column the model absorbs tests nothing
             ek = float((bte[k] / nb[k]) ** 2)
@@ -632,31 +692,37 @@ def angle_jacobians(result, d_mm, names) -> tuple[np.ndarray, np.ndarray]:
     wy = 1.0 / (1.0 + ty * ty)
 
     K = x.shape[0]
-    A3 = np.zeros((K, 2, len(names)))  # A's rows (x0, y0, x1, ...) as (point, axis)
+    n = len(names)
+    # every parameter's column at once: the chain rule of the angles through x (tx = (x0 - cx - skew ty) / f,
+    # ty = (x1 - cy) / fy) with each parameter's derivatives of x, C, skew, f and fy (zero where it has none), the
+    # same arithmetic as one column at a time
+    dx0 = np.zeros((K, n))
+    dx1 = np.zeros((K, n))
+    dcx, dcy, dsk, df, dfy = (np.zeros(n) for _ in range(5))
+    for k, nm in enumerate(names):
+        if nm == "f_mm":
+            df[k] = 1.0
+            dfy[k] = 1.0 if intr.fy_mm is None else 0.0
+        elif nm == "fy_mm":
+            dfy[k] = 1.0
+        elif nm == "cx_mm":
+            dx0[:, k], dx1[:, k], dcx[k] = dx_dc[:, 0, 0], dx_dc[:, 1, 0], 1.0
+        elif nm == "cy_mm":
+            dx0[:, k], dx1[:, k], dcy[k] = dx_dc[:, 0, 1], dx_dc[:, 1, 1], 1.0
+        elif nm == "skew":
+            dsk[k] = 1.0
+        elif nm in DISTORTION_NAMES:
+            j = DISTORTION_NAMES.index(nm)
+            dx0[:, k], dx1[:, k] = dx_dcoef[:, 0, j], dx_dcoef[:, 1, j]
+    A3 = np.empty((K, 2, n))
+    tyc, txc = ty[:, None], tx[:, None]
+    dty = (dx1 - dcy - tyc * dfy) / fy
+    A3[:, 0, :] = wx[:, None] * ((dx0 - dcx - dsk * tyc - sk * dty - txc * df) / f)
+    A3[:, 1, :] = wy[:, None] * dty
     D = np.empty((K, 2, 2))
-
-    def chain(out, dx0=0.0, dx1=0.0, dcx=0.0, dcy=0.0, dsk=0.0, df=0.0, dfy=0.0):
-        # tx = (x0 - cx - skew ty) / f, ty = (x1 - cy) / fy
-        dty = (dx1 - dcy - ty * dfy) / fy
-        out[:, 0] = wx * ((dx0 - dcx - dsk * ty - sk * dty - tx * df) / f)
-        out[:, 1] = wy * dty
-
-    for k, n in enumerate(names):
-        if n == "f_mm":
-            chain(A3[:, :, k], df=1.0, dfy=1.0 if intr.fy_mm is None else 0.0)
-        elif n == "fy_mm":
-            chain(A3[:, :, k], dfy=1.0)
-        elif n == "cx_mm":
-            chain(A3[:, :, k], dx_dc[:, 0, 0], dx_dc[:, 1, 0], dcx=1.0)
-        elif n == "cy_mm":
-            chain(A3[:, :, k], dx_dc[:, 0, 1], dx_dc[:, 1, 1], dcy=1.0)
-        elif n == "skew":
-            chain(A3[:, :, k], dsk=1.0)
-        elif n in DISTORTION_NAMES:
-            j = DISTORTION_NAMES.index(n)
-            chain(A3[:, :, k], dx_dcoef[:, 0, j], dx_dcoef[:, 1, j])
-    for j in range(2):
-        chain(D[:, :, j], dx_dd[:, 0, j], dx_dd[:, 1, j])
+    dty = dx_dd[:, 1, :] / fy  # d(angle)/d(sensor point j): the chain above with dx = dx_dd[:, :, j] alone
+    D[:, 0, :] = wx[:, None] * ((dx_dd[:, 0, :] - sk * dty) / f)
+    D[:, 1, :] = wy[:, None] * dty
     A = A3.reshape(2 * K, len(names))
     return A, D
 
