@@ -199,3 +199,4 @@ def bases(Jb, G, max_cond, one_pass_cond):
             t += Qg[r, a] * Qg[r, a]
         h[r] += t
     return True, Qb, Qg, h
+

@@ -394,10 +394,16 @@ class FieldParts:
 
     def coords(self, Q) -> np.ndarray:
         """``Q^T B`` (q, k) for ``Q`` (2N, q), rows in B's order."""
-        Q = np.asarray(Q, dtype=float)
-        p = self.mono.shape[1]
-        poly = np.stack([Q[0::2].T @ self.mono, Q[1::2].T @ self.mono], axis=2).reshape(Q.shape[1], 2 * p)
-        return np.concatenate([poly, Q.T @ self.R], axis=1)
+        Q = np.ascontiguousarray(Q, dtype=float)
+        n, p = self.mono.shape
+        q = Q.shape[1]
+        # one product for both axes: Q's rows (x_i, y_i) side by side, (N, 2q); M[k, a q + j] = sum_i mono[i, k]
+        # Q[2 i + a, j], reordered to [j, 2 k + a]
+        M = self.mono.T @ Q.reshape(n, 2 * q)
+        out = np.empty((q, self.shape[1]))
+        out[:, :2 * p].reshape(q, p, 2)[...] = M.reshape(p, 2, q).transpose(2, 0, 1)
+        np.matmul(Q.T, self.R, out=out[:, 2 * p:])
+        return out
 
     def coords_blocks(self, Qbt) -> np.ndarray:
         """``Q_v^T B_v`` of each view, stacked (v * s, k), for ``Qbt`` (v, s, rows) whose rows are B's, view by view
