@@ -217,7 +217,7 @@ def projector(G, Jpose, row_img, n_img, gram: bool = False):
     if dense:
         pos = None
         blocks = np.ascontiguousarray(Jpose).reshape(n_img, nr, 6)
-        if _jit.use_compiled(m // 2):
+        if m // 2 <= COMPILED_PROJECTOR_MAX_POINTS and _jit.use_compiled(m // 2):
             fast = _compiled_projector(blocks, G, gram)
             if fast is not None:
                 return fast
@@ -290,6 +290,13 @@ def projector(G, Jpose, row_img, n_img, gram: bool = False):
         return (B.T @ B if btb is None else btb) - cb.T @ cb - cg.T @ cg
 
     return perp, h, rank, perp_pose, pgram
+
+
+#: Up to this many points the projector comes from the compiled kernels (:func:`_compiled_projector`); above it
+#: from numpy, whose BLAS products of the tall blocks are as fast there (the verdict on Zhang's 5 x 256 points:
+#: 3.8 ms compiled against 4.0 ms numpy, 12 x 14: 1.8 against 2.1 ms; 20 x 1024: 32.4 against 31.8 ms; one
+#: run, process CPU time, the fastest of 15-150 calls, benchmarks/bench_default.py's sets).
+COMPILED_PROJECTOR_MAX_POINTS = 10_000
 
 
 def _compiled_projector(blocks, G, gram):
