@@ -218,9 +218,9 @@ def projector(G, Jpose, row_img, n_img, gram: bool = False):
         pos = None
         blocks = np.ascontiguousarray(Jpose).reshape(n_img, nr, 6)
         if m // 2 <= COMPILED_PROJECTOR_MAX_POINTS and _jit.use_compiled(m // 2):
-            fast = _compiled_projector(blocks, G, gram)
-            if fast is not None:
-                return fast
+            pre = _compiled_bases(blocks, G)
+            if pre is not None:
+                return _compiled_products(pre, nr, gram)
     else:
         starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
         pos = np.arange(m) - starts[row_img]
@@ -292,46 +292,49 @@ def projector(G, Jpose, row_img, n_img, gram: bool = False):
     return perp, h, rank, perp_pose, pgram
 
 
-#: Up to this many points the projector comes from the compiled kernels (:func:`_compiled_projector`); above it
-#: from numpy, whose BLAS products of the tall blocks are as fast there (the verdict on Zhang's 5 x 256 points:
-#: 3.8 ms compiled against 4.0 ms numpy, 12 x 14: 1.8 against 2.1 ms; 20 x 1024: 32.4 against 31.8 ms; one
-#: run, process CPU time, the fastest of 15-150 calls, benchmarks/bench_default.py's sets).
-COMPILED_PROJECTOR_MAX_POINTS = 10_000
+#: Up to this many points (two rows each) the projector comes from the compiled kernels (:func:`_compiled_bases`,
+#: :func:`_compiled_products`: loops, where a numpy call's overhead dominates); above it from numpy, whose BLAS
+#: products of the tall blocks are faster there. The verdict on 12 x 14 points: 1.8 ms compiled, 2.1 ms numpy;
+#: 6 x 14: 1.7 and 2.0 ms; 5 x 64: 2.0 and 2.2 ms; Zhang's 5 x 256: 4.2 and 4.0 ms (one run, process CPU time,
+#: the fastest of 150 calls).
+COMPILED_PROJECTOR_MAX_POINTS = 500
 
 
-def _compiled_projector(blocks, G, gram):
-    """:func:`projector`'s functions from the compiled kernels (:mod:`psdcal.calibration._verdict_kernel`), for the
-    dense layout; None when a conditioning test sends the work to the numpy code."""
+def _compiled_bases(blocks, G):
+    """The projector's orthonormal bases from the compiled kernels (:mod:`psdcal.calibration._verdict_kernel`) for the
+    dense layout (the views' rows consecutive, as many each): (Qb (m, 6), Qg (m, g), leverages (m,), rank), None when a conditioning test sends the work to the
+    numpy code."""
     from psdcal.calibration import _verdict_kernel as vk
 
-    G = np.ascontiguousarray(G, dtype=float)
-    ok, Qb, Qg, h = vk.bases(blocks, G, float(CHOLQR_MAX_COND), float(CHOLQR_ONE_PASS_COND))
-    if not ok:
-        return None
-    rank = 6 * blocks.shape[0] + Qg.shape[1]
+    n_img, nr = blocks.shape[0], blocks.shape[1]
+    ok, Qb, Qg, h = vk.bases(blocks.reshape(n_img * nr, 6), nr, np.ascontiguousarray(G, dtype=float),
+                             float(CHOLQR_MAX_COND), float(CHOLQR_ONE_PASS_COND))
+    return (Qb, Qg, h, 6 * n_img + Qg.shape[1]) if ok else None
+
+
+def _compiled_products(pre, nr, gram):
+    """:func:`projector`'s functions as compiled loops over the bases ``pre`` (:func:`_compiled_bases`); ``nr`` rows
+    per view."""
+    from psdcal.calibration import _verdict_kernel as vk
+
+    Qb, Qg, h, rank = pre
 
     def perp_pose(B):
-        return vk.perp_pose(Qb, np.ascontiguousarray(B, dtype=float))
+        return vk.perp_pose(Qb, nr, np.ascontiguousarray(B, dtype=float))
 
     def perp(B):
-        return vk.perp(Qb, Qg, np.ascontiguousarray(B, dtype=float))
+        return vk.perp(Qb, nr, Qg, np.ascontiguousarray(B, dtype=float))
 
     if not gram:
         return perp, h, rank, perp_pose
 
-    Qbt = None
-
     def pgram(B, btb=None):
-        nonlocal Qbt
-        if isinstance(B, FieldParts):  # the parts' coordinates, as the numpy reference (no dense fields)
-            if Qbt is None:
-                Qbt = np.ascontiguousarray(Qb.transpose(0, 2, 1))
-            cb = B.coords_blocks(Qbt)
-            cg = B.coords(Qg)
-            return (B.gram() if btb is None else btb) - cb.T @ cb - cg.T @ cg
+        if isinstance(B, FieldParts):
+            btb = B.gram() if btb is None else btb
+            B = B.dense()
         B = np.ascontiguousarray(B, dtype=float)
         btb = B.T @ B if btb is None else btb
-        return vk.pgram(Qb, Qg, B, np.ascontiguousarray(btb, dtype=float))
+        return vk.pgram(Qb, nr, Qg, B, np.ascontiguousarray(btb, dtype=float))
 
     return perp, h, rank, perp_pose, pgram
 
