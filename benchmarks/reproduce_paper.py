@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""The paper's Tables 1-4, 7-8, Figure 9 and the gain remedies, as docs/reproduction.md and gain-calibration.md show them.
+"""The paper's Tables 1-4, 7-8, Figure 9 and the gain remedies, as reproduction.md and gain-calibration.md show them.
 
 Runs ``psdcal reproduce`` (every table, with Figure 9; the command line, in a temporary folder, one
 worker) and prints its Markdown tables: ``tables34``, the corrected cases of Tables 3-4 (cx, f and k1:
@@ -95,7 +95,8 @@ def main(argv=None) -> int:
     ap.add_argument("--gain-trials", type=int, default=25)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--quick", action="store_true", help="3 trials per case, 2 per remedy case")
-    ap.add_argument("--markdown", action="store_true", help="(the tables are Markdown; ids tables34, remedies, table1, table2, table7, table8, figure9)")
+    ap.add_argument("--markdown", action="store_true",
+                    help="(the tables are Markdown; ids tables34, remedies, table1, table2, table7, table8, figure9)")
     a = ap.parse_args(argv)
     exe = Path(sys.executable).with_name("psdcal")
     cmd = [str(exe) if exe.exists() else "psdcal", "reproduce", "--workers", "1", "--seed", str(a.seed)]

@@ -511,3 +511,23 @@ def test_bad_usage_is_exit_2(run_all, capsys):
     assert run_all.main(["--write-docs", "--no-write-docs"]) == 2
     assert run_all.main(["no-such-bench"]) == 2
     assert "no benchmark matches" in capsys.readouterr().err
+
+
+def test_reproduce_paper_reads_the_tables_of_psdcal_reproduce(tmp_path):
+    # the columns the docs show, picked by name from the command's table_N.md and report.md (no run here)
+    rp = _load("reproduce_paper")
+    head = ("| column | parameter | ideal | ours | paper | mean agrees | std agrees | unbiased | n (failed) |\n"
+            "|---|---|---|---|---|---|---|---|---|\n")
+    row = "| {c} | f_mm | 25 | 24.9 (0.3) | 25.1 | yes | n/a | no | 200 (0) |\n"
+    for n in (1, 7):
+        body = head + row.format(c="DLT") + row.format(c="x")
+        (tmp_path / f"table_{n}.md").write_text(f"# Table {n}\n\ntext\n\n{body}\n## Notes\n\n| a |\n|---|\n")
+    h1, b1 = rp.paper_table(tmp_path, 1, "200")
+    assert h1 == ["case", "parameter", "ideal", "ours, mean (std) of 200 trials", "paper", "mean agrees", "unbiased",
+                  "n (failed)"]
+    assert b1 == [[c, "f_mm", "25", "24.9 (0.3)", "25.1", "yes", "no", "200 (0)"] for c in ("DLT", "x")]
+    h7, b7 = rp.paper_table(tmp_path, 7, "200")
+    assert "std agrees" in h7 and len(b7) == 2 and b7[0][6] == "n/a"
+    (tmp_path / "report.md").write_text("# r\n\n| other |\n|---|\n| 1 |\n\n## Figure 9 (errors)\n\n| lens | case | "
+                                        "AoA max (deg) |\n|---|---|---|\n| lens1 | 40 dB | 0.1 |\n\nThe paper: ...\n")
+    assert rp.figure9(tmp_path) == (["lens", "case", "AoA max (deg)"], [["lens1", "40 dB", "0.1"]])
