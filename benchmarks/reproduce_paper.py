@@ -1,14 +1,14 @@
 #!/usr/bin/env python3
 """The paper's Tables 1-4, 7-8, Figure 9 and the gain remedies, as reproduction.md and gain-calibration.md show them.
 
-Runs ``psdcal reproduce`` (every table, with Figure 9; the command line, in a temporary folder, one
-worker) and prints its Markdown tables: ``tables34``, the corrected cases of Tables 3-4 (cx, f and k1:
+Runs ``psdcal reproduce`` (every table, with Figure 9; the command line, in a temporary folder, on
+``--workers`` processes: the tables do not depend on their number) and prints its Markdown tables: ``tables34``, the corrected cases of Tables 3-4 (cx, f and k1:
 our mean (std) beside the paper's); ``remedies``, the AoA error of each gain remedy on the Tables 5-6
 cases (from its ``gains.md``); ``table1``, ``table2`` (the linear stage, noiseless), ``table7``,
 ``table8`` (PSD distortion, imbalance and noise), each row ours beside the paper's with the agreement
 flags of ``table_N.md``; and ``figure9``, the errors at S = 5 m from the mean + 2 std parameters.
 
-    .venv/bin/python benchmarks/reproduce_paper.py [--trials 200] [--gain-trials 25] [--markdown]
+    .venv/bin/python benchmarks/reproduce_paper.py [--trials 200] [--gain-trials 25] [--workers 1] [--markdown]
     .venv/bin/python benchmarks/reproduce_paper.py --quick      (3 trials per case, 2 per remedy case)
 
 At the paper's 200 trials per case the whole run takes a few minutes of one core (Tables 1-2 are
@@ -94,12 +94,13 @@ def main(argv=None) -> int:
     ap.add_argument("--trials", type=int, default=200)
     ap.add_argument("--gain-trials", type=int, default=25)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--workers", type=int, default=1, help="worker processes (the same tables for any number)")
     ap.add_argument("--quick", action="store_true", help="3 trials per case, 2 per remedy case")
     ap.add_argument("--markdown", action="store_true",
                     help="(the tables are Markdown; ids tables34, remedies, table1, table2, table7, table8, figure9)")
     a = ap.parse_args(argv)
     exe = Path(sys.executable).with_name("psdcal")
-    cmd = [str(exe) if exe.exists() else "psdcal", "reproduce", "--workers", "1", "--seed", str(a.seed)]
+    cmd = [str(exe) if exe.exists() else "psdcal", "reproduce", "--workers", str(a.workers), "--seed", str(a.seed)]
     cmd += ["--quick"] if a.quick else ["--trials", str(a.trials), "--gain-trials", str(a.gain_trials)]
     with tempfile.TemporaryDirectory() as d:
         out = Path(d) / "repro"

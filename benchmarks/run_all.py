@@ -47,7 +47,8 @@ class Bench:
     quick: tuple[str, ...] = ()
     tables: tuple[str, ...] = ("1",)
     #: full-size duration on the 2-core development machine, s (for --list): measured for bench_pose, efficiency and
-    #: the studies (at load 3-5: an idle machine takes less); bench_startup, bench_opencv and bench_default bounded
+    #: the studies (at load 3-5 and on one process: an idle machine takes less, about half for those given two
+    #: processes); bench_startup, bench_opencv and bench_default bounded
     #: by the interval between their captions' start times in the run of 2026-11-26 (load about 1); bench_scaling
     #: scaled from its measured 480 s at --repeats 9 (its scipy reference, 1-9 s a call, is most of it); estimated
     #: from the quick run for the others
@@ -77,9 +78,10 @@ REGISTRY: dict[str, Bench] = {
     "bench_dashboard": Bench(("--reps", "3", "--seconds", "10"), ("--reps", "1", "--seconds", "2"), ("1", "2"), 120),
     "efficiency": Bench((), ("--trials", "20"), ("1",), 60),
     # the accuracy studies (false alarms, detections, NEES, errors against the truth): their figures in the docs
-    "study_verdict": Bench(("--correct", "1000", "--faults", "100", "--advice", "30"), ("--quick",),
+    # (the studies that can use both cores do: their tables are the same for any number of processes)
+    "study_verdict": Bench(("--correct", "1000", "--faults", "100", "--advice", "30", "--jobs", "2"), ("--quick",),
                            ("correct", "faults", "real", "advice"), 110),
-    "study_minima": Bench(("--fits", "1000"), ("--quick",), ("1",), 50),
+    "study_minima": Bench(("--fits", "1000", "--jobs", "2"), ("--quick",), ("1",), 50),
     "capture_study": Bench((), ("--quick",), ("views", "sweep"), 50),
     "export_fit": Bench((), ("--quick",), ("1",), 5),
     "study_selfcal": Bench(("--rooms", "300"), ("--quick",), ("sim", "sim_check", "timing", "lighthouse"), 50),
@@ -91,7 +93,7 @@ REGISTRY: dict[str, Bench] = {
     "study_angles_lighthouse": Bench((), ("--quick",), ("1",), 10),
     "study_signal_noise": Bench(("--records", "4000"), ("--quick",), ("1", "2"), 40),
     "zhang_real": Bench((), ("--quick",), ("1",), 5),
-    "reproduce_paper": Bench(("--trials", "200", "--gain-trials", "25"), ("--quick",),
+    "reproduce_paper": Bench(("--trials", "200", "--gain-trials", "25", "--workers", "2"), ("--quick",),
                              ("tables34", "remedies", "table1", "table2", "table7", "table8", "figure9"), 200),
 }
 
