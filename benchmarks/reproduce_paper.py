@@ -1,13 +1,18 @@
 #!/usr/bin/env python3
-"""The paper's Tables 3-4 and the gain remedies, as docs/reproduction.md and docs/guide/gain-calibration.md show them.
+"""The paper's Tables 1-4, 7-8, Figure 9 and the gain remedies, as reproduction.md and gain-calibration.md show them.
 
-Runs ``psdcal reproduce --table 3 --table 4 --table 5 --table 6`` (the command line, in a temporary folder,
-one worker) and prints two Markdown tables: ``tables34``, the corrected cases of Tables 3-4 (cx,
-f and k1: our mean (std) beside the paper's), and ``remedies``, the AoA error of each gain remedy
-on the Tables 5-6 cases (from its ``gains.md``).
+Runs ``psdcal reproduce`` (every table, with Figure 9; the command line, in a temporary folder, on
+``--workers`` processes: the tables do not depend on their number) and prints its Markdown tables: ``tables34``, the corrected cases of Tables 3-4 (cx, f and k1:
+our mean (std) beside the paper's); ``remedies``, the AoA error of each gain remedy on the Tables 5-6
+cases (from its ``gains.md``); ``table1``, ``table2`` (the linear stage, noiseless), ``table7``,
+``table8`` (PSD distortion, imbalance and noise), each row ours beside the paper's with the agreement
+flags of ``table_N.md``; and ``figure9``, the errors at S = 5 m from the mean + 2 std parameters.
 
-    .venv/bin/python benchmarks/reproduce_paper.py [--trials 200] [--gain-trials 25] [--markdown]
+    .venv/bin/python benchmarks/reproduce_paper.py [--trials 200] [--gain-trials 25] [--workers 1] [--markdown]
     .venv/bin/python benchmarks/reproduce_paper.py --quick      (3 trials per case, 2 per remedy case)
+
+At the paper's 200 trials per case the whole run takes a few minutes of one core (Tables 1-2 are
+linear fits; each other trial is one calibration).
 """
 from __future__ import annotations
 
@@ -42,17 +47,46 @@ def tables34(folder: Path) -> list[list[str]]:
     return lines
 
 
+def _first_table(text: str) -> tuple[list[str], list[list[str]]]:
+    """The header and the rows of the first Markdown table of ``text``."""
+    lines = text.splitlines()
+    start = next(k for k, line in enumerate(lines) if line.startswith("|"))
+    end = next((k for k in range(start, len(lines)) if not lines[k].startswith("|")), len(lines))
+    rows = [[c.strip() for c in line.strip().strip("|").split("|")] for line in lines[start:end]]
+    return rows[0], rows[2:]
+
+
+def _columns(head: list[str], body: list[list[str]], keep: tuple[str, ...]) -> tuple[list[str], list[list[str]]]:
+    idx = [head.index(k) for k in keep]
+    return [head[k] for k in idx], [[r[k] for k in idx] for r in body]
+
+
 def remedies(folder: Path) -> tuple[list[str], list[list[str]]]:
     """The remedies table of ``gains.md``: lens, case, remedy, AoA RMS, ratio to the reference."""
     text = (folder / "gains.md").read_text(encoding="utf-8")
-    part = text[text.index("## Remedies"):]
-    lines = part.splitlines()
-    start = next(k for k, line in enumerate(lines) if line.startswith("|"))
-    end = next((k for k in range(start, len(lines)) if not lines[k].startswith("|")), len(lines))
-    rows = [[c.strip() for c in line.strip().strip("|").split("|")] for line in lines[start:end]]  # the first table
-    head, body = rows[0], rows[2:]
-    keep = [head.index(k) for k in ("lens", "case", "remedy", "AoA RMS (deg)", "ratio to reference", "n (failed)")]
-    return [head[k] for k in keep], [[r[k] for k in keep] for r in body]
+    head, body = _first_table(text[text.index("## Remedies"):])
+    return _columns(head, body, ("lens", "case", "remedy", "AoA RMS (deg)", "ratio to reference", "n (failed)"))
+
+
+def paper_table(folder: Path, table: int, trials: str) -> tuple[list[str], list[list[str]]]:
+    """Table N of ``table_N.md``: case, parameter, ideal, ours, the paper's and the agreement flags.
+
+    The paper gives one noiseless set for Tables 1-2 and the noiseless columns of 7-8 (no std to compare:
+    ``std agrees`` is n/a there), so Tables 1-2 leave that column out.
+    """
+    head, body = _first_table((folder / f"table_{table}.md").read_text(encoding="utf-8"))
+    keep = ["column", "parameter", "ideal", "ours", "paper", "mean agrees", "std agrees", "unbiased", "n (failed)"]
+    if table in (1, 2):
+        keep.remove("std agrees")
+    head, body = _columns(head, body, tuple(keep))
+    head = [f"ours, mean (std) of {trials} trials" if h == "ours" else h for h in head]
+    return ["case" if h == "column" else h for h in head], body
+
+
+def figure9(folder: Path) -> tuple[list[str], list[list[str]]]:
+    """The Figure 9 table of ``report.md``: AoA and position errors at S = 5 m per lens and case."""
+    text = (folder / "report.md").read_text(encoding="utf-8")
+    return _first_table(text[text.index("## Figure 9"):])
 
 
 def main(argv=None) -> int:
@@ -60,12 +94,13 @@ def main(argv=None) -> int:
     ap.add_argument("--trials", type=int, default=200)
     ap.add_argument("--gain-trials", type=int, default=25)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--workers", type=int, default=1, help="worker processes (the same tables for any number)")
     ap.add_argument("--quick", action="store_true", help="3 trials per case, 2 per remedy case")
-    ap.add_argument("--markdown", action="store_true", help="(the tables are Markdown; ids tables34, remedies)")
+    ap.add_argument("--markdown", action="store_true",
+                    help="(the tables are Markdown; ids tables34, remedies, table1, table2, table7, table8, figure9)")
     a = ap.parse_args(argv)
     exe = Path(sys.executable).with_name("psdcal")
-    cmd = [str(exe) if exe.exists() else "psdcal", "reproduce", "--table", "3", "--table", "4", "--table", "5", "--table", "6",
-           "--workers", "1", "--seed", str(a.seed)]
+    cmd = [str(exe) if exe.exists() else "psdcal", "reproduce", "--workers", str(a.workers), "--seed", str(a.seed)]
     cmd += ["--quick"] if a.quick else ["--trials", str(a.trials), "--gain-trials", str(a.gain_trials)]
     with tempfile.TemporaryDirectory() as d:
         out = Path(d) / "repro"
@@ -81,6 +116,13 @@ def main(argv=None) -> int:
         print()
         head, body = remedies(out)
         print_table(head, body, True, "remedies")
+        for table in (1, 2, 7, 8):
+            print()
+            head, body = paper_table(out, table, trials)
+            print_table(head, body, True, f"table{table}")
+        print()
+        head, body = figure9(out)
+        print_table(head, body, True, "figure9")
     return 0
 
 
