@@ -37,6 +37,10 @@ _P10 = np.array([10.0**i for i in range(23)])  # exact doubles
 _LUT = np.frombuffer("".join(f"{i:02d}" for i in range(100)).encode(), dtype=np.uint8).copy()  # "00".."99"
 
 
+_U0, _U1, _U2, _U10, _U100 = (np.uint64(v) for v in (0, 1, 2, 10, 100))
+_U10000, _U1000000, _U100000000 = (np.uint64(10**k) for k in (4, 6, 8))
+
+
 @njit_inline
 def _scaled(ax, k):  # pragma: no cover - compiled
     """|x| 10^k with exact powers of ten (at most two roundings); -1.0 when |k| > 44."""
@@ -73,26 +77,22 @@ def _fmt_int(v, out, b):  # pragma: no cover - compiled
 
 
 @njit_inline
-def _fmt_float(x, bits, out, b):  # pragma: no cover - compiled
-    """Write ``"%.10g" % x`` into ``out[b:]`` (``out`` has SLOT bytes of room after ``b``: the ten digits
-    are written in their place, the bytes after the text may be overwritten); its length, or -1 (left to
-    Python)."""
+def _digits(x, bits):  # pragma: no cover - compiled
+    """The decimal form of ``"%.10g" % x`` without its text: ``(state, u, e, nd)``.
+
+    ``state``: 0 a finite non-zero value (``|x| = u 10^(e - 9)``, ``u`` (uint64) its ten digits, of which
+    the first ``nd`` are significant: the rest are zeros), 1 nan, 2 inf, 3 zero, -1 left to Python (near a
+    rounding tie, or an extreme exponent).
+    """
     if x != x:
-        out[b + 0], out[b + 1], out[b + 2] = 110, 97, 110  # nan
-        return 3
-    p = 0
-    if bits < 0:  # the sign bit (also of -0.0)
-        out[b + 0] = 45  # '-'
-        p = 1
+        return 1, _U0, 0, 0
     ax = abs(x)
     if ax == math.inf:
-        out[b + p], out[b + p + 1], out[b + p + 2] = 105, 110, 102  # inf
-        return p + 3
+        return 2, _U0, 0, 0
     if ax == 0.0:
-        out[b + p] = 48
-        return p + 1
+        return 3, _U0, 0, 0
     if ax < 1e-280 or ax > 1e290:
-        return -1
+        return -1, _U0, 0, 0
     # decimal exponent from the binary one (libm's log10 costs more than all the rest):
     # floor((e2 - 1) log10 2) <= log10|x| < that + 2; the check below moves it up by one
     e2 = ((bits >> 52) & 2047) - 1022  # |x| = mantissa 2^e2, mantissa in [0.5, 1)
@@ -111,64 +111,86 @@ def _fmt_float(x, bits, out, b):  # pragma: no cover - compiled
         e -= 1
         y = _scaled(ax, 9 - e)
     if not (1e9 <= y < 1e10):
-        return -1
+        return -1, _U0, 0, 0
     fl = math.floor(y)
     frac = y - fl
     if abs(frac - 0.5) < 1e-4:  # too near a tie for the scaling's rounding: Python decides
-        return -1
+        return -1, _U0, 0, 0
     m = np.int64(fl)
     if frac > 0.5:
         m += 1
     if m == 10_000_000_000:
         m = 1_000_000_000
         e += 1
-    # ten digits without integer division (slow here): two halves of five,
-    # each by (v * 1374389535) >> 37 == v // 100; written straight where the text wants them
-    hi = np.int64(m * 1e-5)
-    lo = m - hi * 100000
-    if lo < 0:
-        hi -= 1
-        lo += 100000
-    elif lo >= 100000:
-        hi += 1
-        lo -= 100000
-    fixed = -4 <= e < 10  # %g: fixed notation
-    q = b + p
-    if fixed and e < 0:  # "0.000" then the digits after the zeros
-        out[q], out[q + 1], out[q + 2], out[q + 3], out[q + 4] = 48, 46, 48, 48, 48
-        d0 = q + 1 - e
-    else:  # the digits from the text's start (a '.' is put in below), or after one byte (exponent form)
-        d0 = q if fixed else q + 1
-    for h in range(2):  # five digits of each half
-        v = hi if h == 0 else lo
-        at = d0 + 5 * h
-        q1 = (v * 1374389535) >> 37  # v // 100 for 0 <= v < 2^32
-        t2 = (v - q1 * 100) * 2
-        out[at + 3] = _LUT[t2]
-        out[at + 4] = _LUT[t2 + 1]
-        q2 = (q1 * 1374389535) >> 37
-        t2 = (q1 - q2 * 100) * 2
-        out[at + 1] = _LUT[t2]
-        out[at + 2] = _LUT[t2 + 1]
-        out[at] = 48 + q2
+    # the significant digits: m without its trailing zeros (unsigned: a division by a constant is a multiply)
+    u = np.uint64(m)
+    t = u
     nd = 10
-    while nd > 1 and out[d0 + nd - 1] == 48:
+    while nd > 1:
+        t10 = t // _U10
+        if t - t10 * _U10 != _U0:
+            break
+        t = t10
         nd -= 1
-    if fixed:
+    return 0, u, e, nd
+
+
+@njit_inline
+def _put_float(state, neg, u, e, nd, out, b):  # pragma: no cover - compiled
+    """Write the text of :func:`_digits`' ``(state, u, e, nd)`` (``neg``: the sign bit, also of -0.0) into
+    ``out[b:]`` (``out`` has SLOT bytes of room after ``b``; bytes after the text may be overwritten); its
+    length, or -1 (``state`` -1: left to Python)."""
+    if state == 1:
+        out[b + 0], out[b + 1], out[b + 2] = 110, 97, 110  # nan
+        return 3
+    if state < 0:
+        return -1
+    p = 0
+    if neg:
+        out[b + 0] = 45  # '-'
+        p = 1
+    if state == 2:
+        out[b + p], out[b + p + 1], out[b + p + 2] = 105, 110, 102  # inf
+        return p + 3
+    if state == 3:
+        out[b + p] = 48
+        return p + 1
+    # the ten digits as five pairs, each from u alone (no chain of divisions; unsigned: a division by a
+    # constant is a multiply), written where the text wants them: digit i at q + s + i, one byte further
+    # on from the '.' (at q + dot) on; "0.000" first (what a fixed number below 1 starts with; the digits
+    # overwrite it otherwise); the zeros after the nd significant digits are past the text's end, or the
+    # zeros of an integer before its '.'
+    q = b + p
+    if -4 <= e < 10:  # %g: fixed notation
         if e < 0:
-            return p + 1 - e + nd
-        if nd <= e + 1:  # an integer: no '.'
-            return p + e + 1
-        for i in range(nd - 1, e, -1):  # the fraction's digits one byte on, the '.' before them
-            out[q + i + 1] = out[q + i]
-        out[q + e + 1] = 46
-        return p + nd + 1
-    out[q] = out[q + 1]
-    if nd > 1:
-        out[q + 1] = 46
-        p += nd + 1
-    else:
-        p += 1
+            s, dot = -e, 1
+        else:
+            s, dot = 0, e + 1
+    else:  # d.ddde+XX
+        s, dot = 0, 1
+    out[q], out[q + 1], out[q + 2], out[q + 3], out[q + 4] = 48, 46, 48, 48, 48
+    i2 = (u // _U100000000) * _U2
+    out[q + s + (s >= dot)] = _LUT[i2]
+    out[q + s + 1 + (s + 1 >= dot)] = _LUT[i2 + _U1]
+    i2 = ((u // _U1000000) % _U100) * _U2
+    out[q + s + 2 + (s + 2 >= dot)] = _LUT[i2]
+    out[q + s + 3 + (s + 3 >= dot)] = _LUT[i2 + _U1]
+    i2 = ((u // _U10000) % _U100) * _U2
+    out[q + s + 4 + (s + 4 >= dot)] = _LUT[i2]
+    out[q + s + 5 + (s + 5 >= dot)] = _LUT[i2 + _U1]
+    i2 = ((u // _U100) % _U100) * _U2
+    out[q + s + 6 + (s + 6 >= dot)] = _LUT[i2]
+    out[q + s + 7 + (s + 7 >= dot)] = _LUT[i2 + _U1]
+    i2 = (u % _U100) * _U2
+    out[q + s + 8 + (s + 8 >= dot)] = _LUT[i2]
+    out[q + s + 9 + (s + 9 >= dot)] = _LUT[i2 + _U1]
+    out[q + dot] = 46
+    if s + nd > dot:
+        p += s + nd + 1
+    else:  # an integer (fixed notation): no '.'
+        p += dot
+    if -4 <= e < 10:
+        return p
     out[b + p] = 101  # 'e'
     out[b + p + 1] = 45 if e < 0 else 43
     p += 2
@@ -179,6 +201,18 @@ def _fmt_float(x, bits, out, b):  # pragma: no cover - compiled
     out[b + p] = 48 + (ae // 10) % 10
     out[b + p + 1] = 48 + ae % 10
     return p + 2
+
+
+@njit_inline
+def _fmt_float(x, bits, out, b):  # pragma: no cover - compiled
+    """Write ``"%.10g" % x`` into ``out[b:]`` (``out`` has SLOT bytes of room after ``b``; the bytes after the
+    text may be overwritten); its length, or -1 (left to Python)."""
+    state, u, e, nd = _digits(x, bits)
+    return _put_float(state, bits < 0, u, e, nd, out, b)
+
+
+#: Rows whose floats' digits are found (first pass of :func:`format_rows`) before their text is written.
+_BLOCK_ROWS = 64
 
 
 @njit
@@ -196,35 +230,50 @@ def format_rows(F, I, kind, src, codes, table, offsets, out, fb_pos, fb_cell):  
     n = F.shape[0]
     ncol = kind.shape[0]
     FB = F.view(np.int64)  # the bits of the floats
+    # two passes over each block of rows: the floats' digits first (independent of one another: the
+    # processor overlaps them), then the text (each cell's place known from the one before)
+    nb = _BLOCK_ROWS * ncol
+    st = np.empty(nb, dtype=np.int64)
+    du = np.empty(nb, dtype=np.uint64)
+    de = np.empty(nb, dtype=np.int64)
+    dn = np.empty(nb, dtype=np.int64)
     p = 0
     nfb = 0
-    for r in range(n):
-        for j in range(ncol):
-            if j > 0:
-                out[p] = 44
-                p += 1
-            kd = kind[j]
-            if kd == 2:
-                c = codes[r, src[j]]
-                for i in range(offsets[c], offsets[c + 1]):
-                    out[p] = table[i]
+    for r0 in range(0, n, _BLOCK_ROWS):
+        r1 = min(n, r0 + _BLOCK_ROWS)
+        for r in range(r0, r1):
+            for j in range(ncol):
+                if kind[j] == 0:
+                    c = (r - r0) * ncol + j
+                    st[c], du[c], de[c], dn[c] = _digits(F[r, src[j]], FB[r, src[j]])
+        for r in range(r0, r1):
+            for j in range(ncol):
+                if j > 0:
+                    out[p] = 44
                     p += 1
-                continue
-            if kd == 1:
-                ln = _fmt_int(I[r, src[j]], out, p)
-            else:
-                ln = _fmt_float(F[r, src[j]], FB[r, src[j]], out, p)
-            if ln < 0:
-                if nfb < fb_pos.shape[0]:
-                    fb_pos[nfb] = p
-                    fb_cell[nfb] = r * ncol + j
-                    nfb += 1
+                kd = kind[j]
+                if kd == 2:
+                    c = codes[r, src[j]]
+                    for i in range(offsets[c], offsets[c + 1]):
+                        out[p] = table[i]
+                        p += 1
+                    continue
+                if kd == 1:
+                    ln = _fmt_int(I[r, src[j]], out, p)
                 else:
-                    return p, -1
-            else:
-                p += ln
-        out[p] = 10
-        p += 1
+                    c = (r - r0) * ncol + j
+                    ln = _put_float(st[c], FB[r, src[j]] < 0, du[c], de[c], dn[c], out, p)
+                if ln < 0:
+                    if nfb < fb_pos.shape[0]:
+                        fb_pos[nfb] = p
+                        fb_cell[nfb] = r * ncol + j
+                        nfb += 1
+                    else:
+                        return p, -1
+                else:
+                    p += ln
+            out[p] = 10
+            p += 1
     return p, nfb
 
 
