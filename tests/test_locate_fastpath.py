@@ -355,3 +355,42 @@ def test_prescan_spectrum_equals_abs_squared_fft():
         np.testing.assert_allclose(p[c], ref, rtol=0, atol=1e-12 * ref.max())
     assert np.isclose(wsum, w.sum()) and np.isclose(w2sum, (w * w).sum())
     np.testing.assert_allclose(freq, np.arange(n // 2 + 1) * 50_000.0 / n)
+
+
+def test_prescan_spectrum_buffers_kept_between_calls_change_nothing():
+    """The spectrum's buffers are reused from call to call: a spectrum returned earlier is not changed by a
+    later call (of another length, channel count or layout), and each equals the spectrum of one channel
+    at a time computed independently (numpy's own FFT of each windowed channel), exactly."""
+    from psdcal.signal.inspect import spectrum
+
+    rng = np.random.default_rng(11)
+    w_of = {}
+    results = []
+    for n, c, rows in ((4096, 4, True), (4096, 4, False), (1000, 4, True), (4096, 2, False), (4097, 4, True)):
+        x = rng.standard_normal((n, c)) * [1.0, 2.0, 0.5, 3.0][:c] + 0.2
+        xv = x.T if rows else np.ascontiguousarray(x.T)
+        results.append((xv.copy(), spectrum(xv, 10_000.0)))
+    for xv, (freq, p, wsum, w2sum) in results:
+        n = xv.shape[1]
+        w = w_of.setdefault(n, np.hanning(n))
+        for c in range(xv.shape[0]):
+            row = np.ascontiguousarray(xv[c])
+            z = np.fft.rfft((row - row.mean()) * w)
+            np.testing.assert_array_equal(p[c], z.real ** 2 + z.imag ** 2)
+        assert wsum == float(w.sum()) and w2sum == float((w * w).sum())
+
+
+def test_read_prefix_rows_copy_has_the_same_samples(tmp_path):
+    """``read_prefix(rows_copy=True)`` (the pre-scan without time multiplexing): the same (4, n) samples as
+    the plain read, over several chunks and a prefix shorter than the file, not a view of the file."""
+    from psdcal.signal.inspect import read_prefix
+
+    _, x = _sig(150_000)
+    np.save(tmp_path / "r.npy", np.ascontiguousarray(x.T))
+    rec = open_recording(tmp_path / "r.npy", RATE)
+    for n in (100, 65_536, 70_000, 150_000, 200_000):
+        a = read_prefix(rec, n)
+        b = read_prefix(rec, n, rows_copy=True)
+        assert a.shape == b.shape == (4, min(n, 150_000))
+        np.testing.assert_array_equal(a, b)
+        assert b.base is None or b.base.flags.writeable  # a copy, not a read-only view of the map

@@ -229,21 +229,22 @@ class RawStream:
         """The ``rows`` blocks of a regular file given as standard input (float64 frames in the documented
         order, no scale): read-only views of a memory map of the file from ``start`` (its position), in
         pieces of ``cap`` bytes as the reads would give them (what the file holds at each piece; the end of
-        the file is the end of the stream, as for a read); the file is left positioned after the last
-        frame taken."""
+        the file is the end of the stream, as for a read); the file is left where the reads would leave it
+        (at its end, or after the last frame taken when the caller stops early)."""
         import mmap
 
         fh = self._file
         fd = fh.fileno()
         frame = 32
         gran = mmap.ALLOCATIONGRANULARITY
-        pos, n = start, 0
+        pos, n, tail = start, 0, 0
         mm = None
         try:
             while True:
                 size = os.fstat(fd).st_size  # the file as it is now (a map past its end is a crash)
                 m = min(cap, max(0, size - pos)) // frame
-                if m == 0:
+                if m == 0:  # the end of the stream (a partial frame there is taken and dropped, as by the reads)
+                    tail, pos = max(0, size - pos), max(pos, size)
                     break
                 base = pos - pos % gran
                 if mm is not None:
@@ -265,8 +266,7 @@ class RawStream:
             fh.seek(pos)
             if self._close is not None:
                 self._close()
-        tail = os.fstat(fd).st_size - pos
-        if 0 < tail < frame:
+        if tail:
             print(f"psdcal: warning: {self.path}: the stream ended inside a frame ({tail} bytes dropped)",
                   file=sys.stderr)
 
