@@ -145,10 +145,11 @@ def _put_float(state, neg, u, e, nd, out, b):  # pragma: no cover - compiled
         return 3
     if state < 0:
         return -1
-    p = 0
-    if neg:
-        out[b + 0] = 45  # '-'
-        p = 1
+    # branch-free where the data decide (a sign, an exponent that changes from row to row: mispredicted
+    # branches cost more than the few operations they save): the '-' is written always, the text starts
+    # after it or on it
+    out[b] = 45  # '-'
+    p = 1 if neg else 0
     if state == 2:
         out[b + p], out[b + p + 1], out[b + p + 2] = 105, 110, 102  # inf
         return p + 3
@@ -161,13 +162,9 @@ def _put_float(state, neg, u, e, nd, out, b):  # pragma: no cover - compiled
     # overwrite it otherwise); the zeros after the nd significant digits are past the text's end, or the
     # zeros of an integer before its '.'
     q = b + p
-    if -4 <= e < 10:  # %g: fixed notation
-        if e < 0:
-            s, dot = -e, 1
-        else:
-            s, dot = 0, e + 1
-    else:  # d.ddde+XX
-        s, dot = 0, 1
+    fixed = -4 <= e < 10  # %g: fixed notation, else d.ddde+XX (s = 0, dot = 1)
+    s = max(-e, 0) if fixed else 0
+    dot = (max(e, 0) if fixed else 0) + 1
     out[q], out[q + 1], out[q + 2], out[q + 3], out[q + 4] = 48, 46, 48, 48, 48
     i2 = (u // _U100000000) * _U2
     out[q + s + (s >= dot)] = _LUT[i2]
@@ -185,11 +182,9 @@ def _put_float(state, neg, u, e, nd, out, b):  # pragma: no cover - compiled
     out[q + s + 8 + (s + 8 >= dot)] = _LUT[i2]
     out[q + s + 9 + (s + 9 >= dot)] = _LUT[i2 + _U1]
     out[q + dot] = 46
-    if s + nd > dot:
-        p += s + nd + 1
-    else:  # an integer (fixed notation): no '.'
-        p += dot
-    if -4 <= e < 10:
+    # the digits and their '.' (s + nd + 1), or an integer (fixed notation, s + nd <= dot): no '.'
+    p += max(s + nd + (s + nd > dot), dot)
+    if fixed:
         return p
     out[b + p] = 101  # 'e'
     out[b + p + 1] = 45 if e < 0 else 43
@@ -219,7 +214,7 @@ _BLOCK_ROWS = 64
 def format_rows(F, I, kind, src, codes, table, offsets, out, fb_pos, fb_cell):  # pragma: no cover - compiled
     """The CSV text (uint8) of a block of rows, written straight into ``out``; returns ``(length, n_left)``.
 
-    ``kind[j]``: 0 float (column ``src[j]`` of ``F``), 1 integer (of ``I``), 2 text
+    ``kind[j]``: 0 float (row ``src[j]`` of ``F``, a column a row), 1 integer (of ``I``), 2 text
     (``table[offsets[c]:offsets[c + 1]]`` with ``c = codes[row, src[j]]``); ``,`` between cells,
     ``\n`` after each row.  ``out`` must hold the longest possible text plus SLOT bytes.  A cell
     left to Python (a float near a rounding tie or with an extreme exponent, int64's minimum) is
@@ -227,7 +222,7 @@ def format_rows(F, I, kind, src, codes, table, offsets, out, fb_pos, fb_cell):  
     ``fb_cell`` (``n_left`` of them; when there are more than ``fb_pos`` holds, ``n_left`` is
     ``-1`` and the text is incomplete).
     """
-    n = F.shape[0]
+    n = F.shape[1]
     ncol = kind.shape[0]
     FB = F.view(np.int64)  # the bits of the floats
     # two passes over each block of rows: the floats' digits first (independent of one another: the
@@ -245,7 +240,7 @@ def format_rows(F, I, kind, src, codes, table, offsets, out, fb_pos, fb_cell):  
             for j in range(ncol):
                 if kind[j] == 0:
                     c = (r - r0) * ncol + j
-                    st[c], du[c], de[c], dn[c] = _digits(F[r, src[j]], FB[r, src[j]])
+                    st[c], du[c], de[c], dn[c] = _digits(F[src[j], r], FB[src[j], r])
         for r in range(r0, r1):
             for j in range(ncol):
                 if j > 0:
@@ -262,7 +257,7 @@ def format_rows(F, I, kind, src, codes, table, offsets, out, fb_pos, fb_cell):  
                     ln = _fmt_int(I[r, src[j]], out, p)
                 else:
                     c = (r - r0) * ncol + j
-                    ln = _put_float(st[c], FB[r, src[j]] < 0, du[c], de[c], dn[c], out, p)
+                    ln = _put_float(st[c], FB[src[j], r] < 0, du[c], de[c], dn[c], out, p)
                 if ln < 0:
                     if nfb < fb_pos.shape[0]:
                         fb_pos[nfb] = p
@@ -313,6 +308,23 @@ def _table(texts):
 def _codes(a: np.ndarray, values=None):
     """Integer codes of a text column and the UTF-8 table of its distinct values (``"%s" % v``)
     (``values``: ``a.tolist()`` when the caller has it)."""
+    if values is None and a.dtype.kind == "U":  # (no Python string per row) the distinct values one at a time
+        codes = np.empty(a.shape[0], dtype=np.int64)
+        left = np.ones(a.shape[0], dtype=bool)
+        distinct = []
+        while len(distinct) < 16:
+            i = int(np.argmax(left))
+            if not left[i]:
+                break
+            v = a[i]
+            same = a == v
+            codes[same] = len(distinct)
+            distinct.append(str(v))
+            left &= ~same
+        if len(distinct) < 16 or not left.any():
+            table, offsets = _table(distinct)
+            return codes, table, offsets
+        values = a.tolist()
     if values is None:
         values = a.tolist()
     distinct = list(dict.fromkeys(values))
@@ -373,9 +385,9 @@ def _rows_buffer(columns):
     fcols = [a for a, k in zip(cols, kinds) if k == "g"]
     icols = [a for a, k in zip(cols, kinds) if k == "d"]
     scols = [(a, lists.get(j)) for j, (a, k) in enumerate(zip(cols, kinds)) if k == "s"]
-    F = np.empty((n, max(1, len(fcols))))
+    F = np.empty((max(1, len(fcols)), n))  # a column a row: plain copies
     for j, a in enumerate(fcols):
-        F[:, j] = a  # float16/32 -> float64 is exact: the same decimal text
+        F[j] = a  # float16/32 -> float64 is exact: the same decimal text
     I = np.zeros((n, max(1, len(icols))), dtype=np.int64)
     for j, a in enumerate(icols):
         I[:, j] = a
@@ -415,7 +427,7 @@ def _rows_buffer(columns):
     text = memoryview(out)  # the segments joined without copies of their own
     for pos, r, j in zip(fb_pos[:n_left].tolist(), rr.tolist(), jj.tolist()):
         parts.append(text[at:pos])
-        parts.append((("%.10g" % F[r, src[j]]) if kind[j] == 0 else ("%d" % I[r, src[j]])).encode())
+        parts.append((("%.10g" % F[src[j], r]) if kind[j] == 0 else ("%d" % I[r, src[j]])).encode())
         at = pos
     parts.append(text[at:length])
     return b"".join(parts)

@@ -73,7 +73,7 @@ def locate_stream(stream, model, out_path, config: LocateConfig) -> LiveSummary:
 
     if config.tdm and len(config.carriers_hz) != 1:
         raise InputError("time multiplexing uses a single carrier", field="carrier_hz")
-    names = np.array(config.emitter_names(), dtype=object)
+    names = np.array(config.emitter_names(), dtype=str)  # (a text array: see locate)
     lockin = MultiCarrierLockin(stream.rate_hz, config.carriers_hz, config.window_s)
     seg = None
     if config.tdm:

@@ -337,7 +337,7 @@ def _stream_single(recording: Recording, config: LocateConfig, out_path, order, 
     chunk = max(1, int(config.chunk_samples) // lockin.n_window) * lockin.n_window
     k = len(names)
     batch_rows = min(BATCH_ROWS, max(1, chunk // BATCH_SAMPLES_PER_ROW))
-    names_arr = np.array(names, dtype=object)
+    names_arr = np.array(names, dtype=str)  # (a text array: the CSV writer codes it without a Python string a row)
 
     if config.output_format not in ("csv", "npy"):
         raise InputError(f"output format must be 'csv' or 'npy', got {config.output_format!r}", field="format")
@@ -534,7 +534,7 @@ def amplitudes_to_csv(recording: Recording, out_path, config: LocateConfig, *, i
         keep = (a.sum(-1) > config.min_snr * np.sqrt(v.sum(-1))) & np.all(np.isfinite(a), axis=-1)
         sd = np.sqrt(v[keep])
         cols = {"t_s": t[keep], "emitter": nm[keep], "point_id": nm[keep],
-                "image_id": np.array([str(image_id)] * int(keep.sum()), dtype=object)}
+                "image_id": np.full(int(keep.sum()), str(image_id))}
         for c, name in enumerate(("vx1", "vx2", "vy1", "vy2")):
             cols[name] = a[keep, c]
             cols["sigma_" + name] = sd[:, c]
