@@ -206,6 +206,8 @@ def single_columns(with_plane: bool) -> tuple[str, ...]:
 def _no_nan_sigmas(alpha_deg, sigma_deg, model: SensorModel) -> None:
     """InputError when an angle is finite but its sigma is not (a calibration whose covariance or
     distortion overflows): a NaN sigma is never written as if it were a measurement's."""
+    if math.isfinite(sigma_deg.sum()):  # every sigma finite (the usual case): nothing to look for
+        return
     bad = np.all(np.isfinite(alpha_deg), axis=-1) & ~np.all(np.isfinite(sigma_deg), axis=-1)
     if np.any(bad):
         raise InputError(f"the calibration gives non-finite sigmas for {int(bad.sum())} finite angle(s) (its "
@@ -223,8 +225,10 @@ def _rows_single(t_s, names, a, var_a, model: SensorModel, distance_mm, min_snr,
     total = a.sum(-1)
     sd = np.sqrt(var_a.sum(-1))
     keep = total > min_snr * sd
-    keep &= np.all(np.isfinite(a), axis=-1)
-    t_s, names, a, var_a = t_s[keep], names[keep], a[keep], var_a[keep]
+    if not math.isfinite(total.sum()):  # (a finite total has four finite amplitudes: no row to look at else)
+        keep &= np.all(np.isfinite(a), axis=-1)
+    if not keep.all():  # (every row kept: the arrays as given, no copies)
+        t_s, names, a, var_a = t_s[keep], names[keep], a[keep], var_a[keep]
     if sums is not None:
         sums.add(a, var_a, compiled=fast)
     if fast:
@@ -292,7 +296,9 @@ def _demodulated(recording, lockin: MultiCarrierLockin, chunk: int, batch_window
     fill, j_first = 0, 0
     for t0, rows in recording.chunks(chunk, rows=True, check_finite=False, reuse_buffer=True, mapped=True):
         j0, coef, xx = lockin.fit_rows(t0, rows)
-        if lockin.pending_samples or not np.isfinite(xx).all():
+        # (the sums of squares are finite, hence their total, only when every sample is: one call, not two;
+        # a total that overflows only asks for the scan)
+        if lockin.pending_samples or not math.isfinite(xx.sum()):
             recording.check_block(rows, n_done, rows=True)
         n_done += rows.shape[0]
         out = []
