@@ -165,7 +165,8 @@ def _put_float(state, neg, u, e, nd, out, b):  # pragma: no cover - compiled
     fixed = -4 <= e < 10  # %g: fixed notation, else d.ddde+XX (s = 0, dot = 1)
     s = max(-e, 0) if fixed else 0
     dot = (max(e, 0) if fixed else 0) + 1
-    out[q], out[q + 1], out[q + 2], out[q + 3], out[q + 4] = 48, 46, 48, 48, 48
+    if s:
+        out[q], out[q + 1], out[q + 2], out[q + 3], out[q + 4] = 48, 46, 48, 48, 48
     i2 = (u // _U100000000) * _U2
     out[q + s + (s >= dot)] = _LUT[i2]
     out[q + s + 1 + (s + 1 >= dot)] = _LUT[i2 + _U1]
