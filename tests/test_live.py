@@ -271,6 +271,8 @@ def test_only_a_regular_file_is_mapped(cwd):
             fh.read(3)
             assert _regular_file_position(fh) == 3
             assert _regular_file_position(None) is None
+            with open(cwd / "w.bin", "wb") as wo:  # (a file that cannot be read: not mapped, the reads say why)
+                assert _regular_file_position(wo) is None
             s = open_stream("-", RATE, stdin=fh, dtype="int16")
             assert s._file is fh  # (kept, but int16 frames are converted from reads)
     finally:

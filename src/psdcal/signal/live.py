@@ -25,6 +25,7 @@ Sources (``open_stream``):
 """
 from __future__ import annotations
 
+import io
 import math
 import os
 import stat
@@ -285,10 +286,15 @@ def _regular_file_position(fh) -> int | None:
     if fh is None:
         return None
     try:
-        if not stat.S_ISREG(os.fstat(fh.fileno()).st_mode) or not fh.seekable():
+        st = os.fstat(fh.fileno())
+        if not stat.S_ISREG(st.st_mode) or not fh.seekable() or not fh.readable():
             return None
+        if st.st_size:  # the file can be mapped (not only read): a page of it, or it is read as it comes
+            import mmap
+
+            mmap.mmap(fh.fileno(), min(st.st_size, mmap.ALLOCATIONGRANULARITY), access=mmap.ACCESS_READ).close()
         return int(fh.tell())
-    except (OSError, ValueError, AttributeError):
+    except (OSError, ValueError, AttributeError, io.UnsupportedOperation):
         return None
 
 
