@@ -278,3 +278,24 @@ def test_only_a_regular_file_is_mapped(cwd):
     finally:
         os.close(r)
         os.close(w)
+
+
+def test_mapped_stdin_follows_a_file_that_grows(cwd):
+    """Frames appended to the file while it is read (a capture still being written) are read too, as the
+    reads would: the map is made again past its end, the blocks are the file's frames in order."""
+    from psdcal.signal.live import open_stream
+
+    rng = np.random.default_rng(6)
+    first, more = rng.standard_normal((3000, 4)), rng.standard_normal((2500, 4))
+    (cwd / "grow.bin").write_bytes(first.astype("<f8").tobytes())
+    got = []
+    with open(cwd / "grow.bin", "rb") as fh:
+        s = open_stream("-", RATE, stdin=fh)
+        for i, (_, b) in enumerate(s.chunks(rows=True, read_bytes=32 * 1000)):
+            assert not b.flags.writeable  # (mapped)
+            got.append(np.array(b))
+            if i == 0:
+                with open(cwd / "grow.bin", "ab") as app:
+                    app.write(more.astype("<f8").tobytes())
+    assert [g.shape[0] for g in got] == [1000] * 5 + [500]
+    np.testing.assert_array_equal(np.concatenate(got), np.concatenate([first, more]))

@@ -163,7 +163,10 @@ class RawStream:
     def check_rows(self, rows: np.ndarray, first_sample: int) -> None:
         """Raise :class:`InputError` naming the first non-finite sample of ``rows`` (m, 4), if any: the
         message of :meth:`chunks`' own check (``first_sample``: the index of the first row in the stream)."""
-        bad = ~np.isfinite(np.asarray(rows).T)
+        rows = np.asarray(rows)
+        if math.isfinite(np.sum(rows)):  # finite samples have a finite total (one pass); else sample by sample
+            return
+        bad = ~np.isfinite(rows.T)
         if np.any(bad):
             ch, i = np.argwhere(bad)[0]
             raise InputError(f"sample {first_sample + int(i)} of channel {ch + 1} is not a finite number",
@@ -239,7 +242,7 @@ class RawStream:
         frame = 32
         gran = mmap.ALLOCATIONGRANULARITY
         pos, n, tail = start, 0, 0
-        mm = None
+        mm, base, mapped_end = None, 0, 0  # one map of what the file holds, made again only when it grows
         try:
             while True:
                 size = os.fstat(fd).st_size  # the file as it is now (a map past its end is a crash)
@@ -247,10 +250,12 @@ class RawStream:
                 if m == 0:  # the end of the stream (a partial frame there is taken and dropped, as by the reads)
                     tail, pos = max(0, size - pos), max(pos, size)
                     break
-                base = pos - pos % gran
-                if mm is not None:
-                    _close_map(mm)
-                mm = mmap.mmap(fd, pos + m * frame - base, access=mmap.ACCESS_READ, offset=base)
+                if pos + m * frame > mapped_end:
+                    if mm is not None:
+                        _close_map(mm)
+                    base = pos - pos % gran
+                    mapped_end = pos + ((size - pos) // frame) * frame
+                    mm = mmap.mmap(fd, mapped_end - base, access=mmap.ACCESS_READ, offset=base)
                 now = time.perf_counter()
                 block = np.frombuffer(mm, dtype=np.float64, count=4 * m, offset=pos - base).reshape(m, 4)
                 if check:
