@@ -380,17 +380,20 @@ def test_prescan_spectrum_buffers_kept_between_calls_change_nothing():
         assert wsum == float(w.sum()) and w2sum == float((w * w).sum())
 
 
-def test_read_prefix_rows_copy_has_the_same_samples(tmp_path):
-    """``read_prefix(rows_copy=True)`` (the pre-scan without time multiplexing): the same (4, n) samples as
-    the plain read, over several chunks and a prefix shorter than the file, not a view of the file."""
-    from psdcal.signal.inspect import read_prefix
+def test_read_prefix_rows_view_has_the_same_samples(tmp_path):
+    """``read_prefix(rows_view=True)`` (the pre-scan without time multiplexing): the same (4, n) samples as
+    the plain read, within one chunk (a read-only view of the file) and over several chunks (a copy), a
+    prefix shorter than the file too; the spectrum of either is the same."""
+    from psdcal.signal.inspect import read_prefix, spectrum
 
     _, x = _sig(150_000)
     np.save(tmp_path / "r.npy", np.ascontiguousarray(x.T))
     rec = open_recording(tmp_path / "r.npy", RATE)
     for n in (100, 65_536, 70_000, 150_000, 200_000):
         a = read_prefix(rec, n)
-        b = read_prefix(rec, n, rows_copy=True)
+        b = read_prefix(rec, n, rows_view=True)
         assert a.shape == b.shape == (4, min(n, 150_000))
         np.testing.assert_array_equal(a, b)
-        assert b.base is None or b.base.flags.writeable  # a copy, not a read-only view of the map
+        assert b.flags.writeable == (n > 65_536)  # a view of the map within one chunk, else a copy
+        for u, v in zip(spectrum(a, RATE), spectrum(b, RATE)):
+            np.testing.assert_array_equal(u, v)

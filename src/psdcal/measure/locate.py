@@ -170,8 +170,9 @@ def prescan(recording: Recording, config: LocateConfig) -> tuple[float, list[str
     need_scan = rereadable and (config.check_carriers or (config.tdm and (window_s is None or config.schedule)))
     # one chunk's worth (the memory the user allowed), at least 4096 samples
     n_scan = min(max(int(config.chunk_samples), 4096), 1 << 18)
-    # (without time multiplexing only the spectrum reads it: the rows' copy, any layout gives the same spectrum)
-    x = read_prefix(recording, n_scan, rows_copy=not config.tdm) if need_scan else None
+    # (without time multiplexing only the spectrum reads it, at once: the rows as they lie in the file, any
+    # layout gives the same spectrum)
+    x = read_prefix(recording, n_scan, rows_view=not config.tdm) if need_scan else None
     scan = None
     if config.tdm and x is not None and x.shape[1] >= 64 and (window_s is None or config.schedule):
         scan = scan_tdm(x, recording.rate_hz, config.carriers_hz[0], min_snr=config.min_snr)

@@ -75,20 +75,22 @@ class Carrier:
     precision_hz: float = math.nan
 
 
-def read_prefix(recording, max_samples: int = DEFAULT_SCAN_SAMPLES, *, rows_copy: bool = False) -> np.ndarray:
+def read_prefix(recording, max_samples: int = DEFAULT_SCAN_SAMPLES, *, rows_view: bool = False) -> np.ndarray:
     """The first ``max_samples`` samples (4, n) of a :class:`~psdcal.signal.recording.Recording`.
 
-    ``rows_copy``: for a ``.npy`` recording read as rows, the (4, n) transpose of a copy of the rows
-    (the same values; a plain copy costs less than a transposing one, and :func:`spectrum` gives the
-    same spectrum for either layout) instead of a (4, n) C-order array.
+    ``rows_view``: for a ``.npy`` recording read as rows, the (4, n) transpose of the rows as they lie
+    (the same values; :func:`spectrum` gives the same spectrum for either layout): a prefix within one
+    chunk is then a read-only view of the file's memory map (no copy; the map stays while the view is
+    held; read it at once, as a block of :meth:`Recording.chunks`), a longer one a copy of the rows (no
+    transposing copy).  Without it, a (4, n) C-order copy.
     """
     parts, n = [], 0
     # a .npy as rows: a (n, 4) file is then read without a transposing copy (the same checked samples)
     rows = getattr(recording, "kind", None) == "npy"
     kw = {"rows": True, "mapped": True} if rows else {}  # (mapped: views of the file, checked, no copy)
     for _, block in recording.chunks(min(int(max_samples), 1 << 16), **kw):
-        if rows and rows_copy:  # copied now: a mapped block is valid until the next one is asked for
-            parts.append(np.array(block[: max_samples - n], copy=True))
+        if rows and rows_view:
+            parts.append(block[: max_samples - n])
             n += parts[-1].shape[0]
         else:
             parts.append(block[: max_samples - n].T if rows else block[:, : max_samples - n])
@@ -97,7 +99,7 @@ def read_prefix(recording, max_samples: int = DEFAULT_SCAN_SAMPLES, *, rows_copy
             break
     if not parts:
         return np.zeros((4, 0))
-    if rows and rows_copy:
+    if rows and rows_view:
         return (parts[0] if len(parts) == 1 else np.concatenate(parts, axis=0)).T
     return np.concatenate(parts, axis=1)
 
