@@ -310,22 +310,20 @@ def _codes(a: np.ndarray, values=None):
     """Integer codes of a text column and the UTF-8 table of its distinct values (``"%s" % v``)
     (``values``: ``a.tolist()`` when the caller has it)."""
     if values is None and a.dtype.kind == "U":  # (no Python string per row) the distinct values one at a time
-        codes = np.empty(a.shape[0], dtype=np.int64)
-        left = np.ones(a.shape[0], dtype=bool)
-        distinct = []
-        while len(distinct) < 16:
-            i = int(np.argmax(left))
-            if not left[i]:
-                break
-            v = a[i]
+        first = a[0]
+        other = a != first
+        codes = other.astype(np.int64)  # 0: the first value; 1: another one (the second, when only two)
+        distinct = [str(first)]
+        while len(distinct) < 16 and other.any():
+            v = a[int(other.argmax())]
             same = a == v
-            codes[same] = len(distinct)
             distinct.append(str(v))
-            left &= ~same
-        if len(distinct) < 16 or not left.any():
+            if len(distinct) > 2:
+                codes[same] = len(distinct) - 1
+            other &= ~same
+        if not other.any():
             table, offsets = _table(distinct)
             return codes, table, offsets
-        values = a.tolist()
     if values is None:
         values = a.tolist()
     distinct = list(dict.fromkeys(values))
@@ -398,13 +396,16 @@ def _rows_buffer(columns):
     for j, k in enumerate(kinds):
         src[j] = count[k]
         count[k] += 1
-    codes = np.zeros((n, max(1, len(scols))), dtype=np.int64)
+    codes = None if len(scols) == 1 else np.zeros((n, max(1, len(scols))), dtype=np.int64)
     tables, offs, base = [], [np.zeros(1, dtype=np.int64)], 0
     n_codes = 0
     longest_text = 0
     for j, (a, values) in enumerate(scols):
         c, table, offsets = _codes(a, values)
-        codes[:, j] = c + n_codes
+        if codes is None:  # one text column: its codes as they are
+            codes = c.reshape(n, 1)
+        else:
+            codes[:, j] = c + n_codes
         n_codes += len(offsets) - 1
         tables.append(table[: offsets[-1]])
         offs.append(offsets[1:] + base)

@@ -240,7 +240,7 @@ def _rows_single(t_s, names, a, var_a, model: SensorModel, distance_mm, min_snr,
         imp = impact_from_amplitudes(a, model, var_a, on_zero="nan")
         d, cov_d, dd_dg = imp.d_mm, imp.cov_d_mm2, imp.dd_dgains
     res = angles_from_points(d, model, cov_d, dd_dg, derivatives=False)
-    res_d = np.sqrt(np.clip(np.diagonal(cov_d, axis1=-2, axis2=-1), 0.0, None))
+    res_d = np.sqrt(np.maximum(np.diagonal(cov_d, axis1=-2, axis2=-1), 0.0))  # (np.clip(., 0, None) is this)
     alpha = res.alpha_rad * _DEG
     sa = res.sigma_alpha_rad * _DEG
     _no_nan_sigmas(alpha, sa, model)
