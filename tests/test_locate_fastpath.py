@@ -397,3 +397,36 @@ def test_read_prefix_rows_view_has_the_same_samples(tmp_path):
         assert b.flags.writeable == (n > 65_536)  # a view of the map within one chunk, else a copy
         for u, v in zip(spectrum(a, RATE), spectrum(b, RATE)):
             np.testing.assert_array_equal(u, v)
+
+
+def test_mapped_file_read_in_blocks_of_several_chunks_changes_nothing(tmp_path, monkeypatch):
+    """A memory-mapped ``.npy`` is read in blocks of ``MAPPED_READ_CHUNKS`` chunks: the same CSV bytes as one
+    chunk at a time, the same one-line error naming a bad sample late in the file, the same truncation
+    message; progress is still reported up to every sample."""
+    import psdcal.measure.locate as loc
+
+    m, x = _sig(120_000)
+    rows = np.ascontiguousarray(x.T)
+    np.save(tmp_path / "r.npy", rows)
+    cfg = LocateConfig(carriers_hz=(1000.0, 1300.0), window_s=0.01, distance_mm=5000.0, chunk_samples=10_000)
+    texts, seen = [], []
+    for k in (1, 4, 100):
+        monkeypatch.setattr(loc, "MAPPED_READ_CHUNKS", k)
+        progress = []
+        locate_to_csv(open_recording(tmp_path / "r.npy", RATE), m, tmp_path / f"o{k}.csv", cfg,
+                      progress=progress.append)
+        texts.append((tmp_path / f"o{k}.csv").read_bytes())
+        seen.append(progress)
+    assert texts[0] == texts[1] == texts[2]
+    assert all(p[-1] == 120_000 and p == sorted(p) for p in seen) and len(seen[1]) < len(seen[0])
+    bad = rows.copy()
+    bad[97_531, 2] = np.nan
+    np.save(tmp_path / "bad.npy", bad)
+    msgs = []
+    for k in (1, 4):
+        monkeypatch.setattr(loc, "MAPPED_READ_CHUNKS", k)
+        with pytest.raises(InputError) as ei:
+            locate_to_csv(open_recording(tmp_path / "bad.npy", RATE), m, tmp_path / "b.csv", cfg)
+        msgs.append(str(ei.value))
+    assert msgs[0] == msgs[1] and "sample 97531 of channel vy1" in msgs[0]
+    assert not (tmp_path / "b.csv").exists()

@@ -271,6 +271,10 @@ BATCH_ROWS = 2048
 BATCH_SAMPLES_PER_ROW = 32
 
 
+#: Chunks read at once from a memory-mapped ``.npy`` recording (:func:`_demodulated`).
+MAPPED_READ_CHUNKS = 4
+
+
 def _demodulated(recording, lockin: MultiCarrierLockin, chunk: int, batch_windows: int = 1):
     """Yield ``(samples read so far, [WindowBlock, ...])`` per chunk of ``recording``.
 
@@ -291,11 +295,15 @@ def _demodulated(recording, lockin: MultiCarrierLockin, chunk: int, batch_window
             n_done += block.shape[1]
             yield n_done, [wb]
         return
-    cap = max(int(batch_windows), chunk // lockin.n_window + 1)
+    # a memory-mapped file is read in blocks of several chunks (views of the map: no memory of their own;
+    # fewer calls a second of signal), still whole windows
+    mapped_read = chunk * max(1, int(MAPPED_READ_CHUNKS))
+    cap = max(int(batch_windows), max(chunk, mapped_read) // lockin.n_window + 1)
     acc_c = np.empty((cap, 2 * len(lockin.carriers_hz) + 1, 4))
     acc_x = np.empty((cap, 4))
     fill, j_first = 0, 0
-    for t0, rows in recording.chunks(chunk, rows=True, check_finite=False, reuse_buffer=True, mapped=True):
+    for t0, rows in recording.chunks(chunk, rows=True, check_finite=False, reuse_buffer=True, mapped=True,
+                                     mapped_chunk_samples=mapped_read):
         j0, coef, xx = lockin.fit_rows(t0, rows)
         # (the sums of squares are finite, hence their total, only when every sample is: one call, not two;
         # a total that overflows only asks for the scan)
