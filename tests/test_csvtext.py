@@ -67,3 +67,15 @@ def test_integers_booleans_text_and_other_dtypes():
 def test_any_double_hypothesis(xs, i):
     a = np.array(xs, dtype=np.float64)
     _same([a, np.full(a.shape, i, dtype=np.int64), np.array(["e"] * len(a), dtype=object), a[::-1].copy()])
+
+
+def test_text_arrays_of_few_and_many_distinct_values():
+    """Text arrays (numpy ``str``, as locate's emitter column) coded by vectorised comparisons: one, two,
+    three, 16 and 17 distinct values in any order, empty and non-ASCII text, next to object text."""
+    rng = np.random.default_rng(3)
+    n = 700
+    names = ["1000Hz", "1300Hz", "", "émetteur 3", "a,b"] + [f"e{i}" for i in range(12)]
+    for k in (1, 2, 3, 16, 17):
+        col = np.array(names[:k])[rng.integers(0, k, n)]
+        _same([rng.standard_normal(n), col, np.arange(n)])
+        _same([col, col[::-1].copy(), np.array(list(col), dtype=object), rng.standard_normal(n)])

@@ -355,3 +355,78 @@ def test_prescan_spectrum_equals_abs_squared_fft():
         np.testing.assert_allclose(p[c], ref, rtol=0, atol=1e-12 * ref.max())
     assert np.isclose(wsum, w.sum()) and np.isclose(w2sum, (w * w).sum())
     np.testing.assert_allclose(freq, np.arange(n // 2 + 1) * 50_000.0 / n)
+
+
+def test_prescan_spectrum_buffers_kept_between_calls_change_nothing():
+    """The spectrum's buffers are reused from call to call: a spectrum returned earlier is not changed by a
+    later call (of another length, channel count or layout), and each equals the spectrum of one channel
+    at a time computed independently (numpy's own FFT of each windowed channel), exactly."""
+    from psdcal.signal.inspect import spectrum
+
+    rng = np.random.default_rng(11)
+    w_of = {}
+    results = []
+    for n, c, rows in ((4096, 4, True), (4096, 4, False), (1000, 4, True), (4096, 2, False), (4097, 4, True)):
+        x = rng.standard_normal((n, c)) * [1.0, 2.0, 0.5, 3.0][:c] + 0.2
+        xv = x.T if rows else np.ascontiguousarray(x.T)
+        results.append((xv.copy(), spectrum(xv, 10_000.0)))
+    for xv, (freq, p, wsum, w2sum) in results:
+        n = xv.shape[1]
+        w = w_of.setdefault(n, np.hanning(n))
+        for c in range(xv.shape[0]):
+            row = np.ascontiguousarray(xv[c])
+            z = np.fft.rfft((row - row.mean()) * w)
+            np.testing.assert_array_equal(p[c], z.real ** 2 + z.imag ** 2)
+        assert wsum == float(w.sum()) and w2sum == float((w * w).sum())
+
+
+def test_read_prefix_rows_view_has_the_same_samples(tmp_path):
+    """``read_prefix(rows_view=True)`` (the pre-scan without time multiplexing): the same (4, n) samples as
+    the plain read, within one chunk (a read-only view of the file) and over several chunks (a copy), a
+    prefix shorter than the file too; the spectrum of either is the same."""
+    from psdcal.signal.inspect import read_prefix, spectrum
+
+    _, x = _sig(150_000)
+    np.save(tmp_path / "r.npy", np.ascontiguousarray(x.T))
+    rec = open_recording(tmp_path / "r.npy", RATE)
+    for n in (100, 65_536, 70_000, 150_000, 200_000):
+        a = read_prefix(rec, n)
+        b = read_prefix(rec, n, rows_view=True)
+        assert a.shape == b.shape == (4, min(n, 150_000))
+        np.testing.assert_array_equal(a, b)
+        assert b.flags.writeable == (n > 65_536)  # a view of the map within one chunk, else a copy
+        for u, v in zip(spectrum(a, RATE), spectrum(b, RATE)):
+            np.testing.assert_array_equal(u, v)
+
+
+def test_mapped_file_read_in_blocks_of_several_chunks_changes_nothing(tmp_path, monkeypatch):
+    """A memory-mapped ``.npy`` is read in blocks of ``MAPPED_READ_CHUNKS`` chunks: the same CSV bytes as one
+    chunk at a time, the same one-line error naming a bad sample late in the file, the same truncation
+    message; progress is still reported up to every sample."""
+    import psdcal.measure.locate as loc
+
+    m, x = _sig(120_000)
+    rows = np.ascontiguousarray(x.T)
+    np.save(tmp_path / "r.npy", rows)
+    cfg = LocateConfig(carriers_hz=(1000.0, 1300.0), window_s=0.01, distance_mm=5000.0, chunk_samples=10_000)
+    texts, seen = [], []
+    for k in (1, 4, 100):
+        monkeypatch.setattr(loc, "MAPPED_READ_CHUNKS", k)
+        progress = []
+        locate_to_csv(open_recording(tmp_path / "r.npy", RATE), m, tmp_path / f"o{k}.csv", cfg,
+                      progress=progress.append)
+        texts.append((tmp_path / f"o{k}.csv").read_bytes())
+        seen.append(progress)
+    assert texts[0] == texts[1] == texts[2]
+    assert all(p[-1] == 120_000 and p == sorted(p) for p in seen) and len(seen[1]) < len(seen[0])
+    bad = rows.copy()
+    bad[97_531, 2] = np.nan
+    np.save(tmp_path / "bad.npy", bad)
+    msgs = []
+    for k in (1, 4):
+        monkeypatch.setattr(loc, "MAPPED_READ_CHUNKS", k)
+        with pytest.raises(InputError) as ei:
+            locate_to_csv(open_recording(tmp_path / "bad.npy", RATE), m, tmp_path / "b.csv", cfg)
+        msgs.append(str(ei.value))
+    assert msgs[0] == msgs[1] and "sample 97531 of channel vy1" in msgs[0]
+    assert not (tmp_path / "b.csv").exists()

@@ -37,6 +37,10 @@ _P10 = np.array([10.0**i for i in range(23)])  # exact doubles
 _LUT = np.frombuffer("".join(f"{i:02d}" for i in range(100)).encode(), dtype=np.uint8).copy()  # "00".."99"
 
 
+_U0, _U1, _U2, _U10, _U100 = (np.uint64(v) for v in (0, 1, 2, 10, 100))
+_U10000, _U1000000, _U100000000 = (np.uint64(10**k) for k in (4, 6, 8))
+
+
 @njit_inline
 def _scaled(ax, k):  # pragma: no cover - compiled
     """|x| 10^k with exact powers of ten (at most two roundings); -1.0 when |k| > 44."""
@@ -73,26 +77,22 @@ def _fmt_int(v, out, b):  # pragma: no cover - compiled
 
 
 @njit_inline
-def _fmt_float(x, bits, out, b):  # pragma: no cover - compiled
-    """Write ``"%.10g" % x`` into ``out[b:]`` (``out`` has SLOT bytes of room after ``b``: the ten digits
-    are written in their place, the bytes after the text may be overwritten); its length, or -1 (left to
-    Python)."""
+def _digits(x, bits):  # pragma: no cover - compiled
+    """The decimal form of ``"%.10g" % x`` without its text: ``(state, u, e, nd)``.
+
+    ``state``: 0 a finite non-zero value (``|x| = u 10^(e - 9)``, ``u`` (uint64) its ten digits, of which
+    the first ``nd`` are significant: the rest are zeros), 1 nan, 2 inf, 3 zero, -1 left to Python (near a
+    rounding tie, or an extreme exponent).
+    """
     if x != x:
-        out[b + 0], out[b + 1], out[b + 2] = 110, 97, 110  # nan
-        return 3
-    p = 0
-    if bits < 0:  # the sign bit (also of -0.0)
-        out[b + 0] = 45  # '-'
-        p = 1
+        return 1, _U0, 0, 0
     ax = abs(x)
     if ax == math.inf:
-        out[b + p], out[b + p + 1], out[b + p + 2] = 105, 110, 102  # inf
-        return p + 3
+        return 2, _U0, 0, 0
     if ax == 0.0:
-        out[b + p] = 48
-        return p + 1
+        return 3, _U0, 0, 0
     if ax < 1e-280 or ax > 1e290:
-        return -1
+        return -1, _U0, 0, 0
     # decimal exponent from the binary one (libm's log10 costs more than all the rest):
     # floor((e2 - 1) log10 2) <= log10|x| < that + 2; the check below moves it up by one
     e2 = ((bits >> 52) & 2047) - 1022  # |x| = mantissa 2^e2, mantissa in [0.5, 1)
@@ -111,64 +111,82 @@ def _fmt_float(x, bits, out, b):  # pragma: no cover - compiled
         e -= 1
         y = _scaled(ax, 9 - e)
     if not (1e9 <= y < 1e10):
-        return -1
+        return -1, _U0, 0, 0
     fl = math.floor(y)
     frac = y - fl
     if abs(frac - 0.5) < 1e-4:  # too near a tie for the scaling's rounding: Python decides
-        return -1
+        return -1, _U0, 0, 0
     m = np.int64(fl)
     if frac > 0.5:
         m += 1
     if m == 10_000_000_000:
         m = 1_000_000_000
         e += 1
-    # ten digits without integer division (slow here): two halves of five,
-    # each by (v * 1374389535) >> 37 == v // 100; written straight where the text wants them
-    hi = np.int64(m * 1e-5)
-    lo = m - hi * 100000
-    if lo < 0:
-        hi -= 1
-        lo += 100000
-    elif lo >= 100000:
-        hi += 1
-        lo -= 100000
-    fixed = -4 <= e < 10  # %g: fixed notation
-    q = b + p
-    if fixed and e < 0:  # "0.000" then the digits after the zeros
-        out[q], out[q + 1], out[q + 2], out[q + 3], out[q + 4] = 48, 46, 48, 48, 48
-        d0 = q + 1 - e
-    else:  # the digits from the text's start (a '.' is put in below), or after one byte (exponent form)
-        d0 = q if fixed else q + 1
-    for h in range(2):  # five digits of each half
-        v = hi if h == 0 else lo
-        at = d0 + 5 * h
-        q1 = (v * 1374389535) >> 37  # v // 100 for 0 <= v < 2^32
-        t2 = (v - q1 * 100) * 2
-        out[at + 3] = _LUT[t2]
-        out[at + 4] = _LUT[t2 + 1]
-        q2 = (q1 * 1374389535) >> 37
-        t2 = (q1 - q2 * 100) * 2
-        out[at + 1] = _LUT[t2]
-        out[at + 2] = _LUT[t2 + 1]
-        out[at] = 48 + q2
+    # the significant digits: m without its trailing zeros (unsigned: a division by a constant is a multiply)
+    u = np.uint64(m)
+    t = u
     nd = 10
-    while nd > 1 and out[d0 + nd - 1] == 48:
+    while nd > 1:
+        t10 = t // _U10
+        if t - t10 * _U10 != _U0:
+            break
+        t = t10
         nd -= 1
+    return 0, u, e, nd
+
+
+@njit_inline
+def _put_float(state, neg, u, e, nd, out, b):  # pragma: no cover - compiled
+    """Write the text of :func:`_digits`' ``(state, u, e, nd)`` (``neg``: the sign bit, also of -0.0) into
+    ``out[b:]`` (``out`` has SLOT bytes of room after ``b``; bytes after the text may be overwritten); its
+    length, or -1 (``state`` -1: left to Python)."""
+    if state == 1:
+        out[b + 0], out[b + 1], out[b + 2] = 110, 97, 110  # nan
+        return 3
+    if state < 0:
+        return -1
+    # branch-free where the data decide (a sign, an exponent that changes from row to row: mispredicted
+    # branches cost more than the few operations they save): the '-' is written always, the text starts
+    # after it or on it
+    out[b] = 45  # '-'
+    p = 1 if neg else 0
+    if state == 2:
+        out[b + p], out[b + p + 1], out[b + p + 2] = 105, 110, 102  # inf
+        return p + 3
+    if state == 3:
+        out[b + p] = 48
+        return p + 1
+    # the ten digits as five pairs, each from u alone (no chain of divisions; unsigned: a division by a
+    # constant is a multiply), written where the text wants them: digit i at q + s + i, one byte further
+    # on from the '.' (at q + dot) on; "0.000" first (what a fixed number below 1 starts with; the digits
+    # overwrite it otherwise); the zeros after the nd significant digits are past the text's end, or the
+    # zeros of an integer before its '.'
+    q = b + p
+    fixed = -4 <= e < 10  # %g: fixed notation, else d.ddde+XX (s = 0, dot = 1)
+    s = max(-e, 0) if fixed else 0
+    dot = (max(e, 0) if fixed else 0) + 1
+    if s:
+        out[q], out[q + 1], out[q + 2], out[q + 3], out[q + 4] = 48, 46, 48, 48, 48
+    i2 = (u // _U100000000) * _U2
+    out[q + s + (s >= dot)] = _LUT[i2]
+    out[q + s + 1 + (s + 1 >= dot)] = _LUT[i2 + _U1]
+    i2 = ((u // _U1000000) % _U100) * _U2
+    out[q + s + 2 + (s + 2 >= dot)] = _LUT[i2]
+    out[q + s + 3 + (s + 3 >= dot)] = _LUT[i2 + _U1]
+    i2 = ((u // _U10000) % _U100) * _U2
+    out[q + s + 4 + (s + 4 >= dot)] = _LUT[i2]
+    out[q + s + 5 + (s + 5 >= dot)] = _LUT[i2 + _U1]
+    i2 = ((u // _U100) % _U100) * _U2
+    out[q + s + 6 + (s + 6 >= dot)] = _LUT[i2]
+    out[q + s + 7 + (s + 7 >= dot)] = _LUT[i2 + _U1]
+    i2 = (u % _U100) * _U2
+    out[q + s + 8 + (s + 8 >= dot)] = _LUT[i2]
+    out[q + s + 9 + (s + 9 >= dot)] = _LUT[i2 + _U1]
+    out[q + dot] = 46
+    # the digits and their '.' (s + nd + 1), or an integer (fixed notation, s + nd <= dot): no '.'
+    p += max(s + nd + (s + nd > dot), dot)
     if fixed:
-        if e < 0:
-            return p + 1 - e + nd
-        if nd <= e + 1:  # an integer: no '.'
-            return p + e + 1
-        for i in range(nd - 1, e, -1):  # the fraction's digits one byte on, the '.' before them
-            out[q + i + 1] = out[q + i]
-        out[q + e + 1] = 46
-        return p + nd + 1
-    out[q] = out[q + 1]
-    if nd > 1:
-        out[q + 1] = 46
-        p += nd + 1
-    else:
-        p += 1
+        return p
     out[b + p] = 101  # 'e'
     out[b + p + 1] = 45 if e < 0 else 43
     p += 2
@@ -181,11 +199,23 @@ def _fmt_float(x, bits, out, b):  # pragma: no cover - compiled
     return p + 2
 
 
+@njit_inline
+def _fmt_float(x, bits, out, b):  # pragma: no cover - compiled
+    """Write ``"%.10g" % x`` into ``out[b:]`` (``out`` has SLOT bytes of room after ``b``; the bytes after the
+    text may be overwritten); its length, or -1 (left to Python)."""
+    state, u, e, nd = _digits(x, bits)
+    return _put_float(state, bits < 0, u, e, nd, out, b)
+
+
+#: Rows whose floats' digits are found (first pass of :func:`format_rows`) before their text is written.
+_BLOCK_ROWS = 64
+
+
 @njit
 def format_rows(F, I, kind, src, codes, table, offsets, out, fb_pos, fb_cell):  # pragma: no cover - compiled
     """The CSV text (uint8) of a block of rows, written straight into ``out``; returns ``(length, n_left)``.
 
-    ``kind[j]``: 0 float (column ``src[j]`` of ``F``), 1 integer (of ``I``), 2 text
+    ``kind[j]``: 0 float (row ``src[j]`` of ``F``, a column a row), 1 integer (of ``I``), 2 text
     (``table[offsets[c]:offsets[c + 1]]`` with ``c = codes[row, src[j]]``); ``,`` between cells,
     ``\n`` after each row.  ``out`` must hold the longest possible text plus SLOT bytes.  A cell
     left to Python (a float near a rounding tie or with an extreme exponent, int64's minimum) is
@@ -193,38 +223,53 @@ def format_rows(F, I, kind, src, codes, table, offsets, out, fb_pos, fb_cell):  
     ``fb_cell`` (``n_left`` of them; when there are more than ``fb_pos`` holds, ``n_left`` is
     ``-1`` and the text is incomplete).
     """
-    n = F.shape[0]
+    n = F.shape[1]
     ncol = kind.shape[0]
     FB = F.view(np.int64)  # the bits of the floats
+    # two passes over each block of rows: the floats' digits first (independent of one another: the
+    # processor overlaps them), then the text (each cell's place known from the one before)
+    nb = _BLOCK_ROWS * ncol
+    st = np.empty(nb, dtype=np.int64)
+    du = np.empty(nb, dtype=np.uint64)
+    de = np.empty(nb, dtype=np.int64)
+    dn = np.empty(nb, dtype=np.int64)
     p = 0
     nfb = 0
-    for r in range(n):
-        for j in range(ncol):
-            if j > 0:
-                out[p] = 44
-                p += 1
-            kd = kind[j]
-            if kd == 2:
-                c = codes[r, src[j]]
-                for i in range(offsets[c], offsets[c + 1]):
-                    out[p] = table[i]
+    for r0 in range(0, n, _BLOCK_ROWS):
+        r1 = min(n, r0 + _BLOCK_ROWS)
+        for r in range(r0, r1):
+            for j in range(ncol):
+                if kind[j] == 0:
+                    c = (r - r0) * ncol + j
+                    st[c], du[c], de[c], dn[c] = _digits(F[src[j], r], FB[src[j], r])
+        for r in range(r0, r1):
+            for j in range(ncol):
+                if j > 0:
+                    out[p] = 44
                     p += 1
-                continue
-            if kd == 1:
-                ln = _fmt_int(I[r, src[j]], out, p)
-            else:
-                ln = _fmt_float(F[r, src[j]], FB[r, src[j]], out, p)
-            if ln < 0:
-                if nfb < fb_pos.shape[0]:
-                    fb_pos[nfb] = p
-                    fb_cell[nfb] = r * ncol + j
-                    nfb += 1
+                kd = kind[j]
+                if kd == 2:
+                    c = codes[r, src[j]]
+                    for i in range(offsets[c], offsets[c + 1]):
+                        out[p] = table[i]
+                        p += 1
+                    continue
+                if kd == 1:
+                    ln = _fmt_int(I[r, src[j]], out, p)
                 else:
-                    return p, -1
-            else:
-                p += ln
-        out[p] = 10
-        p += 1
+                    c = (r - r0) * ncol + j
+                    ln = _put_float(st[c], FB[src[j], r] < 0, du[c], de[c], dn[c], out, p)
+                if ln < 0:
+                    if nfb < fb_pos.shape[0]:
+                        fb_pos[nfb] = p
+                        fb_cell[nfb] = r * ncol + j
+                        nfb += 1
+                    else:
+                        return p, -1
+                else:
+                    p += ln
+            out[p] = 10
+            p += 1
     return p, nfb
 
 
@@ -264,6 +309,21 @@ def _table(texts):
 def _codes(a: np.ndarray, values=None):
     """Integer codes of a text column and the UTF-8 table of its distinct values (``"%s" % v``)
     (``values``: ``a.tolist()`` when the caller has it)."""
+    if values is None and a.dtype.kind == "U":  # (no Python string per row) the distinct values one at a time
+        first = a[0]
+        other = a != first
+        codes = other.astype(np.int64)  # 0: the first value; 1: another one (the second, when only two)
+        distinct = [str(first)]
+        while len(distinct) < 16 and other.any():
+            v = a[int(other.argmax())]
+            same = a == v
+            distinct.append(str(v))
+            if len(distinct) > 2:
+                codes[same] = len(distinct) - 1
+            other &= ~same
+        if not other.any():
+            table, offsets = _table(distinct)
+            return codes, table, offsets
     if values is None:
         values = a.tolist()
     distinct = list(dict.fromkeys(values))
@@ -324,9 +384,9 @@ def _rows_buffer(columns):
     fcols = [a for a, k in zip(cols, kinds) if k == "g"]
     icols = [a for a, k in zip(cols, kinds) if k == "d"]
     scols = [(a, lists.get(j)) for j, (a, k) in enumerate(zip(cols, kinds)) if k == "s"]
-    F = np.empty((n, max(1, len(fcols))))
+    F = np.empty((max(1, len(fcols)), n))  # a column a row: plain copies
     for j, a in enumerate(fcols):
-        F[:, j] = a  # float16/32 -> float64 is exact: the same decimal text
+        F[j] = a  # float16/32 -> float64 is exact: the same decimal text
     I = np.zeros((n, max(1, len(icols))), dtype=np.int64)
     for j, a in enumerate(icols):
         I[:, j] = a
@@ -336,13 +396,16 @@ def _rows_buffer(columns):
     for j, k in enumerate(kinds):
         src[j] = count[k]
         count[k] += 1
-    codes = np.zeros((n, max(1, len(scols))), dtype=np.int64)
+    codes = None if len(scols) == 1 else np.zeros((n, max(1, len(scols))), dtype=np.int64)
     tables, offs, base = [], [np.zeros(1, dtype=np.int64)], 0
     n_codes = 0
     longest_text = 0
     for j, (a, values) in enumerate(scols):
         c, table, offsets = _codes(a, values)
-        codes[:, j] = c + n_codes
+        if codes is None:  # one text column: its codes as they are
+            codes = c.reshape(n, 1)
+        else:
+            codes[:, j] = c + n_codes
         n_codes += len(offsets) - 1
         tables.append(table[: offsets[-1]])
         offs.append(offsets[1:] + base)
@@ -366,7 +429,7 @@ def _rows_buffer(columns):
     text = memoryview(out)  # the segments joined without copies of their own
     for pos, r, j in zip(fb_pos[:n_left].tolist(), rr.tolist(), jj.tolist()):
         parts.append(text[at:pos])
-        parts.append((("%.10g" % F[r, src[j]]) if kind[j] == 0 else ("%d" % I[r, src[j]])).encode())
+        parts.append((("%.10g" % F[src[j], r]) if kind[j] == 0 else ("%d" % I[r, src[j]])).encode())
         at = pos
     parts.append(text[at:length])
     return b"".join(parts)

@@ -8,6 +8,7 @@ flushed) is measured.
 """
 from __future__ import annotations
 
+import math
 import sys
 import time
 from dataclasses import dataclass
@@ -73,7 +74,7 @@ def locate_stream(stream, model, out_path, config: LocateConfig) -> LiveSummary:
 
     if config.tdm and len(config.carriers_hz) != 1:
         raise InputError("time multiplexing uses a single carrier", field="carrier_hz")
-    names = np.array(config.emitter_names(), dtype=object)
+    names = np.array(config.emitter_names(), dtype=str)  # (a text array: see locate)
     lockin = MultiCarrierLockin(stream.rate_hz, config.carriers_hz, config.window_s)
     seg = None
     if config.tdm:
@@ -167,7 +168,7 @@ def locate_stream(stream, model, out_path, config: LocateConfig) -> LiveSummary:
                 # the windows' sums are finite only when every sample is; the tail held for the next window
                 # is checked now (an error names the sample before any row of this block is written)
                 try:
-                    if not np.isfinite(xx).all():
+                    if not math.isfinite(xx.sum()):  # (see locate._demodulated)
                         stream.check_rows(block, first)
                     tail = min(lockin.pending_samples, m)
                     if tail:

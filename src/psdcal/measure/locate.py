@@ -170,7 +170,9 @@ def prescan(recording: Recording, config: LocateConfig) -> tuple[float, list[str
     need_scan = rereadable and (config.check_carriers or (config.tdm and (window_s is None or config.schedule)))
     # one chunk's worth (the memory the user allowed), at least 4096 samples
     n_scan = min(max(int(config.chunk_samples), 4096), 1 << 18)
-    x = read_prefix(recording, n_scan) if need_scan else None
+    # (without time multiplexing only the spectrum reads it, at once: the rows as they lie in the file, any
+    # layout gives the same spectrum)
+    x = read_prefix(recording, n_scan, rows_view=not config.tdm) if need_scan else None
     scan = None
     if config.tdm and x is not None and x.shape[1] >= 64 and (window_s is None or config.schedule):
         scan = scan_tdm(x, recording.rate_hz, config.carriers_hz[0], min_snr=config.min_snr)
@@ -205,6 +207,8 @@ def single_columns(with_plane: bool) -> tuple[str, ...]:
 def _no_nan_sigmas(alpha_deg, sigma_deg, model: SensorModel) -> None:
     """InputError when an angle is finite but its sigma is not (a calibration whose covariance or
     distortion overflows): a NaN sigma is never written as if it were a measurement's."""
+    if math.isfinite(sigma_deg.sum()):  # every sigma finite (the usual case): nothing to look for
+        return
     bad = np.all(np.isfinite(alpha_deg), axis=-1) & ~np.all(np.isfinite(sigma_deg), axis=-1)
     if np.any(bad):
         raise InputError(f"the calibration gives non-finite sigmas for {int(bad.sum())} finite angle(s) (its "
@@ -222,8 +226,10 @@ def _rows_single(t_s, names, a, var_a, model: SensorModel, distance_mm, min_snr,
     total = a.sum(-1)
     sd = np.sqrt(var_a.sum(-1))
     keep = total > min_snr * sd
-    keep &= np.all(np.isfinite(a), axis=-1)
-    t_s, names, a, var_a = t_s[keep], names[keep], a[keep], var_a[keep]
+    if not math.isfinite(total.sum()):  # (a finite total has four finite amplitudes: no row to look at else)
+        keep &= np.all(np.isfinite(a), axis=-1)
+    if not keep.all():  # (every row kept: the arrays as given, no copies)
+        t_s, names, a, var_a = t_s[keep], names[keep], a[keep], var_a[keep]
     if sums is not None:
         sums.add(a, var_a, compiled=fast)
     if fast:
@@ -234,7 +240,7 @@ def _rows_single(t_s, names, a, var_a, model: SensorModel, distance_mm, min_snr,
         imp = impact_from_amplitudes(a, model, var_a, on_zero="nan")
         d, cov_d, dd_dg = imp.d_mm, imp.cov_d_mm2, imp.dd_dgains
     res = angles_from_points(d, model, cov_d, dd_dg, derivatives=False)
-    res_d = np.sqrt(np.clip(np.diagonal(cov_d, axis1=-2, axis2=-1), 0.0, None))
+    res_d = np.sqrt(np.maximum(np.diagonal(cov_d, axis1=-2, axis2=-1), 0.0))  # (np.clip(., 0, None) is this)
     alpha = res.alpha_rad * _DEG
     sa = res.sigma_alpha_rad * _DEG
     _no_nan_sigmas(alpha, sa, model)
@@ -265,6 +271,10 @@ BATCH_ROWS = 2048
 BATCH_SAMPLES_PER_ROW = 32
 
 
+#: Chunks read at once from a memory-mapped ``.npy`` recording (:func:`_demodulated`).
+MAPPED_READ_CHUNKS = 4
+
+
 def _demodulated(recording, lockin: MultiCarrierLockin, chunk: int, batch_windows: int = 1):
     """Yield ``(samples read so far, [WindowBlock, ...])`` per chunk of ``recording``.
 
@@ -285,13 +295,19 @@ def _demodulated(recording, lockin: MultiCarrierLockin, chunk: int, batch_window
             n_done += block.shape[1]
             yield n_done, [wb]
         return
-    cap = max(int(batch_windows), chunk // lockin.n_window + 1)
+    # a memory-mapped file is read in blocks of several chunks (views of the map: no memory of their own;
+    # fewer calls a second of signal), still whole windows
+    mapped_read = chunk * max(1, int(MAPPED_READ_CHUNKS))
+    cap = max(int(batch_windows), max(chunk, mapped_read) // lockin.n_window + 1)
     acc_c = np.empty((cap, 2 * len(lockin.carriers_hz) + 1, 4))
     acc_x = np.empty((cap, 4))
     fill, j_first = 0, 0
-    for t0, rows in recording.chunks(chunk, rows=True, check_finite=False, reuse_buffer=True, mapped=True):
+    for t0, rows in recording.chunks(chunk, rows=True, check_finite=False, reuse_buffer=True, mapped=True,
+                                     mapped_chunk_samples=mapped_read):
         j0, coef, xx = lockin.fit_rows(t0, rows)
-        if lockin.pending_samples or not np.isfinite(xx).all():
+        # (the sums of squares are finite, hence their total, only when every sample is: one call, not two;
+        # a total that overflows only asks for the scan)
+        if lockin.pending_samples or not math.isfinite(xx.sum()):
             recording.check_block(rows, n_done, rows=True)
         n_done += rows.shape[0]
         out = []
@@ -336,7 +352,7 @@ def _stream_single(recording: Recording, config: LocateConfig, out_path, order, 
     chunk = max(1, int(config.chunk_samples) // lockin.n_window) * lockin.n_window
     k = len(names)
     batch_rows = min(BATCH_ROWS, max(1, chunk // BATCH_SAMPLES_PER_ROW))
-    names_arr = np.array(names, dtype=object)
+    names_arr = np.array(names, dtype=str)  # (a text array: the CSV writer codes it without a Python string a row)
 
     if config.output_format not in ("csv", "npy"):
         raise InputError(f"output format must be 'csv' or 'npy', got {config.output_format!r}", field="format")
@@ -533,7 +549,7 @@ def amplitudes_to_csv(recording: Recording, out_path, config: LocateConfig, *, i
         keep = (a.sum(-1) > config.min_snr * np.sqrt(v.sum(-1))) & np.all(np.isfinite(a), axis=-1)
         sd = np.sqrt(v[keep])
         cols = {"t_s": t[keep], "emitter": nm[keep], "point_id": nm[keep],
-                "image_id": np.array([str(image_id)] * int(keep.sum()), dtype=object)}
+                "image_id": np.full(int(keep.sum()), str(image_id))}
         for c, name in enumerate(("vx1", "vx2", "vy1", "vy2")):
             cols[name] = a[keep, c]
             cols["sigma_" + name] = sd[:, c]

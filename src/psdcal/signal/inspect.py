@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import functools
 import math
+import threading
 from dataclasses import dataclass
 
 import numpy as np
@@ -74,19 +75,32 @@ class Carrier:
     precision_hz: float = math.nan
 
 
-def read_prefix(recording, max_samples: int = DEFAULT_SCAN_SAMPLES) -> np.ndarray:
-    """The first ``max_samples`` samples (4, n) of a :class:`~psdcal.signal.recording.Recording`."""
+def read_prefix(recording, max_samples: int = DEFAULT_SCAN_SAMPLES, *, rows_view: bool = False) -> np.ndarray:
+    """The first ``max_samples`` samples (4, n) of a :class:`~psdcal.signal.recording.Recording`.
+
+    ``rows_view``: for a ``.npy`` recording read as rows, the (4, n) transpose of the rows as they lie
+    (the same values; :func:`spectrum` gives the same spectrum for either layout): a prefix within one
+    chunk is then a read-only view of the file's memory map (no copy; the map stays while the view is
+    held; read it at once, as a block of :meth:`Recording.chunks`), a longer one a copy of the rows (no
+    transposing copy).  Without it, a (4, n) C-order copy.
+    """
     parts, n = [], 0
     # a .npy as rows: a (n, 4) file is then read without a transposing copy (the same checked samples)
     rows = getattr(recording, "kind", None) == "npy"
     kw = {"rows": True, "mapped": True} if rows else {}  # (mapped: views of the file, checked, no copy)
     for _, block in recording.chunks(min(int(max_samples), 1 << 16), **kw):
-        parts.append(block[: max_samples - n].T if rows else block[:, : max_samples - n])
-        n += parts[-1].shape[1]
+        if rows and rows_view:
+            parts.append(block[: max_samples - n])
+            n += parts[-1].shape[0]
+        else:
+            parts.append(block[: max_samples - n].T if rows else block[:, : max_samples - n])
+            n += parts[-1].shape[1]
         if n >= max_samples:
             break
     if not parts:
         return np.zeros((4, 0))
+    if rows and rows_view:
+        return (parts[0] if len(parts) == 1 else np.concatenate(parts, axis=0)).T
     return np.concatenate(parts, axis=1)
 
 
@@ -100,6 +114,22 @@ def _hann_cached(n: int) -> np.ndarray:
 def _hann(n: int) -> np.ndarray:
     """``np.hanning(n)``, computed once per length (read-only)."""
     return _hann_cached(int(n))
+
+
+_spectrum_scratch = threading.local()
+#: The largest windowed block (samples, all channels) whose buffers are kept for the next scan (16 MB).
+_KEEP_SPECTRUM_SAMPLES = 1 << 20
+
+
+def _spectrum_buffers(c: int, n: int):
+    """``(xw, z)``: (c, n) float64 and (c, n // 2 + 1) complex buffers, this thread's own, reused."""
+    kept = getattr(_spectrum_scratch, "bufs", None)
+    if kept is not None and kept[0].shape == (c, n):
+        return kept
+    bufs = (np.empty((c, n)), np.empty((c, n // 2 + 1), dtype=complex))
+    if c * n <= _KEEP_SPECTRUM_SAMPLES:
+        _spectrum_scratch.bufs = bufs
+    return bufs
 
 
 def spectrum(x, rate_hz: float):
@@ -119,17 +149,22 @@ def spectrum(x, rate_hz: float):
         Sum of the window and of its square (to convert to amplitudes and noise).
     """
     x = np.asarray(x, dtype=float)
-    n = x.shape[1]
+    c, n = x.shape
     w = _hann(n)
-    p = np.empty((x.shape[0], n // 2 + 1))
-    xw = np.empty(n)
-    for c in range(x.shape[0]):  # one channel at a time: bounded memory
-        np.subtract(x[c], x[c].mean(), out=xw)
-        xw *= w
-        z = np.fft.rfft(xw)
-        # |X|^2 as re^2 + im^2 (np.abs's hypot and the square cost more than the FFT's last passes)
-        np.square(z.real, out=p[c])
-        p[c] += np.square(z.imag)
+    m = n // 2 + 1
+    # the windowed channels and their transforms in buffers kept between calls (a scan's 4 x 65,536
+    # samples: fresh arrays would be faulted in every time), one transform call for all the channels
+    # (the same values as one call a channel)
+    xw, z = _spectrum_buffers(c, n)
+    for i in range(c):
+        np.subtract(x[i], x[i].mean(), out=xw[i])
+        xw[i] *= w
+    np.fft.rfft(xw, axis=1, out=z)
+    # |X|^2 as re^2 + im^2 (np.abs's hypot and the square cost more than the FFT's last passes), squared
+    # in place
+    zf = z.view(np.float64).reshape(c, m, 2)
+    np.square(zf, out=zf)
+    p = np.add(zf[:, :, 0], zf[:, :, 1])
     return np.fft.rfftfreq(n, 1.0 / rate_hz), p, float(w.sum()), float((w * w).sum())
 
 

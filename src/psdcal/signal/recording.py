@@ -56,7 +56,8 @@ class MissingDependencyError(InputError):
 
 
 def _check_finite(block: np.ndarray, path, first_sample: int, *, line_offset: int | None = None) -> None:
-    if np.all(np.isfinite(block)):
+    # the total of finite samples is finite (one pass, no mask); a total that overflows is checked sample by sample
+    if math.isfinite(np.sum(block)) or np.all(np.isfinite(block)):
         return
     ch, i = np.argwhere(~np.isfinite(block))[0]
     sample = first_sample + int(i)
@@ -101,7 +102,8 @@ class Recording:
         return None if self.n_samples is None else self.n_samples / self.rate_hz
 
     def chunks(self, chunk_samples: int = DEFAULT_CHUNK, *, rows: bool = False, check_finite: bool = True,
-               reuse_buffer: bool = False, mapped: bool = False) -> Iterator[tuple[float, np.ndarray]]:
+               reuse_buffer: bool = False, mapped: bool = False,
+               mapped_chunk_samples: int | None = None) -> Iterator[tuple[float, np.ndarray]]:
         """Yield ``(t0_s, block)``, ``block`` float64 (4, <= chunk_samples).
 
         Parameters
@@ -133,6 +135,10 @@ class Recording:
             file's size is checked before each block (a file truncated after
             opening is named as such); a block is valid until the next one is
             asked for.  Other layouts: as without it.
+        mapped_chunk_samples : int, optional
+            With ``mapped``: the block size when the blocks are views of the
+            map (they hold no memory of their own: larger blocks, fewer calls);
+            ``chunk_samples`` otherwise.
 
         Raises
         ------
@@ -144,7 +150,8 @@ class Recording:
         if chunk_samples < 1:
             raise InputError(f"chunk size must be positive, got {chunk_samples}", field="chunk_samples")
         if rows and self.kind == "npy":
-            yield from _rows_npy(self, chunk_samples, check_finite, reuse_buffer, mapped)
+            yield from _rows_npy(self, chunk_samples, check_finite, reuse_buffer, mapped,
+                                 int(mapped_chunk_samples) if mapped_chunk_samples else chunk_samples)
             return
         reader = {"npy": _chunks_npy, "csv": _chunks_csv, "hdf5": _chunks_hdf5, "tdms": _chunks_tdms}[self.kind]
         for t0, block in reader(self, chunk_samples):
@@ -274,7 +281,8 @@ def _chunks_npy(rec: Recording, chunk: int):
         yield rec.t0_s + start / rec.rate_hz, block
 
 
-def _rows_npy(rec: Recording, chunk: int, check: bool, reuse: bool, mapped: bool = False):
+def _rows_npy(rec: Recording, chunk: int, check: bool, reuse: bool, mapped: bool = False,
+              mapped_chunk: int | None = None):
     """(m, 4) float64 blocks of a ``.npy`` recording.
 
     A ``(n, 4)`` float64 file (native byte order, C order) is read with ``readinto``
@@ -299,7 +307,7 @@ def _rows_npy(rec: Recording, chunk: int, check: bool, reuse: bool, mapped: bool
         return
     del arr
     if mapped:
-        yield from _rows_mapped(rec, chunk, check, offset)
+        yield from _rows_mapped(rec, max(1, mapped_chunk or chunk), check, offset)
         return
     buf = np.empty((min(chunk, n), 4)) if reuse else None
     with open(rec.path, "rb") as fh:

@@ -370,7 +370,11 @@ class MultiCarrierLockin:
         n = self.n_window
         var, amp, var_amp, zr, zi = window_stats(coef, xx, self._gram, self._gi, n, self._dof, NOISE_FLOOR_REL**2)
         phase = np.arctan2(zi, zr) - self._omega[None, :] * (t_start - self._origin_s)[:, None]
-        phase = np.angle(np.exp(1j * phase))
+        # wrapped by a remainder (the numpy code's angle(exp(1j phase)) costs ten times more): the same angle
+        # to the rounding of the phase itself, in [-pi, pi)
+        phase += np.pi
+        np.remainder(phase, 2.0 * np.pi, out=phase)
+        phase -= np.pi
         return WindowBlock(index=index, t_start_s=t_start, t_s=t_start + 0.5 * (n - 1) / self.rate_hz,
                            amplitude=amp, var_amplitude=var_amp, phase_rad=phase, noise_sigma=np.sqrt(var))
 
