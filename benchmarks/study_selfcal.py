@@ -9,11 +9,18 @@ conventions with 1e-4 rad noise. Reported: the mean NEES of the sensor poses
 error, by number of sensors; the chi2 check's false-alarm rate (design 0.1 %);
 the time of one self-calibration of a 60 s path at 30 Hz; and, when the
 Lighthouse data the tests read (``lighthouse-lh1``) is present, the deck centre's error with
-self-calibrated stations against the Crazyflie's own estimate.
+self-calibrated stations against the Crazyflie's own estimate, and whether
+the deck's stated covariance covers its difference from the motion capture
+once the reference's own unknowns (frame, clock offset, the marker's lever
+arm) are fitted on half of the flight (scored on the other half), without
+and with the ``tag_pose_common_mode`` term; on simulated rooms, that check's
+false-alarm rate and the positions' NEES, on correct data and with a shared
+error put in.
 
 Usage::
 
-    .venv/bin/python benchmarks/study_selfcal.py [--rooms 300] [--steps 15 60] [--markdown]
+    .venv/bin/python benchmarks/study_selfcal.py [--rooms 300] [--steps 15 60] [--tag-rooms 200]
+        [--common-sigma-rad 3e-4] [--no-lighthouse] [--no-coverage] [--markdown]
 """
 from __future__ import annotations
 
@@ -82,8 +89,91 @@ def timing_60s(tmp: Path, sensors: int = 2, rate_hz: float = 30.0) -> float:
 SWEEPS = {"0": (-1 / 120, 0.0), "1": (-1 / 120, 0.0)}
 
 
-def lighthouse(folder: str = "lh1_crossingBeam_flight_00", offsets: dict | None = None) -> dict | None:
-    """Stations from the deck alone; the deck centre vs mocap (similarity fitted on alternate 10 s blocks)."""
+def _skew(v):
+    Z = np.zeros(v.shape[:-1] + (3, 3))
+    Z[..., 0, 1], Z[..., 0, 2], Z[..., 1, 2] = -v[..., 2], v[..., 1], -v[..., 0]
+    Z[..., 1, 0], Z[..., 2, 0], Z[..., 2, 1] = v[..., 2], -v[..., 1], v[..., 0]
+    return Z
+
+
+def _reference_fit(sim, p, Q, truth, lever: bool):
+    """The mocap point ~ s R (p + Q l) + t: similarity (s, R, t) and, with ``lever``, the marker's lever arm
+    ``l`` (mm, deck frame) by alternating least squares; points off by > 5 x the median left out (3 rounds).
+    Returns ``s, R, t, l, mean squared error of the points kept``."""
+    use = np.ones(len(p), bool)
+    ell = np.zeros(3)
+    for _ in range(4):
+        for _ in range(30 if lever else 1):
+            s, R, t = sim._similarity((p + Q @ ell)[use], truth[use])
+            if not lever:
+                break
+            A = s * np.einsum("ij,tjk->tik", R, Q[use]).reshape(-1, 3)
+            new = np.linalg.lstsq(A, (truth[use] - t - s * p[use] @ R.T).reshape(-1), rcond=None)[0]
+            done = np.linalg.norm(new - ell) < 1e-5
+            ell = new
+            if done:
+                break
+        s, R, t = sim._similarity((p + Q @ ell)[use], truth[use])
+        err = np.linalg.norm((p + Q @ ell) @ R.T * s + t - truth, axis=1)
+        use = err < 5 * np.median(err)
+    return s, R, t, ell, float(np.mean(err[use] ** 2))
+
+
+def score_against_mocap(sim, tp, mocap_at, ok, even, *, lever: bool, clock: bool) -> list:
+    """Fit the reference's own unknowns on alternate 10 s blocks, score psdcal's deck on the others.
+
+    Unknowns of the reference: the frame (similarity), and optionally the
+    clock offset between the angles and the mocap (1 ms grid, +-30 ms) and
+    the lever arm from the deck's origin to the mocap's marker point
+    (3-vector in the deck's frame, turned by psdcal's attitude). Scored: the
+    error of the marker point, and NEES (3 dof) of its covariance from
+    psdcal's stated one (position and attitude, through the lever arm);
+    NEES of step-to-step differences (the part of the error that changes
+    between consecutive steps) and the rank correlation of consecutive errors.
+    """
+    from psdcal.model.projection import R_from_r
+
+    Q = np.stack([R_from_r(r) for r in tp.rvec])
+    out = []
+    for fit_even in (True, False):
+        fit = ok & (even == fit_even)
+        best = None
+        for d in (np.arange(-0.03, 0.03005, 0.001) if clock else [0.0]):
+            tr, okd = mocap_at(tp.t_s + d)
+            f = fit & okd
+            r = _reference_fit(sim, tp.p_mm[f], Q[f], tr[f], lever)
+            if best is None or r[-1] < best[0][-1]:
+                best = (r, d)
+        (s, R, t, ell, _), d = best
+        tr, okd = mocap_at(tp.t_s + d)
+        sc = ok & (even != fit_even) & okd
+        Ql = Q[sc] @ ell
+        e = (tp.p_mm[sc] + Ql) @ R.T * s + t - tr[sc]
+        J = np.concatenate([-_skew(Ql), np.broadcast_to(np.eye(3), (len(Ql), 3, 3))], axis=2)
+        C = s * s * R @ (J @ tp.cov[sc] @ np.swapaxes(J, 1, 2)) @ R.T
+        nees = np.einsum("ti,ti->t", e, np.linalg.solve(C, e[..., None])[..., 0])
+        nxt = np.flatnonzero(np.diff(np.flatnonzero(sc)) == 1)  # consecutive steps both scored
+        de = e[nxt + 1] - e[nxt]
+        dn = np.einsum("ti,ti->t", de, np.linalg.solve(C[nxt] + C[nxt + 1], de[..., None])[..., 0])
+        rk = np.argsort(np.argsort(e, axis=0), axis=0).astype(float)
+        rho = float(np.mean([np.corrcoef(rk[nxt, i], rk[nxt + 1, i])[0, 1] for i in range(3)]))
+        en = np.linalg.norm(e, axis=1)
+        out.append({"fit_on": "even blocks" if fit_even else "odd blocks", "n": int(sc.sum()), "scale": s,
+                    "clock_offset_s": float(d), "lever_mm": ell.tolist(), "median_mm": float(np.median(en)),
+                    "p95_mm": float(np.percentile(en, 95)), "nees_median": float(np.median(nees)),
+                    "nees_mean": float(np.mean(nees)), "diff_nees_median": float(np.median(dn)),
+                    "rank_corr_next": rho})
+    return out
+
+
+def lighthouse(folder: str = "lh1_crossingBeam_flight_00", offsets: dict | None = None,
+               coverage: bool = True) -> dict | None:
+    """Stations from the deck alone; the deck centre vs mocap (similarity fitted on alternate 10 s blocks).
+
+    With ``coverage``, also :func:`score_against_mocap` of the deck's stated
+    covariance, without (``common_mode=False``, as before the shared-error
+    term) and with the ``tag_pose_common_mode`` term.
+    """
     from psdcal.measure.angles_table import align_to_sensor
     from psdcal.measure.selfcal import self_calibrate
     from psdcal.measure.tagpose import KnownSensor, tag_poses
@@ -97,7 +187,8 @@ def lighthouse(folder: str = "lh1_crossingBeam_flight_00", offsets: dict | None 
     t0 = time.perf_counter()
     res = self_calibrate(al, deck)
     dt = time.perf_counter() - t0
-    tp = tag_poses(al, deck, [KnownSensor(nm, res.R[i], res.c_mm[i], res.cov[i]) for i, nm in enumerate(res.names)])
+    sens = [KnownSensor(nm, res.R[i], res.c_mm[i], res.cov[i]) for i, nm in enumerate(res.names)]
+    tp = tag_poses(al, deck, sens)
     mc, cf = sim._csv(data / "mocap.csv"), sim._csv(data / "crazyflie_estimate.csv")
     mt, M = mc["t_s"], np.c_[mc["X_m"], mc["Y_m"], mc["Z_m"]] * 1000
 
@@ -138,7 +229,60 @@ def lighthouse(folder: str = "lh1_crossingBeam_flight_00", offsets: dict | None 
                               "cf_median_mm": float(np.median(e2)), "cf_p95_mm": float(np.percentile(e2, 95)),
                               "clock_offset_s": float(d), "median_clock_mm": float(np.median(e3)),
                               "p95_clock_mm": float(np.percentile(e3, 95))})
+    if coverage:
+        before = tag_poses(al, deck, sens, cov_joint=res.cov_full, common_mode=False)
+        after = tag_poses(al, deck, sens, cov_joint=res.cov_full)
+        out["common_mode"] = after.common_mode
+        out["coverage"] = {}
+        for name, tpx in (("before", before), ("after", after)):
+            for lever, clock in ((False, False), (False, True), (True, True)):
+                out["coverage"][(name, lever, clock)] = score_against_mocap(sim, tpx, mocap_at, ok, even,
+                                                                            lever=lever, clock=clock)
     return out
+
+
+def tag_rooms(n_rooms: int, tmp: Path, *, common_sigma_rad: float = 0.0) -> dict:
+    """The deck's pose with self-calibrated sensors on simulated rooms: the common-mode check's alarms and NEES.
+
+    Rooms of the tests' simulator (2-4 sensors, 30 s, 30-60 steps, 1e-4 rad);
+    with ``common_sigma_rad`` every sensor's angles at each step are also
+    shifted together (both angles, N(0, that^2)), written here, outside the
+    code under test. NEES (3 dof) of the positions at steps seen by >= 2
+    sensors, in the reference sensor's frame.
+    """
+    from psdcal.measure.angles_table import read_angles
+    from psdcal.measure.selfcal import self_calibrate
+    from psdcal.measure.tagpose import KnownSensor, read_tag, tag_poses
+
+    sim = _sim()
+    alarms, nees, tested, pvals = 0, [], 0, []
+    for seed in range(n_rooms):
+        rng = np.random.default_rng(70_000 + seed)
+        room = sim.simulate_room(rng, int(rng.integers(2, 5)), 30.0, int(rng.integers(30, 61)),
+                                 planar=seed % 2 == 0)
+        if common_sigma_rad > 0:
+            shift = {}
+            rows = []
+            for t, s_, e_, a, b in room["rows"]:
+                d = shift.setdefault((t, s_), rng.normal(0, common_sigma_rad, 2))
+                rows.append((t, s_, e_, a + d[0], b + d[1]))
+            room = {**room, "rows": rows}
+        table = read_angles(sim.write_angles(tmp / "a.csv", room))
+        tag = read_tag(sim.write_tag(tmp / "t.csv", room["B"]))
+        res = self_calibrate(table, tag)
+        sens = [KnownSensor(nm, res.R[i], res.c_mm[i], res.cov[i]) for i, nm in enumerate(res.names)]
+        tp = tag_poses(table, tag, sens, cov_joint=res.cov_full)
+        tested += tp.common_mode.passed is not None
+        alarms += tp.common_mode.passed is False
+        if tp.common_mode.p_value is not None:
+            pvals.append(tp.common_mode.p_value)
+        R0, c0 = room["R"][0], room["c"][0]
+        for i, t in enumerate(tp.t_s):
+            if tp.n_sensors[i] >= 2:
+                _, p = room["tag"][int(np.argmin(np.abs(room["t"] - t)))]
+                err = R0 @ (p - c0) - tp.p_mm[i]
+                nees.append(float(err @ np.linalg.solve(tp.cov[i][3:, 3:], err)))
+    return {"n": n_rooms, "tested": tested, "alarms": alarms, "nees": np.array(nees), "p": np.array(pvals)}
 
 
 def main(argv=None) -> int:
@@ -146,6 +290,11 @@ def main(argv=None) -> int:
     ap.add_argument("--rooms", type=int, default=300)
     ap.add_argument("--steps", type=int, nargs=2, default=(15, 60))
     ap.add_argument("--no-lighthouse", action="store_true")
+    ap.add_argument("--tag-rooms", type=int, default=200,
+                    help="simulated rooms for the tag_pose_common_mode check (correct data and a shared error)")
+    ap.add_argument("--common-sigma-rad", type=float, default=3e-4,
+                    help="the shared error per sensor and step put into the second set of tag rooms")
+    ap.add_argument("--no-coverage", action="store_true", help="skip the lighthouse coverage scoring")
     ap.add_argument("--markdown", action="store_true")
     a = ap.parse_args(argv)
     with tempfile.TemporaryDirectory() as d:
@@ -161,9 +310,17 @@ def main(argv=None) -> int:
                 print(f"  {k} sensors: {len(v)} poses, mean NEES {v.mean():.3f} +- {v.std(ddof=1) / np.sqrt(len(v)):.3f}")
         for k in (2, 4):
             print(f"60 s path at 30 Hz, {k} sensors: self-calibration {timing_60s(tmp, k):.2f} s")
+        for sig in (0.0, a.common_sigma_rad) if a.tag_rooms > 0 else ():
+            tr = tag_rooms(a.tag_rooms, tmp, common_sigma_rad=sig)
+            v = tr["nees"]
+            what = "correct data" if sig == 0 else f"a shared error of {sig:g} rad per sensor and step"
+            print(f"tag poses, {tr['n']} rooms with {what}: tag_pose_common_mode failed in {tr['alarms']}/"
+                  f"{tr['tested']} (design 0.1 % on correct data); position NEES of {len(v)} steps mean "
+                  f"{v.mean():.3f} +- {v.std(ddof=1) / np.sqrt(len(v)):.3f}, median {np.median(v):.3f} (ideal 3, 2.37)"
+                  f"; p-values below 0.05: {np.mean(tr['p'] < 0.05):.3f}, below 0.01: {np.mean(tr['p'] < 0.01):.3f}")
     runs = [(f, o) for f in ("lh1_crossingBeam_flight_00", "lh1_crossingBeam_flight_01") for o in (None, SWEEPS)]
     for folder, offsets in () if a.no_lighthouse else runs:
-        lh = lighthouse(folder, offsets)
+        lh = lighthouse(folder, offsets, coverage=not a.no_coverage)
         if lh is None:
             print("lighthouse-lh1 not present: skipped")
         else:
@@ -176,6 +333,29 @@ def main(argv=None) -> int:
                       f"mm, p95 {h['cf_p95_mm']:.2f} mm; ratio {h['median_mm'] / h['cf_median_mm']:.2f}; with a "
                       f"clock offset fitted on that half ({1000 * h['clock_offset_s']:+.0f} ms): median "
                       f"{h['median_clock_mm']:.2f} mm, p95 {h['p95_clock_mm']:.2f} mm")
+            if "coverage" in lh:
+                print(f"  {lh['common_mode'].line()}")
+                rows = []
+                for (name, lever, clock), halves in lh["coverage"].items():
+                    ref = "similarity" + (" + clock" if clock else "") + (" + lever arm" if lever else "")
+                    for h in halves:
+                        rows.append((lh["folder"][-9:], "yes" if offsets else "no", name, ref, h["fit_on"], h["n"],
+                                     f"{1000 * h['clock_offset_s']:+.0f}",
+                                     "(" + ", ".join(f"{x:.1f}" for x in h["lever_mm"]) + ")",
+                                     f"{h['median_mm']:.2f}", f"{h['p95_mm']:.2f}", f"{h['nees_median']:.1f}",
+                                     f"{h['nees_mean']:.1f}", f"{h['diff_nees_median']:.2f}",
+                                     f"{h['rank_corr_next']:.2f}"))
+                head = ("flight", "sweep offsets", "covariance", "reference fitted", "fitted on", "scored",
+                        "clock ms", "lever mm", "median mm", "p95 mm", "NEES median", "NEES mean",
+                        "step-difference NEES median", "rank corr. next step")
+                if a.markdown:
+                    print("| " + " | ".join(head) + " |")
+                    print("|" + "---|" * len(head))
+                    for r in rows:
+                        print("| " + " | ".join(str(x) for x in r) + " |")
+                else:
+                    for r in rows:
+                        print("   " + "; ".join(f"{h_}: {x}" for h_, x in zip(head[2:], r[2:])))
     return 0
 
 
