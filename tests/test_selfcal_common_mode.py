@@ -9,11 +9,18 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from test_selfcal import (
+    DATA,
+    _csv,
+    _lighthouse,
+    _similarity,
+    simulate_room,
+    write_angles,
+)
 
 from psdcal.measure.angles_table import align_to_sensor, read_angles
 from psdcal.measure.selfcal import self_calibrate
 from psdcal.measure.tagpose import KnownSensor, Tag, tag_poses
-from test_selfcal import DATA, _csv, _lighthouse, _similarity, simulate_room, write_angles
 
 
 def _with_shared_error(room, rng, sigma_rad):
@@ -147,8 +154,9 @@ def test_cli_reports_the_shared_error(tmp_path):
     """`selfcal --tag-poses` puts the tag poses' checks in its JSON; `tag-pose --json` writes them."""
     import json
 
-    from psdcal.cli import main
     from test_selfcal import write_tag
+
+    from psdcal.cli import main
 
     rng = np.random.default_rng(83)
     room = _with_shared_error(simulate_room(rng, 3, 20, 30), rng, 4e-4)

@@ -254,6 +254,6 @@ def tag_poses_summary(res, csv_path) -> dict:
     """The JSON summary of a tag-pose fit: its checks, verdict and the shared error's sigma (rad)."""
     from psdcal._consistency import verdict_of
 
-    return {"csv": str(csv_path), "n_steps": int(len(res.t_s)), "verdict": verdict_of(res.checks),
+    return {"csv": str(csv_path), "n_steps": len(res.t_s), "verdict": verdict_of(res.checks),
             "checks": [c.to_dict() for c in res.checks],
             "common_mode_sigma_rad": float(res.common_mode_sigma_rad), "warnings": list(res.warnings)}
