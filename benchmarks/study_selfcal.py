@@ -166,6 +166,22 @@ def score_against_mocap(sim, tp, mocap_at, ok, even, *, lever: bool, clock: bool
     return out
 
 
+def roughness_mm(t_s, X, half: int = 4) -> np.ndarray:
+    """Robust sd (mm, per axis) of each point about a cubic fitted to its ``2 half + 1`` neighbours in time
+    (windows with a gap left out), corrected for the fit's own share: the white, step-to-step noise."""
+    dt = float(np.median(np.diff(t_s)))
+    out = []
+    for i in range(half, len(t_s) - half):
+        tt = t_s[i - half:i + half + 1] - t_s[i]
+        if tt[-1] - tt[0] > (2 * half + 0.5) * dt:
+            continue
+        D = np.vander(tt, 4)
+        out.append(X[i] - np.linalg.lstsq(D, X[i - half:i + half + 1], rcond=None)[0][-1])
+    D = np.vander(np.arange(-half, half + 1.0), 4)
+    h = (D @ np.linalg.pinv(D))[half, half]
+    return 1.4826 * np.median(np.abs(np.array(out)), axis=0) / np.sqrt(1 - h)
+
+
 def lighthouse(folder: str = "lh1_crossingBeam_flight_00", offsets: dict | None = None,
                coverage: bool = True) -> dict | None:
     """Stations from the deck alone; the deck centre vs mocap (similarity fitted on alternate 10 s blocks).
@@ -233,6 +249,8 @@ def lighthouse(folder: str = "lh1_crossingBeam_flight_00", offsets: dict | None 
         before = tag_poses(al, deck, sens, cov_joint=res.cov_full, common_mode=False)
         after = tag_poses(al, deck, sens, cov_joint=res.cov_full)
         out["common_mode"] = after.common_mode
+        out["roughness_mm"] = roughness_mm(after.t_s, after.p_mm)
+        out["mocap_roughness_mm"] = roughness_mm(mt[::10], M[::10])
         out["coverage"] = {}
         for name, tpx in (("before", before), ("after", after)):
             for lever, clock in ((False, False), (False, True), (True, True)):
@@ -335,6 +353,9 @@ def main(argv=None) -> int:
                       f"{h['median_clock_mm']:.2f} mm, p95 {h['p95_clock_mm']:.2f} mm")
             if "coverage" in lh:
                 print(f"  {lh['common_mode'].line()}")
+                print(f"  step-to-step noise (about a cubic over 9 steps), per axis: psdcal's deck "
+                      f"{', '.join(f'{x:.2f}' for x in lh['roughness_mm'])} mm; mocap at 30 Hz "
+                      f"{', '.join(f'{x:.2f}' for x in lh['mocap_roughness_mm'])} mm")
                 rows = []
                 for (name, lever, clock), halves in lh["coverage"].items():
                     ref = "similarity" + (" + clock" if clock else "") + (" + lever arm" if lever else "")
