@@ -11,6 +11,12 @@ and, when the sensors file gives them, the sensors' pose covariances.
 A planar tag seen by one sensor from afar has two poses that explain its
 directions almost equally well (the mirror tilt); both are fitted and the step
 is flagged ``ambiguous`` when the other one also agrees with the noise.
+
+An error shared by all the directions one sensor gives at one step (one
+timing or sweep error, correlated photodiodes) is tested separately
+(:func:`common_mode_test`, the check ``tag_pose_common_mode``) and, when
+found, added to the covariance: the pose fit hides most of it, so the
+ratio inflation alone would not cover it.
 """
 from __future__ import annotations
 
