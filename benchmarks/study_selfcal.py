@@ -182,6 +182,41 @@ def roughness_mm(t_s, X, half: int = 4) -> np.ndarray:
     return 1.4826 * np.median(np.abs(np.array(out)), axis=0) / np.sqrt(1 - h)
 
 
+def residual_time_correlation(al, deck, res, tp, max_lag: int = 60) -> tuple:
+    """Lag-1 autocorrelation and integrated autocorrelation time (steps) of each sensor's mean whitened
+    residual per step (its shared part), median over the sensors and the two direction coordinates."""
+    from psdcal.measure._rigid import residuals_and_jacobians, whiteners
+    from psdcal.measure.tagpose import observation_indices
+    from psdcal.model.projection import R_from_r
+
+    rows, k, e, t, times = observation_indices(al, deck, res.names)
+    keep = np.isin(times[t], tp.t_s)
+    rows, k, e, t = rows[keep], k[keep], e[keep], t[keep]
+    t = np.searchsorted(tp.t_s, times[t])
+    Q = np.stack([R_from_r(r) for r in tp.rvec])
+    r = residuals_and_jacobians(res.R, res.c_mm, Q, tp.p_mm, deck.body_mm, k, t, e, al.n[rows],
+                                whiteners(al.cov_n[rows]), jac=False)[0]
+    T = len(tp.t_s)
+    lag1, taus = [], []
+    for kk in range(len(res.names)):
+        m = k == kk
+        cnt = np.bincount(t[m], minlength=T)
+        for c in range(2):
+            x = np.full(T, np.nan)
+            x[cnt > 0] = np.bincount(t[m], r[m, c], minlength=T)[cnt > 0] / cnt[cnt > 0]
+            x -= np.nanmean(x)
+            ac = []
+            for lag in range(1, max_lag):
+                a, b = x[:-lag], x[lag:]
+                g = np.isfinite(a) & np.isfinite(b)
+                ac.append(np.sum(a[g] * b[g]) / np.sqrt(np.sum(a[g] ** 2) * np.sum(b[g] ** 2)))
+            ac = np.array(ac)
+            cut = int(np.argmax(ac < 0)) if np.any(ac < 0) else len(ac)
+            lag1.append(ac[0])
+            taus.append(1 + 2 * ac[:cut].sum())
+    return float(np.median(lag1)), float(np.median(taus))
+
+
 def lighthouse(folder: str = "lh1_crossingBeam_flight_00", offsets: dict | None = None,
                coverage: bool = True) -> dict | None:
     """Stations from the deck alone; the deck centre vs mocap (similarity fitted on alternate 10 s blocks).
@@ -250,6 +285,11 @@ def lighthouse(folder: str = "lh1_crossingBeam_flight_00", offsets: dict | None 
         after = tag_poses(al, deck, sens, cov_joint=res.cov_full)
         out["common_mode"] = after.common_mode
         out["roughness_mm"] = roughness_mm(after.t_s, after.p_mm)
+        # the shared error's time correlation, and the NEES if the stations' covariance were that much larger
+        # (their fit averages over the steps as if they were independent)
+        out["lag1"], out["tau_steps"] = residual_time_correlation(al, deck, res, after)
+        wide = tag_poses(al, deck, sens, cov_joint=res.cov_full * out["tau_steps"])
+        out["stations_widened"] = score_against_mocap(sim, wide, mocap_at, ok, even, lever=False, clock=True)
         out["mocap_roughness_mm"] = roughness_mm(mt[::10], M[::10])
         out["coverage"] = {}
         for name, tpx in (("before", before), ("after", after)):
@@ -356,6 +396,10 @@ def main(argv=None) -> int:
                 print(f"  step-to-step noise (about a cubic over 9 steps), per axis: psdcal's deck "
                       f"{', '.join(f'{x:.2f}' for x in lh['roughness_mm'])} mm; mocap at 30 Hz "
                       f"{', '.join(f'{x:.2f}' for x in lh['mocap_roughness_mm'])} mm")
+                print(f"  residuals' shared part over time: lag-1 autocorrelation {lh['lag1']:.2f}, integrated "
+                      f"time {lh['tau_steps']:.1f} steps; with the stations' covariance x{lh['tau_steps']:.1f}, NEES "
+                      "median (similarity + clock) " + ", ".join(f"{h['nees_median']:.1f}"
+                                                              for h in lh["stations_widened"]))
                 rows = []
                 for (name, lever, clock), halves in lh["coverage"].items():
                     ref = "similarity" + (" + clock" if clock else "") + (" + lever arm" if lever else "")
