@@ -34,6 +34,9 @@ REGION_RE = re.compile(
 MARKER_RE = re.compile(r"^<!-- bench:(\S+) (begin|end) -->", re.M)
 #: An explicit table id printed by a benchmark just before its table (``_table.print_table(table_id=...)``).
 TABLE_ID_RE = re.compile(r"^<!-- table: ([A-Za-z0-9_.-]+) -->$")
+#: A table a benchmark could not produce on this machine (a real-data study without the shared data folder beside the repository):
+#: ``<!-- table: ID skipped: REASON -->``; its region is left as it was (``_table.print_skipped``).
+SKIPPED_RE = re.compile(r"^<!-- table: ([A-Za-z0-9_.-]+) skipped: (.*) -->$")
 
 
 def doc_pages(root: Path | None = None) -> list[Path]:
@@ -77,6 +80,11 @@ def parse_tables(stdout: str) -> dict[str, str]:
             pending_id = None  # the id line must come just before its table (blank lines allowed)
         k += 1
     return tables
+
+
+def skipped_tables(stdout: str) -> dict[str, str]:
+    """The tables a benchmark said it skipped: id -> the reason it printed."""
+    return {m.group(1): m.group(2) for m in (SKIPPED_RE.match(x.rstrip()) for x in stdout.splitlines()) if m}
 
 
 def regions(text: str) -> list[tuple[str, str]]:

@@ -20,3 +20,11 @@ def print_table(head, lines, markdown: bool = False, table_id: str | None = None
     print("  ".join(h.rjust(w[k]) for k, h in enumerate(head)))
     for line in lines:
         print("  ".join(v.rjust(w[k]) for k, v in enumerate(line)))
+
+
+def print_skipped(table_id: str, reason: str, markdown: bool = False) -> None:
+    """Say that table ``table_id`` was not made here (its data are absent): its region in the docs stays as it was."""
+    if markdown:
+        print(f"<!-- table: {table_id} skipped: {reason} -->")
+    else:
+        print(f"(table {table_id} skipped: {reason})")

@@ -4,10 +4,11 @@
 Predicted, not Monte Carlo: the calibration's own first-order covariance
 (psdcal.study.capture; it equals the covariance `psdcal calibrate` reports)
 at the true parameters of the paper's two lenses, 3 um noise per coordinate,
-default model (f, C, k1, k2, p1, p2). Writes a Markdown table to stdout and
-docs/guide/capture_study.png.
+default model (f, C, k1, k2, p1, p2). Writes two Markdown tables to stdout (ids ``views`` and
+``sweep``, the tables of docs/guide/capture.md) and docs/guide/capture_study.png.
 
-    .venv/bin/python benchmarks/capture_study.py      (about a minute)
+    .venv/bin/python benchmarks/capture_study.py [--markdown]     (about a minute)
+    .venv/bin/python benchmarks/capture_study.py --quick          (fewer seeds; no figure written)
 """
 from __future__ import annotations
 
@@ -76,7 +77,14 @@ def guided_refitted(lens, target, seed, n_max=N_MAX):
         X = np.concatenate([X, d + rng.normal(0, NOISE_MM, d.shape)])
 
 
-def main():
+def main(argv=None):
+    import argparse
+
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--markdown", action="store_true", help="(the tables are Markdown in any case; accepted for tasks.py bench)")
+    ap.add_argument("--quick", action="store_true", help="3 random sequences, 1 refitted run, 2 per sweep; no figure")
+    a = ap.parse_args(argv)
+    seeds, refits, sweeps = (3, 1, 2) if a.quick else (SEEDS, 4, 5)
     P = default_template()
     grid = sensor_grid_mm((9.0, 9.0), 11).reshape(-1, 2)
     rows_cmp, rows_sweep, curves = [], [], {}
@@ -85,7 +93,7 @@ def main():
         Ja = aoa_jacobian(intr, dist, SPEC.global_names, grid)
         info = lambda rv, tv: view_information(P, intr, dist, SPEC, rv, tv)  # noqa: E731
         rand = []
-        for seed in range(SEEDS):
+        for seed in range(seeds):
             rv, tv = random_poses(P, intr, dist, N_MAX, np.random.default_rng(seed))
             rand.append(curve(info(rv, tv), Ja))
         rand = np.array(rand)
@@ -99,7 +107,7 @@ def main():
         curves[lens] = (rand, g_curve, guided, target)
         n_rand = [needed(c, target) for c in rand]
         n_rand_ok = [n for n in n_rand if n is not None]
-        refit = [guided_refitted(lens, target, seed) for seed in range(4)]
+        refit = [guided_refitted(lens, target, seed) for seed in range(refits)]
         refit_n = [n for n, _ in refit if n is not None]
         rows_cmp.append((lens, target, needed(guided, target),
                          f"{min(refit_n)}-{max(refit_n)}" if refit_n else "-",
@@ -112,7 +120,7 @@ def main():
                           ("far: image 25-45 % of the sensor", dict(fill=(0.25, 0.45))),
                           ("near: image 65-90 % of the sensor", dict(fill=(0.65, 0.9)))]:
             vals = {n: [] for n in (6, 12, 24)}
-            for seed in range(5):
+            for seed in range(sweeps):
                 rv, tv = random_poses(P, intr, dist, 24, np.random.default_rng(100 + seed), **kw)
                 c = curve(info(rv, tv), Ja)
                 for n in vals:
@@ -125,23 +133,27 @@ def main():
             far = max(c.distance_mm for c in cands)  # the distance where the template fits at every position
             pool = [c for c in cands if c.tilt_deg == 35.0 and c.distance_mm == far and np.hypot(*c.centre_mm) <= rmax]
             vals = {n: [] for n in (6, 12, 24)}
-            for seed in range(5):
+            for seed in range(sweeps):
                 pick = np.random.default_rng(200 + seed).choice(len(pool), 24, replace=True)
                 c = curve(info([pool[i].rvec for i in pick], [pool[i].tvec_mm for i in pick]), Ja)
                 for n in vals:
                     vals[n].append(c[n - 1])
             rows_sweep.append((lens, label, *[float(np.median(vals[n])) for n in (6, 12, 24)]))
-    print("| lens | target: worst 1-sigma AoA (deg) | guided | guided, refitted each view (4 runs) "
+    print("<!-- table: views -->")
+    print(f"| lens | target: worst 1-sigma AoA (deg) | guided | guided, refitted each view ({refits} runs) "
           "| its worst true error (deg) | random (median) | random (range) | random never | grid |")
     print("|---|---|---|---|---|---|---|---|---|")
     for r in rows_cmp:  # noqa
         r = tuple("not within %d" % N_MAX if v is None else v for v in r)
-        print(f"| {r[0]} | {r[1]:.3g} | {r[2]} | {r[3]} | {r[4]:.3g} | {r[5]} | {r[6]} | {r[7]} of {SEEDS} | {r[8]} |")
+        print(f"| {r[0]} | {r[1]:.3g} | {r[2]} | {r[3]} | {r[4]:.3g} | {r[5]} | {r[6]} | {r[7]} of {seeds} | {r[8]} |")
     print()
-    print("| lens | capture | worst 1-sigma AoA after 6 views (deg) | 12 views | 24 views |")
+    print("<!-- table: sweep -->")
+    print(f"| lens | capture (median of {sweeps} random sequences) | worst 1-sigma AoA after 6 views (deg) | 12 views | 24 views |")
     print("|---|---|---|---|---|")
     for r in rows_sweep:
         print(f"| {r[0]} | {r[1]} | {r[2]:.3g} | {r[3]:.3g} | {r[4]:.3g} |")
+    if a.quick:
+        return
     import matplotlib
 
     matplotlib.use("Agg")

@@ -18,8 +18,13 @@ from __future__ import annotations
 
 import argparse
 import math
+import sys
+from pathlib import Path
 
 import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # benchmarks/_table.py
+from _table import print_table  # noqa: E402
 
 from psdcal.measure.channel_order import SumCheck
 
@@ -54,7 +59,11 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--runs", type=int, default=3000)
     ap.add_argument("--seed", type=int, default=11)
+    ap.add_argument("--quick", action="store_true", help="a smoke run: 200 runs")
+    ap.add_argument("--markdown", action="store_true", help="the result as a Markdown table")
     a = ap.parse_args(argv)
+    if a.quick:
+        a.runs = 200
     rng = np.random.default_rng(a.seed)
     alarms = relevant = caught = 0
     for _ in range(a.runs):
@@ -62,7 +71,9 @@ def main(argv=None):
         alarms += alarm
         relevant += rel
         caught += hit
-    print(f"{a.runs} runs: false alarms {alarms}/{a.runs}; wiring vx1,vy1,vx2,vy2 caught {caught}/{relevant}")
+    print_table(["runs of 50 rows", "false alarms (documented order)",
+                 "`vx1,vy1,vx2,vy2` wiring caught (runs where its error exceeds 3 sigmas of a row)"],
+                [[str(a.runs), f"{alarms} of {a.runs}", f"{caught} of {relevant}"]], a.markdown)
 
 
 if __name__ == "__main__":

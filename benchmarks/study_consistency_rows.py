@@ -23,6 +23,8 @@ import numpy as np
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent / "tests"))
+sys.path.insert(0, str(HERE))  # benchmarks/_table.py
+from _table import print_skipped, print_table  # noqa: E402
 
 
 def rates(files: int, points: int, seed: int = 0):
@@ -48,16 +50,17 @@ def rates(files: int, points: int, seed: int = 0):
     return flagged / total, total, alarms / files, files
 
 
-def lighthouse():
+def lighthouse(md: bool = False):
     import _lighthouse as lh
 
     from psdcal.measure.positioning import triangulate
     from psdcal.measure.tracking import track
 
     if not lh.available():
-        print("lighthouse-lh1 not here")
+        print_skipped("lighthouse", "lighthouse-lh1 is not in the shared data folder", md)
         return
     g = lh.geometry()
+    lines = []
     for name in lh.FLIGHTS:
         log = lh.load(name)
         t, n, _, est = lh.steps(log)
@@ -81,24 +84,37 @@ def lighthouse():
         pt = np.full(centre.shape, np.nan)
         pt[ok] = tr.p
         e_tr = np.linalg.norm(pt[rows] @ R.T + tt - truth[rows], axis=1)
-        print(f"{name}: {len(rows)} scored steps; psdcal median {np.median(e_psd):.2f} p95 "
-              f"{np.percentile(e_psd, 95):.2f} mm, Crazyflie {np.median(e_cf):.2f} / {np.percentile(e_cf, 95):.2f} mm;"
-              f" tracking {np.nanmedian(e_tr):.2f} / {np.nanpercentile(e_tr, 95):.2f} mm")
-        print(f"  chi2 per point (1 dof) median {np.median(c):.0f} mean {c.mean():.0f}; flagged {tri.flagged[np.isfinite(tri.chi2)].mean():.1%};"
-              f" extra ray noise {1e6 * math.sqrt(tri.extra_var_n):.0f} urad; NEES (3 dof) before {before.mean():.0f}"
-              f" (median {np.median(before):.0f}), after {after.mean():.2f} (median {np.median(after):.2f})")
+        lines.append([f"`{name.replace('lh1_crossingBeam_', '')}`", str(len(rows)),
+                      f"{np.median(e_psd):.2f} / {np.percentile(e_psd, 95):.2f}",
+                      f"{np.median(e_cf):.2f} / {np.percentile(e_cf, 95):.2f}",
+                      f"{np.nanmedian(e_tr):.2f} / {np.nanpercentile(e_tr, 95):.2f}",
+                      f"{np.median(c):.0f} / {c.mean():.0f}", f"{tri.flagged[np.isfinite(tri.chi2)].mean():.1%}",
+                      f"{1e3 * math.sqrt(tri.extra_var_n):.1f} mrad", f"{before.mean():.0f} / {after.mean():.2f}"])
+    print_table(["flight", "scored steps", "psdcal median / p95 (mm)", "Crazyflie median / p95 (mm)",
+                 "tracking median / p95 (mm)", "chi2 per point (1 dof), median / mean", "rows flagged",
+                 "extra ray noise", "NEES (3 dof) stated / inflated"], lines, md, "lighthouse")
 
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--files", type=int, default=20000)
     ap.add_argument("--points", type=int, default=20)
+    ap.add_argument("--quick", action="store_true", help="a smoke run: 1000 files")
+    ap.add_argument("--no-lighthouse", action="store_true")
+    ap.add_argument("--markdown", action="store_true", help="the tables as Markdown (ids: rates, lighthouse)")
     a = ap.parse_args(argv)
+    if a.quick:
+        a.files = 1000
     fr, npts, ar, nf = rates(a.files, a.points)
-    print(f"per-point flags: {fr:.5f} +- {math.sqrt(1e-3 * (1 - 1e-3) / npts):.5f} of {npts} points (design 0.001)")
-    print(f"pooled rule: {ar:.5f} +- {math.sqrt(1e-3 * (1 - 1e-3) / nf):.5f} of {nf} files of {a.points} points "
-          "(design 0.001)")
-    lighthouse()
+    print_table(["rule (design false-alarm rate 0.001)", "sample", "measured rate +- its binomial standard error"],
+                [["per-point flags", f"{npts} points", f"{fr:.5f} +- {math.sqrt(1e-3 * (1 - 1e-3) / npts):.5f}"],
+                 ["pooled rule (the file's extra ray noise)", f"{nf} files of {a.points} points",
+                  f"{ar:.5f} +- {math.sqrt(1e-3 * (1 - 1e-3) / nf):.5f}"]], a.markdown, "rates")
+    print()
+    if a.no_lighthouse:
+        print_skipped("lighthouse", "run with --no-lighthouse", a.markdown)
+    else:
+        lighthouse(a.markdown)
 
 
 if __name__ == "__main__":

@@ -21,7 +21,13 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
 import argparse  # noqa: E402
 import time  # noqa: E402
 
+import sys  # noqa: E402
+from pathlib import Path  # noqa: E402
+
 import numpy as np  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # benchmarks/_table.py
+from _table import print_table  # noqa: E402
 
 MODELS = (
     {"radial": 2, "tangential": True},
@@ -69,7 +75,11 @@ def main(argv=None):
     ap.add_argument("--seed0", type=int, default=0)
     ap.add_argument("--jobs", type=int, default=1)
     ap.add_argument("--verbose", "-v", action="store_true")
+    ap.add_argument("--quick", action="store_true", help="a smoke run: 20 fits")
+    ap.add_argument("--markdown", action="store_true", help="the result as a Markdown table")
     a = ap.parse_args(argv)
+    if a.quick:
+        a.fits = 20
     seeds = range(a.seed0, a.seed0 + a.fits)
     if a.jobs > 1:
         from concurrent.futures import ProcessPoolExecutor
@@ -86,6 +96,8 @@ def main(argv=None):
     nr = sum(r["status"] == "refused" for r in rows)
     ts = np.array([r["t"] for r in rows])
     print(f"{n} fits: {nw} wrong minima, {nr} refusals; median fit time {np.median(ts) * 1e3:.1f} ms")
+    print()
+    print_table(["fits", "wrong minima", "refusals"], [[str(n), str(nw), str(nr)]], a.markdown)
     return 0 if nw == 0 and nr == 0 else 1
 
 

@@ -30,7 +30,13 @@ import json  # noqa: E402
 import math  # noqa: E402
 import time  # noqa: E402
 
+import sys  # noqa: E402
+from pathlib import Path  # noqa: E402
+
 import numpy as np  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # benchmarks/_table.py
+from _table import print_table  # noqa: E402
 
 
 def one_room(seed: int, points: int, sigma_n: float, mode: str, alpha: float, att=(0.05, 0.5)):
@@ -100,20 +106,10 @@ def rate(x):
     return {"n": n, "rate": p, "se": math.sqrt(max(p * (1 - p), 1.0 / n) / n)}
 
 
-def main():
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--rooms", type=int, default=400)
-    ap.add_argument("--points", type=int, default=30)
-    ap.add_argument("--sigma-n", type=float, default=2e-4, help="ray noise, normalised units (~rad)")
-    ap.add_argument("--mode", choices=("centroid", "ghost"), default="centroid")
-    ap.add_argument("--alpha", type=float, default=1e-3)
-    ap.add_argument("--seed0", type=int, default=0)
-    ap.add_argument("--att-min", type=float, default=0.05, help="attenuation drawn log-uniform in [min, max]")
-    ap.add_argument("--att-max", type=float, default=0.5)
-    ap.add_argument("--json", default=None, help="write the rates here")
-    a = ap.parse_args()
+def study(a, mode: str, att: tuple) -> dict:
+    """The rates of ``--rooms`` rooms for one reflection model (``centroid``/``ghost``) and attenuation range."""
     t0 = time.time()
-    rows = [one_room(a.seed0 + i, a.points, a.sigma_n, a.mode, a.alpha, (a.att_min, a.att_max)) for i in range(a.rooms)]
+    rows = [one_room(a.seed0 + i, a.points, a.sigma_n, mode, a.alpha, att) for i in range(a.rooms)]
     cat = {key: np.concatenate([np.atleast_1d(r[key]) if np.ndim(r[key]) else np.full(len(r["m"]), r[key])
                                 for r in rows]) for key in rows[0]}
     m, c = cat["m"], cat["counts"]
@@ -121,7 +117,7 @@ def main():
     flagged = cat["clean_flag"] != ""
     big = cat["bias"] >= 10
     out = {
-        "rooms": a.rooms, "points_per_room": a.points, "sigma_n": a.sigma_n, "mode": a.mode, "alpha": a.alpha,
+        "rooms": a.rooms, "points_per_room": a.points, "sigma_n": a.sigma_n, "mode": mode, "att": list(att), "alpha": a.alpha,
         "rooms_with_a_counted_reflection": int(sum(bool(np.any(r["counts"] & (r["m"] >= 2))) for r in rows)),
         "k>=3: reflected sensor left out": rate(found[c & (m >= 3)]),
         "k>=3, bias >= 10 sigma: reflected sensor left out": rate(found[c & (m >= 3) & big]),
@@ -150,6 +146,89 @@ def main():
             for lo, hi in ((0, 3), (3, 5), (5, 10), (10, 30), (30, math.inf))},
         "seconds": round(time.time() - t0, 1),
     }
+    return out
+
+
+def _pct(r) -> str:
+    if not r["n"]:
+        return "-"
+    rate, se = 100 * r["rate"], 100 * r["se"]
+    return f"{rate:.{2 if rate < 1 else 1}f} +- {se:.{2 if se < 0.1 else 1}f} %"
+
+
+def markdown(a) -> None:
+    """The two tables of docs/guide/positioning.md#reflections: strong reflections (centroid and ghost), weak ones by bias."""
+    strong = {mode: study(a, mode, (a.att_min, a.att_max)) for mode in ("centroid", "ghost")}
+    c, g = strong["centroid"], strong["ghost"]
+    print(f"{a.rooms} rooms; rooms with a reflection that the sensor sees: {c['rooms_with_a_counted_reflection']}")
+
+    def both(key, fmt=_pct):
+        return [fmt(c[key]), fmt(g[key])]
+
+    n3, n4, n33 = (c[k]["n"] for k in ("k>=3: reflected sensor left out", "k>=4, bias >= 10 sigma: reflected sensor left out",
+                                        "k==3, bias >= 10 sigma: reflected sensor left out"))
+    e = c["k>=3, left out: median position error mm (screened / every ray kept)"]
+    eg = g["k>=3, left out: median position error mm (screened / every ray kept)"]
+    lines = [
+        [f"reflected sensor left out, 3 or more sensors see the emitter ({n3} rows)", *both("k>=3: reflected sensor left out")],
+        [f"the same, bias >= 10 sigma, 4 or more sensors ({n4} rows)", *both("k>=4, bias >= 10 sigma: reflected sensor left out")],
+        [f"the same, bias >= 10 sigma, exactly 3 sensors ({n33} rows)", *both("k==3, bias >= 10 sigma: reflected sensor left out")],
+        ["3 or more sensors: `ambiguous`", *both("k>=3: ambiguous")],
+        ["another sensor left out instead", *both("k>=3: another sensor left out (wrong)")],
+        [f"two sensors: flagged `ambiguous` ({c['k==2: flagged ambiguous']['n']} rows)", *both("k==2: flagged ambiguous")],
+        ["two sensors: a sensor left out (chosen)", str(c["k==2: a sensor left out (must be 0)"]),
+         str(g["k==2: a sensor left out (must be 0)"])],
+        [f"no reflection: any flag, 3 or more sensors ({c['no reflection: any flag (false alarm), k>=3']['n']} rows)",
+         _pct(c["no reflection: any flag (false alarm), k>=3"]), ""],
+        [f"no reflection: any flag, two sensors ({c['no reflection: any flag (false alarm), k==2']['n']} rows)",
+         _pct(c["no reflection: any flag (false alarm), k==2"]), ""],
+        ["median position error of the rows left out: screened / every ray kept",
+         f"{e[0]:.2f} mm / {e[1]:.0f} mm" if e else "-", f"{eg[0]:.2f} mm / {eg[1]:.0f} mm" if eg else "-"],
+    ]
+    print_table(["", "centroid (a PSD)", "ghost"], lines, True, "strong")
+    weak = study(a, "centroid", (a.weak_min, a.weak_max))
+    bins3 = weak["k>=3: reflected sensor left out, by bias (sigma) bins"]
+    bins2 = weak["k==2: flagged ambiguous, by bias (sigma) bins"]
+    label = {"[0, 3)": "< 3 sigma", "[3, 5)": "3-5 sigma", "[5, 10)": "5-10 sigma", "[10, 30)": "10-30 sigma",
+             "[30, inf)": "> 30 sigma"}
+    print()
+    print(f"weak reflections (attenuation {a.weak_min:g}-{a.weak_max:g}): another sensor left out "
+          f"{_pct(weak['k>=3: another sensor left out (wrong)'])}; nothing found: median bias "
+          f"{weak['k>=3, nothing found: median bias (sigma)']}")
+    print_table([f"bias of the ray (attenuation {a.weak_min:g}-{a.weak_max:g})", "rows (3 or more sensors)",
+                 "reflected sensor left out", "two sensors: `ambiguous`"],
+                [[label[b], str(bins3[b]["n"]), _pct(bins3[b]), _pct(bins2[b])] for b in label], True, "weak")
+    print()
+    print_table(["weak reflections, 3 or more sensors", "rate"],
+                [["another sensor left out", _pct(weak["k>=3: another sensor left out (wrong)"])],
+                 ["nothing found: median bias of the ray (sigma)",
+                  f"{weak['k>=3, nothing found: median bias (sigma)']:.2g}"
+                  if weak["k>=3, nothing found: median bias (sigma)"] is not None else "-"]], True, "weak_other")
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--rooms", type=int, default=400)
+    ap.add_argument("--points", type=int, default=30)
+    ap.add_argument("--sigma-n", type=float, default=2e-4, help="ray noise, normalised units (~rad)")
+    ap.add_argument("--mode", choices=("centroid", "ghost"), default="centroid")
+    ap.add_argument("--alpha", type=float, default=1e-3)
+    ap.add_argument("--seed0", type=int, default=0)
+    ap.add_argument("--att-min", type=float, default=0.05, help="attenuation drawn log-uniform in [min, max]")
+    ap.add_argument("--att-max", type=float, default=0.5)
+    ap.add_argument("--weak-min", type=float, default=0.0002, help="--markdown: the weak reflections' attenuation range")
+    ap.add_argument("--weak-max", type=float, default=0.02)
+    ap.add_argument("--json", default=None, help="write the rates here")
+    ap.add_argument("--quick", action="store_true", help="a smoke run: 20 rooms")
+    ap.add_argument("--markdown", action="store_true",
+                    help="the tables of the docs (both modes, then weak reflections by bias; ids strong, weak, weak_other)")
+    a = ap.parse_args()
+    if a.quick:
+        a.rooms = 20
+    if a.markdown:
+        markdown(a)
+        return
+    out = study(a, a.mode, (a.att_min, a.att_max))
     print(json.dumps(out, indent=1))
     if a.json:
         with open(a.json, "w", encoding="utf-8") as fh:

@@ -30,6 +30,7 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_var, "1")
 
 import argparse
+import sys
 import importlib.util
 import tempfile
 import time
@@ -38,6 +39,8 @@ from pathlib import Path
 import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO / "benchmarks"))  # benchmarks/_table.py
+from _table import print_skipped, print_table  # noqa: E402
 
 
 def _sim():
@@ -284,6 +287,7 @@ def lighthouse(folder: str = "lh1_crossingBeam_flight_00", offsets: dict | None 
         before = tag_poses(al, deck, sens, cov_joint=res.cov_full, common_mode=False)
         after = tag_poses(al, deck, sens, cov_joint=res.cov_full)
         out["common_mode"] = after.common_mode
+        out["shared_sigma_rad"] = after.common_mode_sigma_rad
         out["roughness_mm"] = roughness_mm(after.t_s, after.p_mm)
         # the shared error's time correlation, and the NEES if the stations' covariance were that much larger
         # (their fit averages over the steps as if they were independent)
@@ -343,6 +347,37 @@ def tag_rooms(n_rooms: int, tmp: Path, *, common_sigma_rad: float = 0.0) -> dict
     return {"n": n_rooms, "tested": tested, "alarms": alarms, "nees": np.array(nees), "p": np.array(pvals)}
 
 
+def _pair(halves, key, fmt):
+    return ", ".join(fmt.format(h[key]) for h in halves)
+
+
+def _coverage_lines(folder, offsets, lh) -> list:
+    """One row per reference model: both halves' figures, comma-separated (fitted on even, then odd blocks)."""
+    out = []
+    name = f"`{folder.replace('lh1_crossingBeam_', '')}`"
+    for lever, clock in ((False, False), (False, True), (True, True)):
+        b, a = lh["coverage"][("before", lever, clock)], lh["coverage"][("after", lever, clock)]
+        ref = "similarity" + (" + clock" if clock else "") + (" + lever arm" if lever else "")
+        out.append([name, "yes" if offsets else "no", ref,
+                    ", ".join(f"{1000 * h['clock_offset_s']:+.0f}" for h in a),
+                    "; ".join("(" + ", ".join(f"{x:.1f}" for x in h["lever_mm"]) + ")" for h in a) if lever else "-",
+                    _pair(a, "n", "{}"), ", ".join(f"{h['median_mm']:.2f} / {h['p95_mm']:.2f}" for h in a),
+                    _pair(b, "nees_median", "{:.1f}"), _pair(a, "nees_median", "{:.1f}"),
+                    _pair(b, "nees_mean", "{:.1f}"), _pair(a, "nees_mean", "{:.1f}"),
+                    _pair(a, "diff_nees_median", "{:.2f}"), _pair(a, "rank_corr_next", "{:.2f}")])
+    return out
+
+
+def _shared_line(folder, offsets, lh) -> list:
+    cm = lh["common_mode"]
+    sig = lh["shared_sigma_rad"]
+    grow = "-" if cm.inflation is None else f"x{np.sqrt(cm.inflation):.2f}, x{1 + cm.effect_sigma:.2f}"
+    return [f"`{folder.replace('lh1_crossingBeam_', '')}`", "yes" if offsets else "no", f"{1e6 * sig:.0f}",
+            f"{cm.statistic:.3g} ({cm.dof:g})", grow, f"{lh['lag1']:.2f}", f"{lh['tau_steps']:.1f}",
+            ", ".join(f"{x:.2f}" for x in lh["roughness_mm"]), ", ".join(f"{x:.2f}" for x in lh["mocap_roughness_mm"]),
+            _pair(lh["stations_widened"], "nees_median", "{:.1f}")]
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--rooms", type=int, default=300)
@@ -353,74 +388,99 @@ def main(argv=None) -> int:
     ap.add_argument("--common-sigma-rad", type=float, default=3e-4,
                     help="the shared error per sensor and step put into the second set of tag rooms")
     ap.add_argument("--no-coverage", action="store_true", help="skip the lighthouse coverage scoring")
-    ap.add_argument("--markdown", action="store_true")
+    ap.add_argument("--no-timing", action="store_true", help="skip the 60 s paths' timing")
+    ap.add_argument("--quick", action="store_true", help="a smoke run: 12 rooms, no timing")
+    ap.add_argument("--markdown", action="store_true", help="the tables as Markdown (ids: sim, sim_check, timing, tag_rooms, lighthouse, shared_error, coverage)")
     a = ap.parse_args(argv)
+    if a.quick:
+        a.rooms, a.no_timing, a.tag_rooms = 12, True, min(a.tag_rooms, 6)
+    md = a.markdown
     with tempfile.TemporaryDirectory() as d:
         tmp = Path(d)
         r = rooms(a.rooms, tuple(a.steps), tmp)
         all_nees = np.concatenate([np.array(v) for v in r["by_k"].values() if v])
-        print(f"{r['n']} rooms, {a.steps[0]}-{a.steps[1]} steps: NEES of {len(all_nees)} sensor poses "
-              f"mean {all_nees.mean():.3f} +- {all_nees.std(ddof=1) / np.sqrt(len(all_nees)):.3f} (ideal 6); "
-              f"chi2 check passed {r['passed']}/{r['n']}; median time {np.median(r['times']):.2f} s")
-        for k, v in r["by_k"].items():
-            if v:
-                v = np.array(v)
-                print(f"  {k} sensors: {len(v)} poses, mean NEES {v.mean():.3f} +- {v.std(ddof=1) / np.sqrt(len(v)):.3f}")
-        for k in (2, 4):
-            print(f"60 s path at 30 Hz, {k} sensors: self-calibration {timing_60s(tmp, k):.2f} s")
-        for sig in (0.0, a.common_sigma_rad) if a.tag_rooms > 0 else ():
-            tr = tag_rooms(a.tag_rooms, tmp, common_sigma_rad=sig)
-            v = tr["nees"]
-            what = "correct data" if sig == 0 else f"a shared error of {sig:g} rad per sensor and step"
-            print(f"tag poses, {tr['n']} rooms with {what}: tag_pose_common_mode failed in {tr['alarms']}/"
-                  f"{tr['tested']} (design 0.1 % on correct data); position NEES of {len(v)} steps mean "
-                  f"{v.mean():.3f} +- {v.std(ddof=1) / np.sqrt(len(v)):.3f}, median {np.median(v):.3f} (ideal 3, 2.37)"
-                  f"; p-values below 0.05: {np.mean(tr['p'] < 0.05):.3f}, below 0.01: {np.mean(tr['p'] < 0.01):.3f}")
+
+        def cell(v):
+            v = np.asarray(v)
+            se = v.std(ddof=1) / np.sqrt(len(v)) if len(v) > 1 else float("nan")
+            return [str(len(v)), f"{v.mean():.2f} +- {se:.2f}"]
+
+        lines = [[f"{k}", *cell(v)] for k, v in r["by_k"].items() if v]
+        lines.append(["all", *cell(all_nees)])
+        print(f"{r['n']} rooms, {a.steps[0]}-{a.steps[1]} steps; the chi2 check passed in {r['passed']} of {r['n']} "
+              f"rooms; median time {np.median(r['times']):.2f} s")
+        print_table(["sensors", "sensor poses", "mean NEES (6 dof, ideal 6) +- its Monte Carlo standard error"],
+                    lines, md, "sim")
+        print()
+        print_table(["rooms", "steps", "chi2 check passed (design false-alarm rate 0.1 %)"],
+                    [[str(r["n"]), f"{a.steps[0]}-{a.steps[1]}", f"{r['passed']} of {r['n']}"]], md, "sim_check")
+        print()
+        if a.no_timing:
+            print_skipped("timing", "run with --no-timing", md)
+        else:
+            print_table(["60 s path at 30 Hz", "self-calibration (s, wall)"],
+                        [[f"{k} sensors", f"{timing_60s(tmp, k):.2f}"] for k in (2, 4)], md, "timing")
+        print()
+        if a.tag_rooms > 0:
+            tlines = []
+            for sig in (0.0, a.common_sigma_rad):
+                tr = tag_rooms(a.tag_rooms, tmp, common_sigma_rad=sig)
+                v = tr["nees"]
+                tlines.append(["none (correct data)" if sig == 0 else f"{sig:g} rad per sensor and step",
+                               str(tr["n"]), f"{tr['alarms']} of {tr['tested']}",
+                               f"{np.mean(tr['p'] < 0.05):.3f} / {np.mean(tr['p'] < 0.01):.3f}", str(len(v)),
+                               f"{v.mean():.3f} +- {v.std(ddof=1) / np.sqrt(len(v)):.3f}", f"{np.median(v):.2f}"])
+            print_table(["shared error put in", "rooms", "tag_pose_common_mode failed (design 0.1 % on correct data)",
+                         "p-values below 0.05 / 0.01", "steps",
+                         ("position NEES mean (3 dof, ideal 3) +- its Monte Carlo standard error"),
+                         "median (ideal 2.37)"], tlines, md, "tag_rooms")
+        else:
+            print_skipped("tag_rooms", "run with --tag-rooms 0", md)
     runs = [(f, o) for f in ("lh1_crossingBeam_flight_00", "lh1_crossingBeam_flight_01") for o in (None, SWEEPS)]
+    lines, missing = [], False
+    cov_lines, shared_lines = [], []
     for folder, offsets in () if a.no_lighthouse else runs:
         lh = lighthouse(folder, offsets, coverage=not a.no_coverage)
         if lh is None:
-            print("lighthouse-lh1 not present: skipped")
-        else:
-            how = "sweep times 1/120 s apart" if offsets else "one time per row"
-            print(f"lighthouse {lh['folder']} ({how}): {lh['steps']} steps, self-calibration {lh['time_s']:.2f} s, "
-                  f"chi2/dof {lh['chi2_per_dof']:.1f}")
-            for h in lh["halves"]:
-                print(f"  fit on {h['fit_on']}, {h['n']} steps scored: deck centre median {h['median_mm']:.2f} mm, "
-                      f"p95 {h['p95_mm']:.2f} mm (scale {h['scale']:.4f}); Crazyflie median {h['cf_median_mm']:.2f} "
-                      f"mm, p95 {h['cf_p95_mm']:.2f} mm; ratio {h['median_mm'] / h['cf_median_mm']:.2f}; with a "
-                      f"clock offset fitted on that half ({1000 * h['clock_offset_s']:+.0f} ms): median "
-                      f"{h['median_clock_mm']:.2f} mm, p95 {h['p95_clock_mm']:.2f} mm")
-            if "coverage" in lh:
-                print(f"  {lh['common_mode'].line()}")
-                print(f"  step-to-step noise (about a cubic over 9 steps), per axis: psdcal's deck "
-                      f"{', '.join(f'{x:.2f}' for x in lh['roughness_mm'])} mm; mocap at 30 Hz "
-                      f"{', '.join(f'{x:.2f}' for x in lh['mocap_roughness_mm'])} mm")
-                print(f"  residuals' shared part over time: lag-1 autocorrelation {lh['lag1']:.2f}, integrated "
-                      f"time {lh['tau_steps']:.1f} steps; with the stations' covariance x{lh['tau_steps']:.1f}, NEES "
-                      "median (similarity + clock) " + ", ".join(f"{h['nees_median']:.1f}"
-                                                              for h in lh["stations_widened"]))
-                rows = []
-                for (name, lever, clock), halves in lh["coverage"].items():
-                    ref = "similarity" + (" + clock" if clock else "") + (" + lever arm" if lever else "")
-                    for h in halves:
-                        rows.append((lh["folder"][-9:], "yes" if offsets else "no", name, ref, h["fit_on"], h["n"],
-                                     f"{1000 * h['clock_offset_s']:+.0f}",
-                                     "(" + ", ".join(f"{x:.1f}" for x in h["lever_mm"]) + ")",
-                                     f"{h['median_mm']:.2f}", f"{h['p95_mm']:.2f}", f"{h['nees_median']:.1f}",
-                                     f"{h['nees_mean']:.1f}", f"{h['diff_nees_median']:.2f}",
-                                     f"{h['rank_corr_next']:.2f}"))
-                head = ("flight", "sweep offsets", "covariance", "reference fitted", "fitted on", "scored",
-                        "clock ms", "lever mm", "median mm", "p95 mm", "NEES median", "NEES mean",
-                        "step-difference NEES median", "rank corr. next step")
-                if a.markdown:
-                    print("| " + " | ".join(head) + " |")
-                    print("|" + "---|" * len(head))
-                    for r in rows:
-                        print("| " + " | ".join(str(x) for x in r) + " |")
-                else:
-                    for r in rows:
-                        print("   " + "; ".join(f"{h_}: {x}" for h_, x in zip(head[2:], r[2:])))
+            missing = True
+            break
+        how = "sweep times 1/120 s apart" if offsets else "one time per row"
+        if "coverage" in lh:
+            cov_lines += _coverage_lines(folder, offsets, lh)
+            shared_lines.append(_shared_line(folder, offsets, lh))
+        for h in lh["halves"]:
+            lines.append([f"`{folder.replace('lh1_crossingBeam_', '')}`", how, f"{lh['chi2_per_dof']:.1f}",
+                          h["fit_on"], str(h["n"]), f"{h['median_mm']:.2f} / {h['p95_mm']:.2f}", f"{h['scale']:.4f}",
+                          f"{h['cf_median_mm']:.2f} / {h['cf_p95_mm']:.2f}", f"{h['median_mm'] / h['cf_median_mm']:.2f}",
+                          f"{1000 * h['clock_offset_s']:+.0f} ms: {h['median_clock_mm']:.2f} / {h['p95_clock_mm']:.2f}"])
+    print()
+    if a.no_lighthouse:
+        print_skipped("lighthouse", "run with --no-lighthouse", md)
+    elif missing:
+        print_skipped("lighthouse", "lighthouse-lh1 is not in the shared data folder", md)
+    else:
+        print_table(["flight", "angle times", "chi2/dof", "frame fitted on", "steps scored",
+                     "psdcal selfcal: median / p95 (mm)", "scale of the fit", "Crazyflie's estimate: median / p95 (mm)",
+                     "ratio of medians", "with a clock offset fitted on that half: median / p95 (mm)"], lines, md,
+                    "lighthouse")
+    print()
+    if a.no_lighthouse or a.no_coverage or missing:
+        why = "run with --no-lighthouse" if a.no_lighthouse else (
+            "run with --no-coverage" if a.no_coverage else "lighthouse-lh1 is not in the shared data folder")
+        print_skipped("shared_error", why, md)
+        print()
+        print_skipped("coverage", why, md)
+    else:
+        print_table(["flight", "sweep offsets", "shared error (urad)", "F (dof)",
+                     "position sigmas grow (median, worst direction)", "lag-1 autocorrelation of the shared part", "its integrated time (steps)",
+                     "step-to-step noise of psdcal's deck, per axis (mm)", "the same of the mocap at 30 Hz (mm)",
+                     "NEES median with the stations' covariance x that time (clock fitted)"], shared_lines, md,
+                    "shared_error")
+        print()
+        print_table(["flight", "sweep offsets", "reference fitted", "clock (ms)", "lever arm (mm)", "steps scored",
+                     "median / p95 (mm)", "NEES median: before", "after", "NEES mean: before", "after",
+                     "step-difference NEES median (after)", "rank correlation of consecutive errors"],
+                    cov_lines, md, "coverage")
     return 0
 
 

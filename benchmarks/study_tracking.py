@@ -20,7 +20,10 @@ tracked, with the statuses and restarts.
 
 Usage::
 
-    .venv/bin/python benchmarks/study_tracking.py [--scenes 200] [--seed0 0] [--lighthouse DIR]
+    .venv/bin/python benchmarks/study_tracking.py [--scenes 200] [--seed0 0] [--lighthouse DIR] [--markdown]
+
+Without ``--lighthouse`` the flights are read from ``lighthouse-lh1`` of the shared data folder beside the
+repository when it is there (``--no-lighthouse``: never); otherwise that table is skipped.
 """
 from __future__ import annotations
 
@@ -30,11 +33,20 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_var, "1")
 
 import argparse  # noqa: E402
+import sys  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # benchmarks/_table.py
+from _table import print_skipped  # noqa: E402
+
 H_S = 2.5e-4
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+import _lighthouse  # noqa: E402
+
+#: the Lighthouse data where the tests look for it: the shared data folder beside the repository
+LIGHTHOUSE = _lighthouse.ROOT
 
 
 def scene(rng, *, n_emitters=3, n=200, d=3, q=1e6, sigma_v=500.0):
@@ -73,6 +85,7 @@ def simulation(n_scenes: int, seed0: int) -> None:
             acc["nis_fail"] += c["track_nis"] is False
             acc["gated_fail"] += c["track_gated"] is False
     print(f"simulation: {n_scenes} scenes x 3 emitters x 200 measurements (d = 3, q = {q:g} mm^2/s^3)")
+    print("<!-- table: sim -->")
     print("| filter q | mean NEES (6) | mean NIS (3) | track_nis fails | track_gated fails |")
     print("|---|---|---|---|---|")
     for f, acc in rows.items():
@@ -108,7 +121,9 @@ def lighthouse(folder: Path) -> None:
         rest.append(a[:, 1:4].std(0) * 1000.0)
     sigma = float(np.sqrt(np.mean(np.square(rest))))
     print(f"lighthouse: measurement sigma {sigma:.3f} mm per axis (the estimate's scatter at rest, 5 logs)")
-    print("| flight | rows | q auto (mm^2/s^3) | gaps re-acquired | jumps | gated | raw p95 / median (mm) | "
+    print()
+    print("<!-- table: lighthouse -->")
+    print(f"| flight (sigma {sigma:.2f} mm per axis) | rows | q auto (mm^2/s^3) | gaps re-acquired | jumps | gated | raw p95 / median (mm) | "
           "tracked p95 / median (mm) | max raw / tracked (mm) | scored rows (tracked / all) | restart distances (mm) |")
     print("|---|---|---|---|---|---|---|---|---|---|---|")
     for flight in ("lh1_crossingBeam_flight_00", "lh1_crossingBeam_flight_01"):
@@ -135,16 +150,27 @@ def lighthouse(folder: Path) -> None:
               f"{np.nanmax(res.restart_distance):.0f} |")
 
 
-def main() -> None:
+def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scenes", type=int, default=200)
     ap.add_argument("--seed0", type=int, default=0)
     ap.add_argument("--lighthouse", type=Path, default=None, help="the lighthouse-lh1 data folder")
-    args = ap.parse_args()
+    ap.add_argument("--no-lighthouse", action="store_true", help="skip the flights even when the data are there")
+    ap.add_argument("--quick", action="store_true", help="a smoke run: 10 scenes")
+    ap.add_argument("--markdown", action="store_true", help="(the tables are Markdown; ids sim, lighthouse)")
+    args = ap.parse_args(argv)
+    if args.quick:
+        args.scenes = 10
     if args.scenes > 1:
         simulation(args.scenes, args.seed0)
-    if args.lighthouse is not None:
-        lighthouse(args.lighthouse)
+    print()
+    folder = args.lighthouse if args.lighthouse is not None else LIGHTHOUSE
+    if args.no_lighthouse:
+        print_skipped("lighthouse", "run with --no-lighthouse", True)
+    elif args.lighthouse is None and not folder.is_dir():
+        print_skipped("lighthouse", "lighthouse-lh1 is not in the shared data folder", True)
+    else:
+        lighthouse(folder)
 
 
 if __name__ == "__main__":

@@ -33,10 +33,14 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_var, "1")
 
 import argparse  # noqa: E402
+import sys  # noqa: E402
 import time  # noqa: E402
 from collections import Counter  # noqa: E402
 
 import numpy as np  # noqa: E402
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))  # benchmarks/_table.py, also when imported by the tests
+from _table import print_skipped, print_table  # noqa: E402
 
 CORRECT_MODELS = {
     "lens1": ({"radial": 1, "tangential": False}, {"radial": 2, "tangential": False}, {"radial": 2, "tangential": True}),
@@ -168,10 +172,14 @@ def main(argv=None):
     ap.add_argument("--correct", type=int, default=500)
     ap.add_argument("--faults", type=int, default=100)
     ap.add_argument("--jobs", type=int, default=1)
-    ap.add_argument("--markdown", action="store_true")
+    ap.add_argument("--markdown", action="store_true",
+                    help="print the tables only, as Markdown (ids: correct, faults, real, advice)")
+    ap.add_argument("--quick", action="store_true", help="a smoke run: 20 correct fits, 5 cases per fault, 2 advice")
     ap.add_argument("--advice", type=int, default=0, help="cases per fault whose diagnosis is checked (slower: refits)")
     ap.add_argument("--no-real", dest="real", action="store_false", help="skip the six real sets")
     a = ap.parse_args(argv)
+    if a.quick:
+        a.correct, a.faults, a.advice = 20, 5, min(a.advice, 2) if a.advice else 0
     from concurrent.futures import ProcessPoolExecutor
 
     ex = ProcessPoolExecutor(a.jobs) if a.jobs > 1 else None
@@ -182,52 +190,86 @@ def main(argv=None):
     rrows = list(mp(real, REAL_SETS)) if a.real else []
     if ex:
         ex.shutdown()
-    n = max(len(rows), 1)
     fa = sum(r["verdict"] != "good" for r in rows)
     fan = sum(r["verdict_noise"] != "good" for r in rows)
     per = Counter(name for r in rows for name in r["failed"])
-    print(f"correct fits: {n}; verdict not good: {fa} ({100 * fa / n:.2f} %) without a stated noise, "
-          f"{fan} ({100 * fan / n:.2f} %) with the true noise stated")
-    print("  failed checks (noise stated): " + (", ".join(f"{k} {v}" for k, v in per.most_common()) or "none"))
-    if rows:
-        print(f"  median fit {np.median([r['t_fit'] for r in rows]) * 1e3:.1f} ms, "
-              f"verdict {np.median([r['t_verdict'] for r in rows]) * 1e3:.1f} ms")
-    print("| fault | cases | detected (verdict not good or refused) | rate | wrong | suspect | refused | checks failing most |")
-    print("|---|---|---|---|---|---|---|---|")
+    md = a.markdown
+    notes = []  # the details that are not table rows: after the tables
+
+    def pct(k, m):
+        return f"{100 * k / max(m, 1):.2f} %"
+
+    print_table(["correct fits", "fits", "verdict not good", "rate", "checks failing (with the noise stated)"],
+                [["no noise stated", str(len(rows)), str(fa), pct(fa, len(rows)) + " (false alarm)", ""],
+                 ["true noise stated (`--noise-um`)", str(len(rows)), str(fan), pct(fan, len(rows)) + " (false alarm)",
+                  ", ".join(f"{k} {v}" for k, v in per.most_common()) or "none"]], md, "correct")
+    lines = []
     for k in FAULT_KINDS:
         rs = [r for r in frows if r["kind"] == k]
         det = sum(r["verdict"] != "good" for r in rs)
         cnt = Counter(r["verdict"] for r in rs)
         top = Counter(name for r in rs for name in r["failed"] if r["verdict"] != "refused").most_common(3)
-        print(f"| {k} | {len(rs)} | {det} | {100 * det / max(len(rs), 1):.1f} % | {cnt['wrong']} | {cnt['suspect']} | {cnt['refused']} | "
-              + ", ".join(f"{a_} {b_}" for a_, b_ in top) + " |")
+        lines.append([FAULT_LABEL.get(k, k), str(len(rs)), str(det), f"{100 * det / max(len(rs), 1):.1f} %",
+                      f"{cnt['wrong']} / {cnt['suspect']} / {cnt['refused']}", ", ".join(f"{a_} {b_}" for a_, b_ in top)])
         if k == "no_k2":
             for zmin in (3.0, 5.0):
                 sub = [r for r in rs if abs(r["k2_z"]) >= zmin]
                 d = sum(r["verdict"] != "good" for r in sub)
-                print(f"| no_k2, k2 >= {zmin:g} std errors from 0 in the true model's fit | {len(sub)} | {d} | "
-                      f"{100 * d / max(len(sub), 1):.1f} % | | | | |")
-        for r in rs:
-            if r["verdict"] == "good":
-                print(f"    missed: {r}")
+                lines.append([f"... where k2 is >= {zmin:g} standard errors from 0 in the true model's fit", str(len(sub)),
+                              str(d), f"{100 * d / max(len(sub), 1):.1f} %", "", ""])
+            missed = [r for r in rs if r["verdict"] == "good"]
+            if missed:
+                zs = sorted(abs(r["k2_z"]) for r in missed)
+                notes.append(f"no_k2 missed: {len(missed)}, |k2| / its standard error in the true model's fit: "
+                             + ", ".join(f"{z:.1f}" for z in zs))
+        notes += [f"missed: {r}" for r in rs if r["verdict"] == "good" and k != "no_k2"]
+    print()
+    print_table(["planted fault", "cases", "detected (verdict not good, or refused)", "rate", "wrong / suspect / refused",
+                 "checks failing most"], lines, md, "faults")
     if rrows:
-        print("| real set | clean verdict | failed checks | notes | largest effect | covariance x | fit ms | verdict ms |"
-              + " | ".join(f" {k}" for k in REAL_CHECK) + " |")
-        print("|---|---|---|---|---|---|---|---|" + "---|" * len(REAL_CHECK))
+        lines = []
         for r in rrows:
-            cells = [f"{w} ({REAL_CHECK[k]} {'fails' if named else 'silent'})" for k, (w, named) in r["faults"].items()]
-            print(f"| {r['name']} | {r['verdict']} | {', '.join(r['failed']) or '-'} | {', '.join(r['notes']) or '-'} | "
-                  f"{r['effect']:.2g} sigma | {r['inflation']:.3g} | {1e3 * r['t_fit']:.0f} | {1e3 * r['t_verdict']:.0f} | "
-                  + " | ".join(cells) + " |")
+            cells = [f"{w} (`{REAL_CHECK[k]}` {'fails' if named else 'silent'})" for k, (w, named) in r["faults"].items()]
+            lines.append([REAL_LABEL.get(r["name"], r["name"]), r["verdict"], ", ".join(r["failed"]) or "-",
+                          ", ".join(r["notes"]) or "-", f"{r['effect']:.2g} sigma", f"{r['inflation']:.3g}", *cells])
+        print()
+        print_table(["real set", "clean verdict", "failed checks", "notes", "largest effect", "covariance x",
+                     *(REAL_FAULT_LABEL.get(k, k) for k in REAL_CHECK)], lines, md, "real")
+    elif md:
+        print_skipped("real", "run without the real sets (--no-real)", md)
     if arows:
-        print("| fault | cases | advice names the planted cause |")
-        print("|---|---|---|")
-        for k in FAULT_KINDS:
-            rs = [r for r in arows if r["kind"] == k]
-            print(f"| {k} | {len(rs)} | {sum(r['named'] for r in rs)} |")
-        for r in arows:
-            if not r["named"]:
-                print(f"    not named: {r}")
+        print()
+        print_table(["planted fault", "cases", "advice names the planted cause"],
+                    [[FAULT_LABEL.get(k, k), str(len([r for r in arows if r["kind"] == k])),
+                      str(sum(r["named"] for r in arows if r["kind"] == k))] for k in FAULT_KINDS], md, "advice")
+        notes += [f"not named: {r}" for r in arows if not r["named"]]
+    elif md:
+        print_skipped("advice", "run without --advice", md)
+    if rows:
+        notes.append(f"median fit {np.median([r['t_fit'] for r in rows]) * 1e3:.1f} ms, "
+                     f"verdict {np.median([r['t_verdict'] for r in rows]) * 1e3:.1f} ms")
+    print()
+    for line in notes:
+        print(line)
+
+
+FAULT_LABEL = {
+    "gains": "ignored gain imbalance (R 1 %, C 15 %, SNR 40-60 dB)",
+    "wrong_min": "wrong minimum (single-start fit stopped in a wrong minimum)",
+    "swap": "two template LEDs swapped",
+    "mislabel": "one view mislabelled (labels shifted by one)",
+    "metres": "points (and template) in metres",
+    "no_k2": "Lens 2 fitted without k2, all",
+}
+REAL_LABEL = {
+    "zhang1998": "Zhang 1998",
+}
+REAL_FAULT_LABEL = {
+    "swap": "two LEDs swapped",
+    "reversed": "one view mirrored",
+    "metres": "points in metres",
+    "fix_f": "f fixed 5 % off",
+}
 
 
 if __name__ == "__main__":

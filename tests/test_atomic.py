@@ -30,3 +30,26 @@ def test_new_file_gets_umask_mode_and_existing_keeps_its_mode(tmp_path):
         assert q.stat().st_mode & 0o777 == 0o751 and q.read_text() == "b"
     finally:
         os.umask(old)
+
+
+def test_private_temporaries_are_new_owner_only_files(tmp_path):
+    """The staging files (made without tempfile): new (never an existing name), mode 0600, absolute, named
+    prefix + random + suffix, distinct."""
+    import os
+    import stat
+
+    from psdcal._atomic import _CREATE_FLAGS, _create_private
+
+    made = []
+    for _ in range(50):
+        fd, p = _create_private(tmp_path, "pre.", ".sfx")
+        os.close(fd)
+        made.append(p)
+        assert p.is_absolute() and p.parent == tmp_path and p.name.startswith("pre.") and p.name.endswith(".sfx")
+        assert stat.S_IMODE(p.stat().st_mode) == 0o600 and p.stat().st_size == 0
+    assert len(set(made)) == len(made)
+    link = tmp_path / "link"
+    link.symlink_to(tmp_path / "elsewhere")
+    with pytest.raises(FileExistsError):  # O_EXCL: an existing name (even a dangling link) is never opened
+        os.open(link, _CREATE_FLAGS, 0o600)
+    assert not (tmp_path / "elsewhere").exists()

@@ -29,6 +29,9 @@ CASES = [
      "d": [[1.5, 2], [3.0]], "e": (1.0, 2.0), "f": {"g": [float("-inf")]}, "h": np.float64(2.5), "i": [np.float64(1.0)]},
     {"k": 1, 1: 2, None: 3},
     [], {}, 3.0, float("nan"), "s", None, True, 7, [[0, 1, 0.25, -1e-9]] * 3, {"rows": [[1, 2.0, None, "x", [], {}]]},
+    # tables of numeric rows (written a row at a time) and what leaves that path: NaN, bools, empty or nested rows
+    [[1.0, 2], [3, -4.5e-300]], [[1.0, float("nan")], [2, 3.0]], [[1.0, float("-inf")]], [[1, True], [2, 3]],
+    [[1.0], []], [[1.0], [[2.0]]], [[[1.0, 2.0], [3.0, 4.0]], [[5.0, 6.0]]], {"t": [[0, 0, 1e-3, -2e-3]] * 4},
 ]
 
 

@@ -179,17 +179,17 @@ def test_permission_denied_while_writing_is_one_line(made, capsys, monkeypatch):
     root and as any user: exit 2, one line, the old outputs untouched, no
     temporary left.
     """
-    import tempfile
+    from psdcal import _atomic
 
     before = snapshot(made)
-    real = tempfile.mkstemp
+    real = _atomic._create_private
 
-    def denied(*a, **k):
-        if k.get("dir") is not None and str(k["dir"]) == str(made):
+    def denied(folder, *a, **k):
+        if str(folder) == str(made):
             raise PermissionError(13, "Permission denied", str(made))
-        return real(*a, **k)
+        return real(folder, *a, **k)
 
-    monkeypatch.setattr(tempfile, "mkstemp", denied)
+    monkeypatch.setattr(_atomic, "_create_private", denied)
     code, _, err = run(["simulate", "--images", "5", "--seed", "4", "-o", made, "--force"], capsys)
     assert code == 2 and "Permission denied" in one_error_line(err)
     assert snapshot(made) == before

@@ -395,7 +395,7 @@ def test_study_scripts_stay_runnable(capsys):
         mods[name] = importlib.util.module_from_spec(spec)
         spec.loader.exec_module(mods[name])
     assert mods["study_minima"].main(["--fits", "6"]) == 0
-    mods["study_verdict"].main(["--correct", "4", "--faults", "1", "--no-real"])
+    mods["study_verdict"].main(["--correct", "4", "--faults", "1", "--no-real", "--markdown"])
     out = capsys.readouterr().out
     assert "6 fits: 0 wrong minima, 0 refusals" in out
-    assert "| gains | 1 | 1 | 100.0 %" in out
+    assert "| ignored gain imbalance (R 1 %, C 15 %, SNR 40-60 dB) | 1 | 1 | 100.0 % |" in out

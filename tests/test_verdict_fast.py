@@ -85,6 +85,7 @@ def test_cholesky_qr_projector_equals_the_householder_one(fit, monkeypatch):
     lin = L.linearise(fit)
     B = L.structure_fields(lin, fit)
     monkeypatch.setattr(L, "_cholqr2", lambda A, unit_columns=True: None)  # the Householder path
+    monkeypatch.setattr(L, "_compiled_bases", lambda *a: None)  # (the compiled Cholesky QR too)
     ref = L.linearise(fit)
     assert ref.n == lin.n
     np.testing.assert_allclose(lin.h, ref.h, rtol=0, atol=1e-10)
@@ -242,3 +243,118 @@ def test_analytic_angle_sensitivities_equal_central_differences(kw):
     # and the previous finite-difference version (one-sided steps of 1e-2 sigma) to its truncation error
     old = L.consequences_reference(lin, res)
     np.testing.assert_allclose(cons.sd, old.sd, rtol=1e-3)
+
+
+def _numpy_linear(fit, monkeypatch):
+    """``linearise(fit)`` on the numpy projector (the reference of the compiled one)."""
+    with monkeypatch.context() as m:
+        m.setattr(L, "_compiled_bases", lambda *a: None)
+        return L.linearise(fit)
+
+
+@pytest.mark.skipif(not __import__("psdcal._jit", fromlist=["x"]).enabled(), reason="numba not available")
+@pytest.mark.parametrize("case", ["structured", "correct"])
+def test_compiled_projector_equals_the_numpy_one(fit, case, monkeypatch):
+    """The compiled projector (psdcal.calibration._verdict_kernel) against the numpy code it replaces on the dense
+    layout: the same rank, leverages, residuals and projections (relative 1e-9 of the largest entry; both are
+    orthonormal bases of the same spans to ~1e-13), the same statistics (relative 1e-8) and decisions."""
+    from psdcal.calibration.verdict import assess
+
+    monkeypatch.setattr(L, "COMPILED_PROJECTOR_MAX_POINTS", 10 ** 9)  # whatever the fit's size
+    if case == "correct":
+        s = simulate_set("lens1", n_images=6, noise_mm=2e-3, seed=11)
+        fit = calibrate(s.template_mm, s.points_mm, radial=2, tangential=False, verdict=False)
+    used = []
+    real = L._compiled_bases
+    monkeypatch.setattr(L, "_compiled_bases", lambda *a: used.append(1) or real(*a))
+    lin = L.linearise(fit)
+    assert used, "the dense layout takes the compiled projector"
+    ref = _numpy_linear(fit, monkeypatch)
+    assert lin.n == ref.n
+    fp = L.structure_fields(lin, fit, parts=True)
+    B = fp.dense()
+    rng = np.random.default_rng(5)
+    R = rng.normal(size=(B.shape[0], 4))
+
+    def close(a, b, tol=1e-9):
+        np.testing.assert_allclose(a, b, rtol=0, atol=tol * max(np.abs(b).max(), 1e-300))
+
+    close(lin.h, ref.h)
+    close(lin.e, ref.e)
+    for M in (B, R, lin.extra):
+        close(lin.perp(M), ref.perp(M))
+        close(lin.perp_pose(M), ref.perp_pose(M))
+        close(lin.gram_perp(M), ref.gram_perp(M))
+    close(lin.gram_perp(fp), ref.gram_perp(L.structure_fields(ref, fit, parts=True)))
+    close(lin.gt, ref.gt)
+    close(lin.ninv, ref.ninv, 1e-8)
+    monkeypatch.setattr(L, "_compiled_bases", real)
+    v = assess(fit, diagnose=False)
+    with monkeypatch.context() as m:
+        m.setattr(L, "_compiled_bases", lambda *a: None)
+        vref = assess(fit, diagnose=False)
+    assert v.verdict == vref.verdict
+    for c, cr in zip(v.checks, vref.checks, strict=True):
+        assert (c.name, c.passed, c.severe, c.advice) == (cr.name, cr.passed, cr.severe, cr.advice)
+        for a, b in ((c.statistic, cr.statistic), (c.p_value, cr.p_value), (c.effect_sigma, cr.effect_sigma),
+                     (c.inflation, cr.inflation)):
+            assert (a is None) == (b is None)
+            if a is not None and np.isfinite(b):
+                assert a == pytest.approx(b, rel=1e-8, abs=1e-300)
+
+
+@pytest.mark.skipif(not __import__("psdcal._jit", fromlist=["x"]).enabled(), reason="numba not available")
+def test_compiled_projector_hands_ill_conditioned_columns_to_the_numpy_code():
+    """A view whose pose columns are (nearly) dependent, or a global column the poses absorb, fails the compiled
+    path's conditioning test (as the numpy Cholesky QR's): the projector then comes from the numpy code."""
+    from psdcal.calibration import _verdict_kernel as vk
+
+    rng = np.random.default_rng(2)
+    Jb = rng.normal(size=(4, 30, 6))
+    G = rng.normal(size=(120, 3))
+    ok, Qb, Qg, h = vk.bases(Jb.reshape(120, 6), 30, G, L.CHOLQR_MAX_COND, L.CHOLQR_ONE_PASS_COND)
+    assert ok
+    for q, a in zip(Qb.reshape(4, 30, 6), Jb):
+        np.testing.assert_allclose(q.T @ q, np.eye(6), atol=1e-12)
+        np.testing.assert_allclose(q @ (q.T @ a), a, atol=1e-11)
+    np.testing.assert_allclose(Qg.T @ Qg, np.eye(3), atol=1e-12)
+    np.testing.assert_allclose(Qb.T @ Qg, np.zeros((6, 3)), atol=1e-12)  # the global basis off the poses
+    np.testing.assert_allclose(h, np.sum(Qb * Qb, axis=1) + np.sum(Qg * Qg, axis=1), atol=1e-14)
+    bad = Jb.copy()
+    bad[2, :, 5] = bad[2, :, 4] + 1e-7 * bad[2, :, 3]  # condition ~1e7 in view 2
+    assert not vk.bases(bad.reshape(120, 6), 30, G, L.CHOLQR_MAX_COND, L.CHOLQR_ONE_PASS_COND)[0]
+    Gbad = G.copy()
+    Gbad[:, 1] = Jb.reshape(120, 6)[:, 0] + 1e-9 * G[:, 1]  # a global column inside the poses' span
+    assert not vk.bases(Jb.reshape(120, 6), 30, Gbad, L.CHOLQR_MAX_COND, L.CHOLQR_ONE_PASS_COND)[0]
+    row_img = np.repeat(np.arange(4), 30)
+    perp = L.projector(Gbad, bad.reshape(120, 6), row_img, 4)[0]  # the numpy path, no error
+    B = rng.normal(size=(120, 2))
+    Bp = perp(B)
+    np.testing.assert_allclose(perp(Bp), Bp, atol=1e-9)  # a projector
+
+
+def test_pinv_sym_equals_numpys_pinv():
+    rng = np.random.default_rng(4)
+    A = rng.normal(size=(6, 4)) * np.array([1.0, 1e3, 1e-2, 5.0])
+    N = A @ A.T  # rank 4 of 6, badly scaled
+    d = np.sqrt(np.diag(N))
+    ref = np.linalg.pinv(N / np.outer(d, d), rcond=1e-12, hermitian=True) / np.outer(d, d)
+    np.testing.assert_allclose(L._pinv_sym(N), ref, rtol=0, atol=1e-10 * np.abs(ref).max())
+    np.testing.assert_allclose(L._pinv_sym(np.zeros((0, 0))), np.zeros((0, 0)))
+
+
+@pytest.mark.skipif(not __import__("psdcal._jit", fromlist=["x"]).enabled(), reason="numba not available")
+def test_compiled_jacobi_eigenproblem_equals_numpys():
+    """The compiled projector's small symmetric eigenproblems (cyclic Jacobi) against np.linalg.eigh: eigenvalues
+    to 1e-13 of the largest, eigenvectors up to sign to 1e-10 (distinct eigenvalues), orthonormal to 1e-13."""
+    from psdcal.calibration import _verdict_kernel as vk
+
+    rng = np.random.default_rng(8)
+    for k, scale in ((6, 1.0), (8, 1e4), (3, 1e-6)):
+        A = rng.normal(size=(50, k)) * np.logspace(0, 2, k) * scale
+        K = A.T @ A
+        lam, V = vk._eigh_jacobi(K)
+        lref, Vref = np.linalg.eigh(K)
+        np.testing.assert_allclose(lam, lref, rtol=0, atol=1e-13 * lref[-1])
+        np.testing.assert_allclose(V.T @ V, np.eye(k), atol=1e-13)
+        np.testing.assert_allclose(np.abs(np.sum(V * Vref, axis=0)), np.ones(k), atol=1e-10)

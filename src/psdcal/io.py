@@ -12,7 +12,6 @@ Writers are atomic: an output file is replaced only when writing succeeded.
 from __future__ import annotations
 
 import csv
-import json
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -99,20 +98,22 @@ def _read_rows(path):
     if not lines or not any(ln.strip() for ln in lines):
         raise InputError("empty file", path=path)
     rows = []
-    for lineno, ln in enumerate(lines, start=1):
-        if len(ln) > MAX_FIELD_CHARS * 8:
-            raise InputError(f"line of {len(ln)} characters: not a psdcal CSV line", path=path, line=lineno)
+    if max(map(len, lines)) > MAX_FIELD_CHARS * 8:
+        for lineno, ln in enumerate(lines, start=1):
+            if len(ln) > MAX_FIELD_CHARS * 8:
+                raise InputError(f"line of {len(ln)} characters: not a psdcal CSV line", path=path, line=lineno)
     reader = csv.reader(lines)
     for lineno, row in enumerate(csv_rows_checked(reader, path), start=1):
-        if not row or all(not c.strip() for c in row):
-            continue  # blank line
+        if not "".join(row).strip():
+            continue  # blank line (no cell with more than white space)
         if row[0].lstrip().startswith("#"):
             continue  # comment
         cells = [c.strip() for c in row]
-        for k, c in enumerate(cells):
-            if len(c) > MAX_FIELD_CHARS:
-                raise InputError(f"field {k + 1} has {len(c)} characters (more than {MAX_FIELD_CHARS})", path=path,
-                                 line=lineno)
+        if max(map(len, cells)) > MAX_FIELD_CHARS:
+            for k, c in enumerate(cells):
+                if len(c) > MAX_FIELD_CHARS:
+                    raise InputError(f"field {k + 1} has {len(c)} characters (more than {MAX_FIELD_CHARS})",
+                                     path=path, line=lineno)
         rows.append((lineno, cells))
     if not rows:
         raise InputError("empty file", path=path)
@@ -233,7 +234,12 @@ def read_points(path, template_ids, *, sensor_mm=(LX_MM, LY_MM), check_on_sensor
         pid = _ident(row[1], path, lineno, "point_id")
         if pid not in col:
             raise InputError(f"point_id {pid!r} is not in the template", path=path, line=lineno, field="point_id")
-        vals = [_number(row[k], path, lineno, kind_header[k]) for k in range(2, nf)]
+        try:
+            vals = [float(c) for c in row[2:]]
+        except ValueError:
+            vals = None
+        if vals is None or not all(map(math.isfinite, vals)):  # the error, naming the first field that is not a number
+            vals = [_number(row[k], path, lineno, kind_header[k]) for k in range(2, nf)]
         images.setdefault(iid, len(images))
         records.append((lineno, iid, pid, vals))
     if not records:
@@ -243,19 +249,21 @@ def read_points(path, template_ids, *, sensor_mm=(LX_MM, LY_MM), check_on_sensor
     amps = np.full((n, M, 4), np.nan) if kind == "amplitudes" else None
     lines = np.zeros((n, M), dtype=int)
     hx, hy = sensor_mm[0] / 2, sensor_mm[1] / 2
+    first: dict = {}  # (i, j) -> line: the duplicate check
+    at_i, at_j, at_line, at_xy, at_amp = [], [], [], [], []  # put into the arrays at once, after the checks
     for lineno, iid, pid, vals in records:
         i, j = images[iid], col[pid]
-        if lines[i, j]:
+        if (i, j) in first:
             raise InputError(
-                f"duplicate point {pid!r} in image {iid!r} (first on line {lines[i, j]})", path=path, line=lineno, field="point_id"
+                f"duplicate point {pid!r} in image {iid!r} (first on line {first[i, j]})", path=path, line=lineno, field="point_id"
             )
-        lines[i, j] = lineno
+        first[i, j] = lineno
         if kind == "amplitudes":
             v = np.array(vals)
             total = v.sum()
             if not abs(total) > 1e-12 * max(np.abs(v).max(), 1e-300):
                 raise InputError("sum of the four signals is zero (no light or a dead channel)", path=path, line=lineno, field="vx1")
-            amps[i, j] = v
+            at_amp.append(v)
             xy = impact_point(v, *sensor_mm)
         else:
             xy = vals  # two floats (a list: no array per row)
@@ -268,7 +276,14 @@ def read_points(path, template_ids, *, sensor_mm=(LX_MM, LY_MM), check_on_sensor
                         line=lineno,
                         field=name,
                     )
-        pts[i, j] = xy
+        at_i.append(i)
+        at_j.append(j)
+        at_line.append(lineno)
+        at_xy.append(xy)
+    lines[at_i, at_j] = at_line
+    pts[at_i, at_j] = at_xy
+    if amps is not None:
+        amps[at_i, at_j] = at_amp
     return PointsFile(list(images), pts, amps, lines, kind, str(path))
 
 
@@ -323,6 +338,8 @@ def json_text(obj) -> str:
 
 def _json_reference(obj) -> str:
     """The reference of :func:`json_text`: the json module's indented encoder after :func:`_nan_to_none`."""
+    import json
+
     return json.dumps(_nan_to_none(obj), indent=2)
 
 
@@ -330,9 +347,26 @@ class _NotPlain(Exception):
     """A value :func:`_json_fast` leaves to the json module."""
 
 
-_json_str = json.encoder.encode_basestring_ascii  # json.dumps' default (ensure_ascii)
+try:  # json.dumps' default string encoder (ensure_ascii): the C function json.encoder uses, without loading json
+    from _json import encode_basestring_ascii as _json_str
+except ImportError:  # pragma: no cover - an interpreter without the C accelerator
+    from json.encoder import encode_basestring_ascii as _json_str
 _float_repr = float.__repr__
 _isfinite = math.isfinite
+
+
+_NUMBERS = frozenset((int, float))
+
+
+class _NotFinite(Exception):
+    """A NaN or infinity in a row of :func:`_number_repr` (the row is written by the general path: null)."""
+
+
+def _number_repr(v) -> str:
+    """JSON of a finite float or an int (``repr`` of either, exactly as :func:`_json_fast` writes them)."""
+    if v.__class__ is float and not _isfinite(v):
+        raise _NotFinite
+    return v.__repr__()
 
 
 def _json_fast(o, ind: str) -> str:
@@ -356,6 +390,16 @@ def _json_fast(o, ind: str) -> str:
             return "[]"
         if all(type(v) is float for v in o) and all(map(_isfinite, o)):  # a numeric column: one join
             return "[\n" + inner + sep.join(map(_float_repr, o)) + "\n" + ind + "]"
+        if type(o[0]) is list and all(type(v) is list and v and _NUMBERS.issuperset(map(type, v)) for v in o):
+            # a table of numeric rows (the residuals, the points): each row joined at once
+            sep2 = ",\n" + inner + "  "
+            open_, close = "[\n" + inner + "  ", "\n" + inner + "]"
+            try:
+                rows = [open_ + sep2.join(map(_number_repr, v)) + close for v in o]
+            except _NotFinite:
+                pass
+            else:
+                return "[\n" + inner + sep.join(rows) + "\n" + ind + "]"
         parts = []
         for v in o:  # the scalars of a row inline (ints and floats), anything else by recursion
             tv = type(v)
@@ -392,6 +436,8 @@ def read_json(path, what: str = "JSON file") -> dict:
     text = read_text_file(path, what)
     if not text.strip():
         raise InputError("empty file", path=path)
+
+    import json
 
     def no_constant(name):
         raise ValueError(f"{name} is not JSON (write null)")

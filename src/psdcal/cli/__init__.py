@@ -65,6 +65,28 @@ class PolicyCommand(click.Command):
         else:
             self._added_force = False
 
+    def make_parser(self, ctx):
+        """click's parser, where a short option (``-t``) skips the long-option look-up's spelling suggestions.
+
+        click tries every argument as a long option first; for ``-t`` that
+        fails, builds "did you mean" suggestions (loading difflib), discards
+        them and reads the short option. Here that first try fails without
+        suggestions; a mistyped long option (``--templat``) still gets them.
+        """
+        parser = super().make_parser(ctx)
+        match = getattr(parser, "_match_long_opt", None)
+        longs, prefixes = getattr(parser, "_long_opt", None), getattr(parser, "_opt_prefixes", None)
+        if match is None or longs is None or prefixes is None:  # another click: as it is
+            return parser
+
+        def match_long_opt(opt, explicit_value, state):
+            if opt not in longs and opt[:2] not in prefixes:  # "-t": the parser reads it as a short option next
+                raise click.NoSuchOption(opt, ctx=ctx)
+            return match(opt, explicit_value, state)
+
+        parser._match_long_opt = match_long_opt
+        return parser
+
     def invoke(self, ctx):
         _check_values(ctx)
         if self._policy:

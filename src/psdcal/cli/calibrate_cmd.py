@@ -93,17 +93,20 @@ def calibrate_command(points, template, output, cost, radial, tangential, psd_ra
 
     Example: psdcal calibrate points.csv -t template.csv -o calib.json --psd-radial 1
     """
+    _one_blas_thread()
     from psdcal.calibration.core import calibrate, with_verdict
     from psdcal.errors import ConvergenceError, DegenerateViewsError, InputError
     from psdcal.io import read_points, read_template, save_calibration
     from psdcal.report.text import print_calibration
 
-    from psdcal.calibration.priors import parse_fix, parse_prior, read_prior_file
-
     if sensor_id is not None and (not sensor_id.strip() or any(c in sensor_id for c in "\r\n\x00")):
         raise InputError(f"--sensor-id must be a non-empty single line, got {sensor_id!r}", field="--sensor-id")
-    fix = parse_fix(fix_items) or None
-    priors = [parse_prior(t) for t in prior_items] + [read_prior_file(f) for f in prior_files]
+    fix, priors = None, []
+    if fix_items or prior_items or prior_files:
+        from psdcal.calibration.priors import parse_fix, parse_prior, read_prior_file
+
+        fix = parse_fix(fix_items) or None
+        priors = [parse_prior(t) for t in prior_items] + [read_prior_file(f) for f in prior_files]
     tids, txy = read_template(template)
     if len(tids) > MAX_TEMPLATE_POINTS:
         raise InputError(f"{len(tids)} template points: more than the {MAX_TEMPLATE_POINTS} a calibration handles "
@@ -282,13 +285,50 @@ def _kernels_for(points_mm, quiet: bool) -> None:
 def _with_inputs(res, template, points, gains_file=None):
     """Record the input files and their checksums in the result's problem record."""
     import dataclasses
-    import hashlib
 
     files = {}
     roles = (("template", template), ("points", points)) + ((("gains", gains_file),) if gains_file else ())
     for role, p in roles:
-        files[role] = {"path": str(p), "sha256": hashlib.sha256(Path(p).read_bytes()).hexdigest()}
+        files[role] = {"path": str(p), "sha256": _sha256(Path(p).read_bytes()).hexdigest()}
     return dataclasses.replace(res, problem={**res.problem, "files": files})
+
+
+def _sha256(data: bytes):
+    """SHA-256 of ``data`` (a hashlib object): the interpreter's built-in one where it has it, which loads in a
+    tenth of the time of hashlib's OpenSSL (the same digest, FIPS 180-4)."""
+    for name in ("_sha2", "_sha256"):  # Python >= 3.12, <= 3.11
+        try:
+            mod = __import__(name)
+        except ImportError:
+            continue
+        if hasattr(mod, "sha256"):
+            return mod.sha256(data)
+    import hashlib
+
+    return hashlib.sha256(data)
+
+
+#: BLAS libraries' thread-count variables set to 1 for a ``psdcal calibrate`` process (unless set by the user).
+BLAS_THREAD_VARIABLES = ("OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+
+
+def _one_blas_thread() -> None:
+    """Start the BLAS with one thread when numpy is not loaded yet (a fresh ``psdcal calibrate``).
+
+    The calibration and its verdict run on one BLAS thread anyway (small dense
+    problems; :func:`psdcal.calibration._refine._single_threaded_blas`), but
+    OpenBLAS starts a thread per core when it loads, and those threads spin
+    waiting for work: some 40 ms of CPU in a short command on two cores. A
+    value the user set is kept; in a process that already has numpy (a test,
+    a notebook) nothing changes.
+    """
+    import os
+    import sys
+
+    if "numpy" in sys.modules:
+        return
+    for var in BLAS_THREAD_VARIABLES:
+        os.environ.setdefault(var, "1")
 
 
 def _echo_constraints(res):

@@ -1,0 +1,318 @@
+"""The verdict's projector compiled: the orthonormal bases of the Jacobian's columns and the products with them.
+
+:func:`psdcal.calibration._verdict_linear.projector` (the numpy reference)
+builds the projector off the fit's Jacobian from its block structure (each
+view's six pose columns, then the global columns projected off them) and
+returns functions that apply it. In numpy that is some hundred small array
+operations per verdict (a batched eigenproblem, batched products of
+(rows x 6) blocks, ...), whose per-call cost, not the arithmetic, dominates
+on a few thousand rows. The kernels below do the same arithmetic in scalar
+loops: the same two-pass Cholesky QR with the same conditioning tests
+(:data:`~psdcal.calibration._verdict_linear.CHOLQR_MAX_COND`,
+:data:`~psdcal.calibration._verdict_linear.CHOLQR_ONE_PASS_COND`), so that the
+bases span the same spaces and the projections agree to rounding; where a
+test fails (a view whose pose columns are ill conditioned or rank deficient,
+global columns that need the Householder QR's rank test) :func:`bases`
+reports it and the caller takes the numpy path.
+
+Only views of equal row counts in view order (the "dense" layout) are
+handled; the tests compare every function with the numpy reference. The
+kernels are plain loops (the small symmetric eigenproblems by cyclic Jacobi
+rotations, no LAPACK or BLAS call): they compile in seconds and load in a
+fraction of one, where numba's wrappers of ``np.linalg`` cost tens of seconds
+to compile and a second to load in each fresh process.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from psdcal._jit import njit
+
+
+@njit
+def _chol_lower(K):
+    """Lower Cholesky factor of the small symmetric matrix ``K`` (ok False when not positive definite)."""
+    n = K.shape[0]
+    L = np.zeros((n, n))
+    for j in range(n):
+        s = K[j, j]
+        for k in range(j):
+            s -= L[j, k] * L[j, k]
+        if not s > 0.0:
+            return False, L
+        L[j, j] = np.sqrt(s)
+        for i in range(j + 1, n):
+            t = K[i, j]
+            for k in range(j):
+                t -= L[i, k] * L[j, k]
+            L[i, j] = t / L[j, j]
+    return True, L
+
+
+@njit
+def _gram(A, r0, nr):
+    """``A_s^T A_s`` of the rows ``r0 .. r0 + nr`` of the (m, k) ``A``."""
+    k = A.shape[1]
+    K = np.zeros((k, k))
+    for i in range(r0, r0 + nr):
+        for a in range(k):
+            x = A[i, a]
+            for b in range(a, k):
+                K[a, b] += x * A[i, b]
+    for a in range(k):
+        for b in range(a):
+            K[a, b] = K[b, a]
+    return K
+
+
+@njit
+def _times_small(A, r0, nr, M, out):
+    """``out[r0 .. r0 + nr] = A[r0 .. r0 + nr] @ M`` for a small (k, k) ``M`` (``out`` may be ``A``)."""
+    k = A.shape[1]
+    row = np.empty(k)
+    for i in range(r0, r0 + nr):
+        for a in range(k):
+            row[a] = A[i, a]
+        for b in range(k):
+            t = 0.0
+            for a in range(k):
+                t += row[a] * M[a, b]
+            out[i, b] = t
+
+
+@njit
+def _eigh_jacobi(K):
+    """Eigenvalues (ascending) and eigenvectors (columns) of the small symmetric matrix ``K`` by cyclic Jacobi
+    rotations (to the precision of the arithmetic: an off-diagonal entry below 1e-300 or 1e-17 of the geometric
+    mean of its diagonal pair counts as zero)."""
+    n = K.shape[0]
+    A = K.copy()
+    V = np.eye(n)
+    for _sweep in range(100):
+        rotated = False
+        for p in range(n - 1):
+            for q in range(p + 1, n):
+                apq = A[p, q]
+                if abs(apq) <= 1e-300 or abs(apq) <= 1e-17 * np.sqrt(abs(A[p, p] * A[q, q])):
+                    A[p, q] = 0.0
+                    A[q, p] = 0.0
+                    continue
+                rotated = True
+                theta = (A[q, q] - A[p, p]) / (2.0 * apq)
+                t = (1.0 if theta >= 0 else -1.0) / (abs(theta) + np.sqrt(theta * theta + 1.0))
+                c = 1.0 / np.sqrt(t * t + 1.0)
+                s = t * c
+                for k in range(n):  # A <- A J (columns p, q)
+                    akp = A[k, p]
+                    akq = A[k, q]
+                    A[k, p] = c * akp - s * akq
+                    A[k, q] = s * akp + c * akq
+                for k in range(n):  # A <- J^T A (rows p, q)
+                    apk = A[p, k]
+                    aqk = A[q, k]
+                    A[p, k] = c * apk - s * aqk
+                    A[q, k] = s * apk + c * aqk
+                for k in range(n):
+                    vkp = V[k, p]
+                    vkq = V[k, q]
+                    V[k, p] = c * vkp - s * vkq
+                    V[k, q] = s * vkp + c * vkq
+        if not rotated:
+            break
+    lam = np.empty(n)
+    for i in range(n):
+        lam[i] = A[i, i]
+    for i in range(1, n):  # insertion sort, ascending, with the eigenvectors
+        j = i
+        while j > 0 and lam[j - 1] > lam[j]:
+            t = lam[j - 1]
+            lam[j - 1] = lam[j]
+            lam[j] = t
+            for r in range(n):
+                t = V[r, j - 1]
+                V[r, j - 1] = V[r, j]
+                V[r, j] = t
+            j -= 1
+    return lam, V
+
+
+@njit
+def _orthonormalise(A, r0, nr, unit_columns, max_cond, one_pass_cond, out):
+    """The first Cholesky-QR pass of ``_cholqr2`` on the rows ``r0 .. r0 + nr`` of ``A``, written to the same rows
+    of ``out``: 0 when the block's columns are conditioned worse than ``max_cond`` (or one has zero norm), 1 when one
+    pass is orthonormal enough, 2 when a second pass (:func:`_second_pass`) is needed."""
+    k = A.shape[1]
+    K = _gram(A, r0, nr)
+    d = np.empty(k)
+    for a in range(k):
+        d[a] = np.sqrt(K[a, a])
+        if not (d[a] > 0.0 and np.isfinite(d[a])):
+            return 0
+    if not unit_columns:
+        d[:] = 1.0
+    Kn = np.empty((k, k))
+    for a in range(k):
+        for b in range(k):
+            Kn[a, b] = K[a, b] / (d[a] * d[b])
+    lam, V = _eigh_jacobi(Kn)
+    for a in range(k):
+        if not np.isfinite(lam[a]):
+            return 0
+    if not lam[0] > lam[k - 1] / max_cond ** 2:
+        return 0
+    M = np.empty((k, k))
+    for a in range(k):
+        for b in range(k):
+            M[a, b] = V[a, b] / d[a] / np.sqrt(lam[b])
+    _times_small(A, r0, nr, M, out)
+    return 1 if lam[0] > lam[k - 1] / one_pass_cond ** 2 else 2
+
+
+@njit
+def _second_pass(Q, r0, nr):
+    """In place on the rows ``r0 .. r0 + nr`` of ``Q``: ``Q L^-T`` with ``L L^T = Q^T Q`` (the second Cholesky-QR
+    pass; False when not positive definite)."""
+    ok, L = _chol_lower(_gram(Q, r0, nr))
+    if not ok:
+        return False
+    k = L.shape[0]
+    LinvT = np.zeros((k, k))  # (L^-1)^T by forward substitution
+    for j in range(k):
+        LinvT[j, j] = 1.0 / L[j, j]
+        for i in range(j + 1, k):
+            t = 0.0
+            for m in range(j, i):
+                t -= L[i, m] * LinvT[j, m]
+            LinvT[j, i] = t / L[i, i]
+    _times_small(Q, r0, nr, LinvT, Q)
+    return True
+
+
+@njit
+def perp_pose(Qb, nr, B):
+    """``B`` (m, k) less its projection on each view's pose basis: ``Qb`` (m, 6), the rows of each view (``nr``
+    each, view by view) orthonormal columns."""
+    m, s = Qb.shape
+    k = B.shape[1]
+    out = B.copy()
+    c = np.empty((s, k))
+    for r0 in range(0, m, nr):
+        c[:] = 0.0
+        for row in range(r0, r0 + nr):
+            for a in range(s):
+                q = Qb[row, a]
+                for j in range(k):
+                    c[a, j] += q * B[row, j]
+        for row in range(r0, r0 + nr):
+            for a in range(s):
+                q = Qb[row, a]
+                for j in range(k):
+                    out[row, j] -= q * c[a, j]
+    return out
+
+
+@njit
+def perp(Qb, nr, Qg, B):
+    """``(I - P) B``: ``B`` (m, k) off the pose bases ``Qb`` and the global basis ``Qg`` (m, g)."""
+    out = perp_pose(Qb, nr, B)
+    m, k = out.shape
+    g = Qg.shape[1]
+    c = np.zeros((g, k))
+    for r in range(m):
+        for a in range(g):
+            q = Qg[r, a]
+            for j in range(k):
+                c[a, j] += q * out[r, j]
+    for r in range(m):
+        for a in range(g):
+            q = Qg[r, a]
+            for j in range(k):
+                out[r, j] -= q * c[a, j]
+    return out
+
+
+@njit
+def pgram(Qb, nr, Qg, B, btb):
+    """``((I - P) B)^T (I - P) B`` as ``btb - Cb^T Cb - Cg^T Cg`` (B's coordinates on the pose bases and on Qg,
+    as the numpy reference)."""
+    m, s = Qb.shape
+    k = B.shape[1]
+    g = Qg.shape[1]
+    out = btb.copy()
+    c = np.empty((s, k))
+    for r0 in range(0, m, nr):
+        c[:] = 0.0
+        for row in range(r0, r0 + nr):
+            for a in range(s):
+                q = Qb[row, a]
+                for j in range(k):
+                    c[a, j] += q * B[row, j]
+        for a in range(s):
+            for j in range(k):
+                for l in range(k):
+                    out[j, l] -= c[a, j] * c[a, l]
+    cg = np.zeros((g, k))
+    for r in range(m):
+        for a in range(g):
+            q = Qg[r, a]
+            for j in range(k):
+                cg[a, j] += q * B[r, j]
+    for a in range(g):
+        for j in range(k):
+            for l in range(k):
+                out[j, l] -= cg[a, j] * cg[a, l]
+    return out
+
+
+@njit
+def bases(Jpose, nr, G, max_cond, one_pass_cond):
+    """The projector's bases: (ok, Qb (m, 6), Qg (m, g), leverages h (m,)).
+
+    ``Jpose`` (m, 6): each row's own view's pose columns, the views' rows
+    consecutive, ``nr`` each; ``G`` (m, g) the global columns (natural units).
+    As the numpy reference: each view's block by a two-pass Cholesky QR of its
+    unit-norm columns (the second pass for every block when one needs it); the
+    global columns scaled to norm 1, projected off the poses, and their basis
+    by a Cholesky QR of the columns as they are then (a column mostly absorbed
+    by the poses counts as ill conditioned). ok False: a conditioning test
+    failed (take the numpy path).
+    """
+    m, s = Jpose.shape
+    g = G.shape[1]
+    Qb = np.empty((m, s))
+    Qg = np.zeros((m, g))
+    h = np.zeros(m)
+    second = False
+    for r0 in range(0, m, nr):
+        st = _orthonormalise(Jpose, r0, nr, True, max_cond, one_pass_cond, Qb)
+        if st == 0:
+            return False, Qb, Qg, h
+        if st == 2:
+            second = True
+    if second:
+        for r0 in range(0, m, nr):
+            if not _second_pass(Qb, r0, nr):
+                return False, Qb, Qg, h
+    if g:
+        Gn = np.empty((m, g))
+        for a in range(g):
+            t = 0.0
+            for r in range(m):
+                t += G[r, a] * G[r, a]
+            nrm = max(np.sqrt(max(t, 0.0)), 1e-300)
+            for r in range(m):
+                Gn[r, a] = G[r, a] / nrm
+        Gp = perp_pose(Qb, nr, Gn)
+        st = _orthonormalise(Gp, 0, m, False, max_cond, one_pass_cond, Qg)
+        if st == 0:
+            return False, Qb, Qg, h
+        if st == 2 and not _second_pass(Qg, 0, m):
+            return False, Qb, Qg, h
+    for r in range(m):
+        t = 0.0
+        for a in range(s):
+            t += Qb[r, a] * Qb[r, a]
+        for a in range(g):
+            t += Qg[r, a] * Qg[r, a]
+        h[r] = t
+    return True, Qb, Qg, h
