@@ -157,9 +157,12 @@ def selfcal_command(angles, tag_path, output, convention, sensor_column, emitter
         raise InputError(f"--calib names sensors not in the table: {', '.join(unknown)}", field="calib")
     obj = {"sensors": res.sensors_entries(cal), "selfcal": {**res.summary(), "angles": str(angles),
                                                            "tag": str(tag_path), "convention": table.convention}}
+    tp = None
     if csv_path is not None:
         sens = [KnownSensor(nm, res.R[i], res.c_mm[i], res.cov[i]) for i, nm in enumerate(res.names)]
-        write_tag_poses(csv_path, tag_poses(table, tag, sens, cov_joint=res.cov_full))
+        tp = tag_poses(table, tag, sens, cov_joint=res.cov_full)
+        write_tag_poses(csv_path, tp)
+        obj["selfcal"]["tag_poses"] = tag_poses_summary(tp, csv_path)
     write_json(output, obj)
     if not quiet:
         frame = f"the camera frame of sensor {res.reference!r}" if res.gauge == "reference" else "the survey's frame"
@@ -176,6 +179,9 @@ def selfcal_command(angles, tag_path, output, convention, sensor_column, emitter
         for w in res.warnings:
             if w != res.check.line():
                 click.echo(f"warning: {w}", err=True)
+        if tp is not None:
+            for c in tp.checks:
+                click.echo(f"tag poses: check {c.line()}")
         click.echo(f"wrote {output}" + (f" and {csv_path}" if csv_path is not None else ""))
 
 
@@ -189,9 +195,12 @@ def selfcal_command(angles, tag_path, output, convention, sensor_column, emitter
               help="CSV to write: t_s, X_mm, Y_mm, Z_mm, rx_rad, ry_rad, rz_rad, their sigmas, chi2, dof, "
                    "n_sensors, ambiguous.")
 @_table_options
+@click.option("--json", "json_path", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="Also write the checks (tag_pose_chi2, tag_pose_common_mode) and the shared error's sigma "
+                   "as JSON.")
 @click.option("--quiet", "-q", is_flag=True, help="Print nothing but errors.")
 def tag_pose_command(angles, tag_path, sensors_path, output, convention, sensor_column, emitter_column, time_column,
-                     sigma_rad, sigma_deg, align_to, max_gap_s, time_offsets, quiet):
+                     sigma_rad, sigma_deg, align_to, max_gap_s, time_offsets, json_path, quiet):
     """The rigid tag's six-degree-of-freedom pose at every time step.
 
     From the directions of its emitters (ANGLES, an angles table as for
@@ -219,12 +228,18 @@ def tag_pose_command(angles, tag_path, sensors_path, output, convention, sensor_
                         align_to, max_gap_s, time_offsets)
     res = tag_poses(table, tag, sensors, cov_joint=joint)
     write_tag_poses(output, res)
+    if json_path is not None:
+        from psdcal.io import write_json
+
+        write_json(json_path, tag_poses_summary(res, output))
     if not quiet:
         click.echo(f"{len(res.t_s)} tag poses from {int(res.n_obs.sum())} directions; median sigma of the position "
                    f"{float(np_median(res.sigma_p_mm)):.3g} mm; {int(res.ambiguous.sum())} ambiguous")
-        click.echo(f"check {res.check.line()}")
+        lines = [c.line() for c in res.checks]
+        for line in lines:
+            click.echo(f"check {line}")
         for w in res.warnings:
-            if w != res.check.line():
+            if w not in lines:
                 click.echo(f"warning: {w}", err=True)
         click.echo(f"wrote {output}")
 
@@ -233,3 +248,12 @@ def np_median(a):
     import numpy as np
 
     return np.median(np.linalg.norm(a, axis=1))
+
+
+def tag_poses_summary(res, csv_path) -> dict:
+    """The JSON summary of a tag-pose fit: its checks, verdict and the shared error's sigma (rad)."""
+    from psdcal._consistency import verdict_of
+
+    return {"csv": str(csv_path), "n_steps": len(res.t_s), "verdict": verdict_of(res.checks),
+            "checks": [c.to_dict() for c in res.checks],
+            "common_mode_sigma_rad": float(res.common_mode_sigma_rad), "warnings": list(res.warnings)}

@@ -11,11 +11,17 @@ and, when the sensors file gives them, the sensors' pose covariances.
 A planar tag seen by one sensor from afar has two poses that explain its
 directions almost equally well (the mirror tilt); both are fitted and the step
 is flagged ``ambiguous`` when the other one also agrees with the noise.
+
+An error shared by all the directions one sensor gives at one step (one
+timing or sweep error, correlated photodiodes) is tested separately
+(:func:`common_mode_test`, the check ``tag_pose_common_mode``) and, when
+found, added to the covariance: the pose fit hides most of it, so the
+ratio inflation alone would not cover it.
 """
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -212,6 +218,13 @@ class TagPoses:
     check : Check
         chi2 of all steps against their total dof.
     warnings : tuple of str
+    common_mode : Check or None
+        ``tag_pose_common_mode``: whether each sensor's directions of one step
+        share an error (see :func:`common_mode_test`); None when not tested.
+    common_mode_sigma_rad : float
+        The estimated standard deviation of that shared error (rad, in the
+        direction coordinates), added to the covariance when the check fails
+        (0 otherwise).
     """
 
     t_s: np.ndarray
@@ -225,6 +238,13 @@ class TagPoses:
     ambiguous: np.ndarray
     check: Check
     warnings: tuple = field(default=())
+    common_mode: Check | None = None
+    common_mode_sigma_rad: float = 0.0
+
+    @property
+    def checks(self) -> tuple:
+        """All the checks of the fit (``tag_pose_chi2``, then ``tag_pose_common_mode`` when tested)."""
+        return (self.check,) if self.common_mode is None else (self.check, self.common_mode)
 
     @property
     def sigma_p_mm(self) -> np.ndarray:
@@ -295,7 +315,7 @@ def single_sensor_starts(n, L, e, t, T, B):
 
 
 def tag_poses(table: AnglesTable, tag: Tag, sensors: list[KnownSensor], *, alpha: float = ALPHA,
-              cov_joint=None) -> TagPoses:
+              cov_joint=None, common_mode: bool = True) -> TagPoses:
     """The tag's pose at every time step from the directions of its emitters (one or several known sensors).
 
     The covariance is the angle noise's (inflated when the check fails) plus
@@ -304,6 +324,12 @@ def tag_poses(table: AnglesTable, tag: Tag, sensors: list[KnownSensor], *, alpha
     the order of ``sensors``, with the correlations between sensors (the
     self-calibration's ``cov_full``: its sensors are correlated through the
     shared tag).
+
+    With ``common_mode`` (default), :func:`common_mode_test` checks whether
+    the directions one sensor gives at one step share an error (the
+    ``tag_pose_common_mode`` check); when they do, the covariance gets that
+    error's part (its variance estimated from the data) and the ratio
+    inflation comes from the rest of the residuals only.
 
     Rows of other emitters or unknown sensors are left out (a warning counts
     them). A step needs one sensor that sees at least three of the tag's
@@ -349,8 +375,28 @@ def tag_poses(table: AnglesTable, tag: Tag, sensors: list[KnownSensor], *, alpha
     chk = chi2_check(float(cost[solvable].sum()), float(dof[solvable].sum()), name="tag_pose_chi2",
                      what=f"the directions of the tag's emitters at {int(solvable.sum())} steps", alpha=alpha,
                      advice="the angle sigmas are too small, the tag file is wrong, or an emitter is reflected")
-    cov = inflate(cov, chk)
     K = len(sensors)
+    jac = None
+    cm, cm_sigma = None, 0.0
+    if common_mode:
+        jac = _jacobians(Rs, cs, Q, p, B, k, t, e, n, L)
+        cmr = common_mode_test(jac[0], jac[2], L, k, t, solvable, K, alpha=alpha)
+        cm = cmr.check
+        if cm.passed is False:
+            rest = chi2_check(cmr.rest_chi2, cmr.rest_dof, alpha=alpha)
+            old = inflate(cov[solvable], chk)
+            cov[solvable] = inflate(cov[solvable], rest) + cmr.var_rad2 * cmr.G[solvable]
+            cm = _with_effect(cm, old[:, 3:, 3:], cov[solvable][:, 3:, 3:], cmr, rest, chk)
+            msg = chk.message.split("; covariance inflated")[0]
+            if chk.passed is False:
+                msg += (f"; covariance inflated x{float(rest.inflation):.4g} by the residuals outside the shared "
+                        "error (tag_pose_common_mode)")
+            chk = replace(chk, inflation=rest.inflation, message=msg)
+            cm_sigma = math.sqrt(cmr.var_rad2)
+        else:
+            cov = inflate(cov, chk)
+    else:
+        cov = inflate(cov, chk)
     if cov_joint is not None:
         CJ = np.asarray(cov_joint, dtype=float)
         if CJ.shape != (6 * K, 6 * K):
@@ -364,7 +410,7 @@ def tag_poses(table: AnglesTable, tag: Tag, sensors: list[KnownSensor], *, alpha
     else:
         CJ = None
     if CJ is not None:  # d(tag) = -H^-1 G d(sensors): the sensors' part, not inflated again
-        _, Js, Jt, _ = _jacobians(Rs, cs, Q, p, B, k, t, e, n, L)
+        _, Js, Jt, _ = jac if jac is not None else _jacobians(Rs, cs, Q, p, B, k, t, e, n, L)
         G = sum_by(t * K + k, np.swapaxes(Jt, 1, 2) @ Js, T * K).reshape(T, K, 6, 6)
         G = np.swapaxes(G, 1, 2).reshape(T, 6, 6 * K)
         Hi = np.zeros((T, 6, 6))
@@ -373,9 +419,151 @@ def tag_poses(table: AnglesTable, tag: Tag, sensors: list[KnownSensor], *, alpha
         cov[solvable] = cov[solvable] + (A @ CJ @ np.swapaxes(A, 1, 2))[solvable]
     if chk.passed is False:
         warnings.append(chk.line())
+    if cm is not None and cm.passed is False:
+        warnings.append(cm.line())
     s = solvable
     return TagPoses(times[s], r_from_R_batch(Q[s]), p[s], cov[s], cost[s], dof[s], nobs[s],
-                    (counts[s] > 0).sum(1), ambiguous[s], chk, tuple(warnings))
+                    (counts[s] > 0).sum(1), ambiguous[s], chk, tuple(warnings), cm, cm_sigma)
+
+
+@dataclass(frozen=True)
+class CommonModeTest:
+    """What :func:`common_mode_test` found.
+
+    Attributes
+    ----------
+    check : Check
+        ``tag_pose_common_mode``: F test of the residuals along the shared
+        shifts against the rest (statistic F, ``dof`` its numerator's).
+    var_rad2 : float
+        Estimated variance of the shared error, rad^2 (>= 0), in each of the
+        two direction coordinates of each sensor at each step.
+    G : (T, 6, 6) ndarray
+        Per unit of that variance, the covariance it gives each step's
+        ``(phi, p)`` (zero at the steps not tested).
+    rest_chi2, rest_dof : float
+        chi2 of the residuals outside the shared shifts, and its dof.
+    """
+
+    check: Check
+    var_rad2: float
+    G: np.ndarray = field(repr=False)
+    rest_chi2: float
+    rest_dof: float
+
+
+def common_mode_test(r, Jt, L, k, t, steps, K: int, *, alpha: float = ALPHA) -> CommonModeTest:
+    """Do the directions that one sensor gives at one step share an error?
+
+    Model: on top of the stated independent noise, every sensor's directions
+    at one step are shifted together by ``(d1, d2)``, each ~ N(0, tau^2)
+    (rad, in the direction coordinates ``n``): one flash, sweep or clock
+    error for all the emitters a sensor sees at once, or the photodiodes'
+    correlated noise. The pose fit takes up most of such a shift (three of a
+    step's ``2 x sensors`` shifts look like a translation), so it barely shows
+    in each step's chi2 and is not covered by the ratio inflation; the rest,
+    e.g. the rays of two sensors that no longer cross, shows.
+
+    At each step the whitened residuals are split into their part along the
+    shared shifts the fit leaves visible (``V``, orthonormal, inside the
+    residual space) and the rest. With independent noise only, the two sums of
+    squares over all steps are ``s chi2(d_cm)`` and ``s chi2(d_rest)`` with
+    the same unknown scale ``s``, so ``F = (q_cm / d_cm) / (q_rest / d_rest)``
+    follows ``F(d_cm, d_rest)`` whatever ``s`` is (the design false-alarm
+    rate ``alpha`` holds even when the stated sigmas are off by a factor).
+    ``tau^2`` is the moment estimate ``(q_cm - s d_cm) / sum |M U|^2``.
+
+    Parameters
+    ----------
+    r : (N, 2) ndarray
+        Whitened residuals at the solution.
+    Jt : (N, 2, 6) ndarray
+        Their Jacobians by each step's tag update.
+    L : (N, 2, 2) ndarray
+        The whiteners (``L C L^T = I``) of the observations.
+    k, t : (N,) int ndarrays
+        Sensor and step index of each observation.
+    steps : (T,) bool ndarray
+        The steps to use (solved ones).
+    K : int
+        Number of sensors.
+    """
+    from psdcal._stats import f_isf, f_sf
+
+    T = len(steps)
+    G = np.zeros((T, 6, 6))
+    idx = np.flatnonzero(steps[t])
+    order = idx[np.argsort(t[idx], kind="stable")]
+    tt = t[order]
+    m_of = np.bincount(tt, minlength=T)
+    first = np.searchsorted(tt, np.arange(T))
+    q_cm = d_cm = q_all = d_all = w2 = 0.0
+    for m in np.unique(m_of[steps]):
+        if m < 3:
+            continue
+        st = np.flatnonzero(steps & (m_of == m))
+        rows = order[first[st][:, None] + np.arange(m)]  # (S, m)
+        S = len(st)
+        A = Jt[rows].reshape(S, 2 * m, 6)
+        rr = r[rows].reshape(S, 2 * m)
+        U = np.zeros((S, m, 2, K, 2))
+        U[np.arange(S)[:, None], np.arange(m)[None, :], :, k[rows], :] = L[rows]
+        U = U.reshape(S, 2 * m, 2 * K)
+        At = np.swapaxes(A, 1, 2)
+        Hi = np.linalg.inv(At @ A)
+        Bm = Hi @ (At @ U)  # (S, 6, 2K): each shared shift's effect on the step's pose
+        W = U - A @ Bm  # what the fit leaves of it in the residuals
+        u, sv, _ = np.linalg.svd(W, full_matrices=False)
+        keep = sv > 1e-9 * np.maximum(sv[:, :1], 1e-300)
+        proj = np.einsum("sni,sn->si", u, rr)
+        q_cm += float(np.sum(proj ** 2 * keep))
+        d_cm += float(keep.sum())
+        q_all += float(np.sum(rr ** 2))
+        d_all += float(S * (2 * m - 6))
+        w2 += float(np.sum(W ** 2))
+        G[st] = Bm @ np.swapaxes(Bm, 1, 2)
+    q_rest, d_rest = q_all - q_cm, d_all - d_cm
+    name = "tag_pose_common_mode"
+    what = "the directions each sensor gives at one step"
+    if not (d_cm > 0 and d_rest > 0 and q_rest > 0 and w2 > 0):
+        chk = Check(name, None, None, None, alpha, None, f"{what}: too few residuals to test a shared error",
+                    dof=float(d_cm), inflation=1.0)
+        return CommonModeTest(chk, 0.0, G, q_rest, d_rest)
+    s = q_rest / d_rest
+    F = (q_cm / d_cm) / s
+    pv = f_sf(F, d_cm, d_rest)
+    thr = f_isf(alpha, d_cm, d_rest)
+    var = max((q_cm - s * d_cm) / w2, 0.0)
+    if pv >= alpha:
+        chk = Check(name, F, thr, pv, alpha, True,
+                    f"{what} show no shared error (F {F:.3g} for {d_cm:g}, {d_rest:g} dof, p = {pv:.2g})",
+                    dof=float(d_cm), effect_sigma=0.0, inflation=1.0)
+        return CommonModeTest(chk, 0.0, G, q_rest, d_rest)
+    chk = Check(name, F, thr, pv, alpha, False,
+                f"{what} share an error of {1e6 * math.sqrt(var):.3g} urad (F {F:.3g} for {d_cm:g}, "
+                f"{d_rest:g} dof, p = {pv:.2g})",
+                advice="one timing, flash or sweep error for all of a sensor's emitters at once, or their "
+                       "correlated noise: give the sweeps' time offsets if the angles come from sweeps",
+                dof=float(d_cm), inflation=1.0)
+    return CommonModeTest(chk, var, G, q_rest, d_rest)
+
+
+def _with_effect(cm: Check, old, new, cmr: CommonModeTest, rest: Check, total: Check) -> Check:
+    """The failed common-mode check with its effect on the positions: how far one real sigma reaches
+    beyond the sigma stated without the shared error (median over steps, largest direction), and the
+    positions' covariance growth (median ratio of traces) as ``inflation``."""
+    ok = np.all(np.isfinite(old), axis=(1, 2)) & np.all(np.isfinite(new), axis=(1, 2))
+    if not ok.any():
+        return cm
+    Lo = np.linalg.cholesky(old[ok])
+    Li = np.linalg.inv(Lo)
+    lam = np.linalg.eigvalsh(Li @ new[ok] @ np.swapaxes(Li, 1, 2))[:, -1]
+    eff = float(np.median(np.sqrt(np.maximum(lam, 0)))) - 1.0
+    ratio = float(np.median(np.trace(new[ok], axis1=1, axis2=2) / np.trace(old[ok], axis1=1, axis2=2)))
+    msg = (cm.message + f"; added to the covariance (position sigmas x{math.sqrt(ratio):.3g}, up to "
+           f"x{1 + eff:.3g} in the worst direction, median over steps), the rest of the residuals inflate it "
+           f"x{float(rest.inflation):.4g} instead of the total's x{float(total.inflation):.4g}")
+    return replace(cm, message=msg, effect_sigma=eff, inflation=ratio)
 
 
 def determined(H, max_cond: float = 1e14):
@@ -476,5 +664,5 @@ def write_tag_poses(path, res: TagPoses) -> None:
     write_text_atomic(path, "\n".join(lines) + "\n")
 
 
-__all__ = ["KnownSensor", "Tag", "TagPoses", "load_sensor_poses", "read_tag", "single_sensor_starts", "tag_poses",
+__all__ = ["CommonModeTest", "KnownSensor", "Tag", "TagPoses", "common_mode_test", "load_sensor_poses", "read_tag", "single_sensor_starts", "tag_poses",
            "write_tag_poses"]
