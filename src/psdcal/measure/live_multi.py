@@ -193,7 +193,7 @@ def _segments(segs):
 
 def locate_live_multi(events, sensors, rate_hz: float, out_path, config: LocateConfig, *, offsets_s=None,
                       max_lag_s: float = 1.0, startup_s: float = 1.0, recorder=None,
-                      check_rate: bool = True) -> MultiLiveSummary:
+                      check_rate: bool = True, on_rows=None) -> MultiLiveSummary:
     """Triangulate several live streams; write rows (``MULTI_COLUMNS``) as the windows complete.
 
     Parameters
@@ -225,6 +225,9 @@ def locate_live_multi(events, sensors, rate_hz: float, out_path, config: LocateC
     check_rate : bool
         Whether a lagging live source that delivers under 0.9 ``rate_hz`` is an error (off for a replay,
         whose timing is the recording's).
+    on_rows : callable, optional
+        Called with every batch of rows (a dict of ``MULTI_COLUMNS`` arrays) right after it is written, e.g.
+        :meth:`psdcal.measure.track_live.LiveTrackWriter.add`.
 
     Returns
     -------
@@ -345,6 +348,8 @@ def locate_live_multi(events, sensors, rate_hz: float, out_path, config: LocateC
                 lat.append(now - np.max([x[3] for x in taken], axis=0))
                 wrote.append(np.full(ready, now))
                 wt.append(taken[0][2])
+                if on_rows is not None:  # after the latency's time stamp: the rows are out
+                    on_rows(cols)
             _check_lag(fed, recv, ended, lag_n, rate_hz, sensors, last_at - first_arrival if check_rate else 0.0)
     finally:
         if fh is not sys.stdout:

@@ -257,6 +257,102 @@ class _Track:
         self.t, self.x, self.P, self.n = t, x + K @ y, 0.5 * (P + P.T), self.n + 1
 
 
+#: The online filter's gap threshold uses the median of at most this many first intervals of an emitter.
+ONLINE_INTERVALS = 1001
+
+
+class Tracker:
+    """The filter of :func:`track`, one finite measurement at a time (rows as they come, e.g. live input).
+
+    Parameters
+    ----------
+    config : TrackConfig
+    d : int
+        Dimensions of a measurement.
+    gaps_s : dict, optional
+        Gap threshold (s) of each emitter (:func:`track` passes the whole file's). None: ``max_gap_s``, or
+        ``gap_intervals`` times the median of the emitter's intervals seen so far (its first
+        :data:`ONLINE_INTERVALS`; infinite before its second measurement): on evenly spaced rows the same
+        threshold as the whole file's.
+    """
+
+    def __init__(self, config: TrackConfig, d: int, gaps_s: dict | None = None):
+        self.config, self.d = config, d
+        self.gate = chi2_isf(1.0 - config.gate_p, d)
+        self._fixed = gaps_s
+        self.tracks: dict = {}
+        self.candidates: dict = {}
+        self.last_t: dict = {}
+        self._dts: dict = {}
+
+    def gap_s(self, name) -> float:
+        """The gap threshold of ``name`` now, s."""
+        if self._fixed is not None:
+            return self._fixed[name]
+        if self.config.max_gap_s is not None:
+            return float(self.config.max_gap_s)
+        dts = self._dts.get(name)
+        return float(self.config.gap_intervals * np.median(dts)) if dts else math.inf
+
+    def gaps_s(self) -> dict:
+        """Every emitter's gap threshold now (for the warnings)."""
+        return {name: self.gap_s(name) for name in self.last_t}
+
+    def step(self, ti: float, name, zi, Ri):
+        """One finite measurement ``zi`` (d,) with covariance ``Ri`` (d, d) of emitter ``name`` at ``ti`` s.
+
+        Returns ``(status, nis, dist, track)``: the row's word, its NIS (NaN when not tested), the restart's
+        distance (NaN unless ``gap``/``jump``), and the track whose state the row reports (None when gated).
+        """
+        config, d = self.config, self.d
+        nis = dist = math.nan
+        prev = self.last_t.get(name)
+        if prev is not None and ti < prev:
+            raise InputError(f"time goes back for emitter {name!r} at t = {ti:.9g} s", field="t_s")
+        gap = self.gap_s(name)
+        if self._fixed is None and prev is not None and ti > prev:
+            dts = self._dts.setdefault(name, [])
+            if len(dts) < ONLINE_INTERVALS:
+                dts.append(ti - prev)
+        self.last_t[name] = ti
+        trk = self.tracks.get(name)
+        if trk is None:
+            trk = self.tracks[name] = _Track(ti, zi, Ri, config.init_sigma_v)
+            status = "start"
+        elif ti - trk.t > gap:  # a gap: re-acquire from the measurement
+            dist = float(np.linalg.norm(zi - (trk.x[:d] + (ti - trk.t) * trk.x[d:])))
+            trk = self.tracks[name] = _Track(ti, zi, Ri, config.init_sigma_v)
+            self.candidates.pop(name, None)
+            status = "gap"
+        else:
+            x, P = trk.predict(ti, config.q)
+            y, Sinv, nis = _Track.innovation(x, P, zi, Ri)
+            if nis <= self.gate:
+                trk.update(ti, x, P, y, Sinv, Ri)
+                self.candidates.pop(name, None)
+                status = "ok"
+            else:
+                status = "gated"
+                cand = self.candidates.get(name)
+                if cand is not None and ti - cand.t <= gap:
+                    cx, cP = cand.predict(ti, config.q)
+                    cy, cSinv, cnis = _Track.innovation(cx, cP, zi, Ri)
+                    if cnis <= self.gate:
+                        cand.update(ti, cx, cP, cy, cSinv, Ri)
+                    else:
+                        cand = None
+                else:
+                    cand = None
+                if cand is None:
+                    cand = self.candidates[name] = _Track(ti, zi, Ri, config.init_sigma_v)
+                if cand.n >= config.max_gated:  # consistent, and not the track: jump to it
+                    dist = float(np.linalg.norm(cand.x[:d] - x[:d]))
+                    trk = self.tracks[name] = cand
+                    del self.candidates[name]
+                    status = "jump"
+        return status, nis, dist, (None if status == "gated" else trk)
+
+
 def track(t_s, emitter, z, R, config: TrackConfig = TrackConfig(), *, unit: str = "") -> TrackResult:
     """Filter measurements of several emitters (each its own constant-velocity track).
 
@@ -288,7 +384,6 @@ def track(t_s, emitter, z, R, config: TrackConfig = TrackConfig(), *, unit: str 
     if z.ndim != 2 or R.shape != (N, z.shape[1], z.shape[1]) or len(em) != N or z.shape[0] != N:
         raise InputError(f"shapes t {t.shape}, z {z.shape}, R {R.shape} do not match")
     d = z.shape[1]
-    gate = chi2_isf(1.0 - config.gate_p, d)
     finite = np.isfinite(z).all(1) & np.isfinite(R).all((1, 2)) & np.isfinite(t)
     gaps = _gap_thresholds(t, em, finite, config)
     P_out = np.full((N, d), np.nan)
@@ -297,53 +392,12 @@ def track(t_s, emitter, z, R, config: TrackConfig = TrackConfig(), *, unit: str 
     nis = np.full(N, np.nan)
     status = np.full(N, "invalid", dtype=object)
     dist = np.full(N, np.nan)
-    tracks: dict = {}
-    candidates: dict = {}
-    last_t: dict = {}
+    filt = Tracker(config, d, gaps)
     for i in range(N):
-        name = em[i]
         if not finite[i]:
             continue
-        ti, zi, Ri = t[i], z[i], R[i]
-        if name in last_t and ti < last_t[name]:
-            raise InputError(f"time goes back for emitter {name!r} at t = {ti:.9g} s", field="t_s")
-        last_t[name] = ti
-        trk = tracks.get(name)
-        if trk is None:
-            trk = tracks[name] = _Track(ti, zi, Ri, config.init_sigma_v)
-            status[i] = "start"
-        elif ti - trk.t > gaps[name]:  # a gap: re-acquire from the measurement
-            dist[i] = float(np.linalg.norm(zi - (trk.x[:d] + (ti - trk.t) * trk.x[d:])))
-            trk = tracks[name] = _Track(ti, zi, Ri, config.init_sigma_v)
-            candidates.pop(name, None)
-            status[i] = "gap"
-        else:
-            x, P = trk.predict(ti, config.q)
-            y, Sinv, nis[i] = _Track.innovation(x, P, zi, Ri)
-            if nis[i] <= gate:
-                trk.update(ti, x, P, y, Sinv, Ri)
-                candidates.pop(name, None)
-                status[i] = "ok"
-            else:
-                status[i] = "gated"
-                cand = candidates.get(name)
-                if cand is not None and ti - cand.t <= gaps[name]:
-                    cx, cP = cand.predict(ti, config.q)
-                    cy, cSinv, cnis = _Track.innovation(cx, cP, zi, Ri)
-                    if cnis <= gate:
-                        cand.update(ti, cx, cP, cy, cSinv, Ri)
-                    else:
-                        cand = None
-                else:
-                    cand = None
-                if cand is None:
-                    cand = candidates[name] = _Track(ti, zi, Ri, config.init_sigma_v)
-                if cand.n >= config.max_gated:  # consistent, and not the track: jump to it
-                    dist[i] = float(np.linalg.norm(cand.x[:d] - x[:d]))
-                    trk = tracks[name] = cand
-                    del candidates[name]
-                    status[i] = "jump"
-        if status[i] != "gated":
+        status[i], nis[i], dist[i], trk = filt.step(t[i], em[i], z[i], R[i])
+        if trk is not None:
             P_out[i], V_out[i], C_out[i] = trk.x[:d], trk.x[d:], trk.P
     gated = (status == "gated") | (status == "invalid")
     restart = (status == "gap") | (status == "jump")
@@ -596,43 +650,68 @@ def track_csv(in_path, out_path, *, q: float | str | None = None, gate_p: float 
         q_factor = estimate_q_factor(t[k], em[k], z[k], Rm[k], cfg)
         cfg = replace(cfg, q=cfg.q * q_factor)
     res = track(t, em, z, Rm, cfg, unit=unit)
-    warnings = list(res.warnings)
-    failed = {c.name: c for c in res.checks if c.passed is False}
+    failed = any(c.passed is False for c in res.checks)
     if not auto and failed:
         q_factor = estimate_q_factor(t[k], em[k], z[k], Rm[k], cfg)
-        warnings.append(_q_advice(q_factor, cfg.q, unit))
-    if "track_gated" in failed and "smaller than" in getattr(failed.get("track_nis"), "message", ""):
-        warnings.append("the innovations are heavier-tailed than chi2 (mostly smaller than stated, yet more "
-                        "gated): the motion is not white-noise acceleration (steady, then sharp turns); no q "
-                        "fits both, a larger one gates fewer good measurements")
-    elif auto and failed:
-        warnings.append("with --q auto (the NIS's 99 % point matched) a check still fails: the innovations do not "
-                        "follow chi2 for any q; the motion is not white-noise acceleration (steady, then sharp "
-                        "turns), or the measurement sigmas are off")
-    vcols = [f"v{c}_s" for c in cols]
-    scols = [f"sigma_{c}" for c in cols]
-    svcols = [f"sigma_v{c}_s" for c in cols]
-    out_cols = ["t_s", "emitter", *cols, *vcols, *scols, *svcols, "nis", "gated", "restart", "status"]
+    warnings = list(res.warnings) + track_warnings(res.checks, q_factor, cfg, unit, auto)
+    out_cols = track_columns(cols)
     sp, sv = res.sigma_p, res.sigma_v
     with atomic_path(out_path, suffix=".csv") as tmp:
         with open(tmp, "w", encoding="utf-8", newline="") as out:
             out.write(",".join(out_cols) + "\n")
             for i in range(len(t)):
-                vals = [*res.p[i], *res.v[i], *sp[i], *sv[i]]
-                out.write(f"{t[i]:.10g},{em[i]}," + ",".join(_fmt(v) for v in vals)
-                          + f",{f'{res.nis[i]:.6g}' if np.isfinite(res.nis[i]) else ''},{int(res.gated[i])}"
-                          + f",{int(res.restart[i])},{res.status[i]}\n")
-    tested = np.isfinite(res.nis)
-    used = tested & (res.status == "ok")
-    st = res.status
-    return {"n_rows": len(t), "n_used": int(res.used.sum()), "n_gated": int((st == "gated").sum()),
-            "n_invalid": int((st == "invalid").sum()), "n_restarts": int(res.restart.sum()),
+                out.write(track_line(t[i], em[i], res.p[i], res.v[i], sp[i], sv[i], res.nis[i], res.status[i]))
+    return track_info(t, res.status, res.nis, int(res.used.sum()), out_cols, len(cols), cfg, q_factor, auto,
+                      res.max_gap_s, res.checks, warnings)
+
+
+def track_columns(cols) -> list:
+    """The tracked file's columns for the measured columns ``cols`` (:func:`track_csv`)."""
+    return ["t_s", "emitter", *cols, *[f"v{c}_s" for c in cols], *[f"sigma_{c}" for c in cols],
+            *[f"sigma_v{c}_s" for c in cols], "nis", "gated", "restart", "status"]
+
+
+def track_line(t: float, name, p, v, sigma_p, sigma_v, nis: float, status: str) -> str:
+    """One row of the tracked file (:func:`track_columns`), with its newline; NaN states are empty."""
+    vals = [*p, *v, *sigma_p, *sigma_v]
+    gated = status in ("gated", "invalid")
+    restart = status in ("gap", "jump")
+    return (f"{t:.10g},{name}," + ",".join(_fmt(x) for x in vals)
+            + f",{f'{nis:.6g}' if np.isfinite(nis) else ''},{int(gated)},{int(restart)},{status}\n")
+
+
+def track_info(t, status, nis, n_used: int, out_cols, dims: int, cfg: TrackConfig, q_factor, auto: bool, gaps,
+               checks, warnings) -> dict:
+    """:func:`track_csv`'s returned summary from the rows' times, statuses and NIS."""
+    st = np.asarray(status, dtype=object)
+    nis = np.asarray(nis, dtype=float)
+    tested = np.isfinite(nis)
+    used = tested & (st == "ok")
+    return {"n_rows": len(t), "n_used": n_used, "n_gated": int((st == "gated").sum()),
+            "n_invalid": int((st == "invalid").sum()), "n_restarts": int(((st == "gap") | (st == "jump")).sum()),
             "n_gap": int((st == "gap").sum()), "n_jump": int((st == "jump").sum()), "n_tested": int(tested.sum()),
-            "columns": tuple(out_cols), "dims": len(cols),
-            "mean_nis": float(np.mean(res.nis[tested])) if tested.any() else math.nan,
-            "mean_nis_used": float(np.mean(res.nis[used])) if used.any() else math.nan,
-            "q": cfg.q, "q_factor": q_factor, "q_auto": auto, "max_gap_s": dict(res.max_gap_s),
-            "checks": [c.to_dict() for c in res.checks], "warnings": warnings}
+            "columns": tuple(out_cols), "dims": dims,
+            "mean_nis": float(np.mean(nis[tested])) if tested.any() else math.nan,
+            "mean_nis_used": float(np.mean(nis[used])) if used.any() else math.nan,
+            "q": cfg.q, "q_factor": q_factor, "q_auto": auto, "max_gap_s": dict(gaps),
+            "checks": [c.to_dict() for c in checks], "warnings": list(warnings)}
+
+
+def track_warnings(checks, q_factor, cfg: TrackConfig, unit: str, auto: bool) -> list:
+    """The advice that follows failed checks (``q_factor``: the factor on q estimated on the first rows, or None)."""
+    failed = {c.name: c for c in checks if c.passed is False}
+    out = []
+    if not auto and failed and q_factor is not None:
+        out.append(_q_advice(q_factor, cfg.q, unit))
+    if "track_gated" in failed and "smaller than" in getattr(failed.get("track_nis"), "message", ""):
+        out.append("the innovations are heavier-tailed than chi2 (mostly smaller than stated, yet more "
+                   "gated): the motion is not white-noise acceleration (steady, then sharp turns); no q "
+                   "fits both, a larger one gates fewer good measurements")
+    elif auto and failed:
+        out.append("with --q auto (the NIS's 99 % point matched) a check still fails: the innovations do not "
+                   "follow chi2 for any q; the motion is not white-noise acceleration (steady, then sharp "
+                   "turns), or the measurement sigmas are off")
+    return out
 
 
 def _q_advice(f: float, q: float, unit: str) -> str:
