@@ -299,3 +299,17 @@ def test_mapped_stdin_follows_a_file_that_grows(cwd):
                     app.write(more.astype("<f8").tobytes())
     assert [g.shape[0] for g in got] == [1000] * 5 + [500]
     np.testing.assert_array_equal(np.concatenate(got), np.concatenate([first, more]))
+
+
+def test_stdin_with_track_writes_the_track_of_the_rows(cwd):
+    """`locate - --track`: the track is written row by row with the rows; it equals `psdcal track` of them."""
+    x = _setup(cwd, seed=4)
+    exe = Path(sys.executable).with_name("psdcal")
+    p = subprocess.run([str(exe), *_args("-", "live.csv", ["--track", "live_track.csv", "--track-q", "1e4"])],
+                       input=np.ascontiguousarray(x.T).astype("<f8").tobytes(), capture_output=True, cwd=cwd,
+                       timeout=120)
+    assert p.returncode == 0, p.stderr.decode()
+    assert b"tracked rows to live_track.csv" in p.stdout
+    assert main(["track", "live.csv", "-o", "track.csv", "--q", "1e4"]) == 0
+    assert (cwd / "live_track.csv").read_bytes() == (cwd / "track.csv").read_bytes()
+    assert len((cwd / "track.csv").read_text().splitlines()) > 10

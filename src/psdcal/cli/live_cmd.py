@@ -119,12 +119,10 @@ def live_locate_multi(recordings, sensors_path, rate_hz, carriers, emitters, win
         offs = [float(v) for v in est]
         click.echo("offsets estimated from the arrival times: "
                    + ", ".join(f"{n} {v:+.4f} s" for n, v in zip(names, offs)), err=True)
-    tracker = None
-    if track_path:
-        from psdcal.measure.locate import MULTI_COLUMNS
-        from psdcal.measure.track_live import LiveTrackWriter
+    from psdcal.cli.system_cmd import live_tracker, print_track_summary
+    from psdcal.measure.locate import MULTI_COLUMNS
 
-        tracker = LiveTrackWriter(track_path, MULTI_COLUMNS, q=track_q)  # the track row by row, with the rows
+    tracker = live_tracker(track_path, MULTI_COLUMNS, track_q)  # the track row by row, with the rows
     recorder = SessionWriter(record_path, infos) if record_path else None
     try:
         summary = locate_live_multi(events, poses, rate, output, config, offsets_s=offs, recorder=recorder,
@@ -140,12 +138,7 @@ def live_locate_multi(recordings, sensors_path, rate_hz, carriers, emitters, win
         per = ", ".join(f"{n} {k / rate:.6g} s" for n, k in zip(names, got))
         click.echo(f"psdcal: warning: the sources ended at different times ({per}): rows up to the shortest",
                    err=True)
-    if info is not None:
-        from psdcal.measure.tracking import summary_line
-
-        click.echo(summary_line(info, track_path), err=str(output) == "-")
-        for w in info["warnings"]:
-            click.echo(f"psdcal: warning: {w}", err=True)
+    print_track_summary(info, track_path, output)
 
 
 @cli.command("record")

@@ -134,7 +134,7 @@ def _demod_options(f):
 @click.option("--track", "track_path", type=click.Path(dir_okay=False),
               help="Also write TRACK.csv: each emitter filtered by a constant-velocity Kalman filter "
                    "(positions, velocities, sigmas, NIS, gated, restart, status); see `psdcal track --help`. "
-                   "With several sensors live, each tracked row is written right after its located row.")
+                   "With live input, each tracked row is written right after its located row.")
 @click.option("--track-q", type=float, default=None,
               help="Tracking process noise, mm^2/s^3 (deg^2/s^3 for angles) [default: 1e6, 10].")
 @click.option("--raw-dtype", type=click.Choice(["float32", "float64", "int16"]), default="float64",

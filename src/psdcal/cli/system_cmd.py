@@ -664,23 +664,34 @@ def live_locate(recordings, calib, rate_hz, carriers, emitters, distance_mm, win
                           tdm=bool(tdm or sched is not None), schedule=sched, n_emitters=n_emitters)
     model = SensorModel.load(calib)
     stream = open_stream(str(recordings[0]), rate_hz, dtype=raw_dtype, scale=raw_scale, order=raw_order)
-    summary = locate_stream(stream, model, output, config)
+    from psdcal.measure.locate import single_columns
+
+    tracker = live_tracker(track_path, single_columns(distance_mm is not None), track_q)
+    try:
+        summary = locate_stream(stream, model, output, config, on_rows=None if tracker is None else tracker.add)
+    finally:
+        info = None if tracker is None else tracker.close()
     msg = (f"wrote {summary.n_rows} rows to {output} ({summary.n_samples / stream.rate_hz:.6g} s of live signal, "
            f"{summary.n_windows} windows, {summary.n_skipped} below --min-snr); {summary.latency_text()}")
     click.echo(msg, err=str(output) == "-")
-    if track_path:
-        track_live_rows(output, track_path, track_q)
+    print_track_summary(info, track_path, output)
 
 
-def track_live_rows(output, track_path, track_q) -> None:
-    """``--track`` after a live run: the rows just written (staged with them), tracked, the summary printed."""
-    from psdcal._atomic import staged
-    from psdcal.errors import InputError
-    from psdcal.measure.tracking import summary_line, track_csv
+def live_tracker(track_path, columns, track_q):
+    """``--track`` with live input: the track written row by row with the located rows (None without --track)."""
+    if not track_path:
+        return None
+    from psdcal.measure.track_live import LiveTrackWriter
 
-    if str(output) == "-":
-        raise InputError("--track needs -o FILE (not stdout) with live input", field="track")
-    info = track_csv(staged(output), track_path, q=track_q)
-    click.echo(summary_line(info, track_path))
+    return LiveTrackWriter(track_path, columns, q=track_q)
+
+
+def print_track_summary(info, track_path, output) -> None:
+    """The live track's summary line and warnings, once the sources ended (nothing without --track)."""
+    if info is None:
+        return
+    from psdcal.measure.tracking import summary_line
+
+    click.echo(summary_line(info, track_path), err=str(output) == "-")
     for w in info["warnings"]:
         click.echo(f"psdcal: warning: {w}", err=True)

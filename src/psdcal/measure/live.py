@@ -55,7 +55,7 @@ class LiveSummary:
                 f"{ms.max():.3g} ms max")
 
 
-def locate_stream(stream, model, out_path, config: LocateConfig) -> LiveSummary:
+def locate_stream(stream, model, out_path, config: LocateConfig, *, on_rows=None) -> LiveSummary:
     """Demodulate a live ``stream`` (:class:`psdcal.signal.live.RawStream`) of one sensor; write rows as they come.
 
     Parameters
@@ -65,6 +65,9 @@ def locate_stream(stream, model, out_path, config: LocateConfig) -> LiveSummary:
     out_path : str or Path
         Output CSV (written progressively, flushed after every block; ``-``: stdout).
     config : LocateConfig
+    on_rows : callable, optional
+        Called with every batch of rows (a dict of the output's column arrays) right after it is written,
+        e.g. :meth:`psdcal.measure.track_live.LiveTrackWriter.add`.
 
     Returns
     -------
@@ -140,6 +143,8 @@ def locate_stream(stream, model, out_path, config: LocateConfig) -> LiveSummary:
             now = time.perf_counter()
             for nw, arrived in arrivals:
                 lat.extend([now - arrived] * nw)
+            if cols is not None and on_rows is not None:  # after the latency's time stamp: the rows are out
+                on_rows(cols)
             check_sums()
 
         def flush_acc():
@@ -195,6 +200,8 @@ def locate_stream(stream, model, out_path, config: LocateConfig) -> LiveSummary:
             if cols is not None:
                 n_rows += _write_rows(fh, cols, order)
             fh.flush()
+            if cols is not None and on_rows is not None:
+                on_rows(cols)
     finally:
         if fh is not sys.stdout:
             fh.close()
