@@ -78,3 +78,15 @@ def test_compiled_angle_sensitivities_equal_numpys(monkeypatch):
     A0, D0 = L.angle_jacobians(res, grid, names)
     np.testing.assert_allclose(A, A0, rtol=1e-12, atol=1e-14 * np.max(np.abs(A0)))
     np.testing.assert_allclose(D, D0, rtol=1e-12, atol=1e-14 * np.max(np.abs(D0)))
+
+
+@pytest.mark.parametrize("n", [1, 49, 640])
+def test_compiled_field_parts_equal_numpys(n, monkeypatch):
+    rng = np.random.default_rng(n)
+    pts = rng.uniform(-3, 3, size=(n, 2))
+    c, half = np.array([0.2, -0.1]), np.array([3.2, 2.4])
+    got = L.field_parts(pts, c, half)
+    _numpy_only(monkeypatch)
+    ref = L.field_parts(pts, c, half)
+    assert got.shape == ref.shape
+    assert np.array_equal(got.mono, ref.mono) and np.array_equal(got.R, ref.R)

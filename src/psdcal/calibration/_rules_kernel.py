@@ -126,3 +126,102 @@ def monotonic(coeffs, c, lim, rad, dirs):
             prev_in = True
             prev = proj
     return True
+
+
+@njit
+def field_parts(pts, c, half, degree):
+    """:func:`psdcal.calibration._verdict_linear.field_parts`'s arrays: the monomials ``u^i v^j`` (i + j <=
+    ``degree``, in the order i, then j) of ``u = pts / half`` (N, n_mono), and the radial fields ``d r^4``,
+    ``d r^6`` of ``d = (pts - c) / half`` (2N, 2), rows (x0, y0, x1, ...)."""
+    n = pts.shape[0]
+    n_mono = (degree + 1) * (degree + 2) // 2
+    mono = np.empty((n, n_mono))
+    R = np.empty((2 * n, 2))
+    pu = np.empty(degree + 1)
+    pv = np.empty(degree + 1)
+    for k in range(n):
+        u0 = pts[k, 0] / half[0]
+        u1 = pts[k, 1] / half[1]
+        pu[0] = 1.0
+        pv[0] = 1.0
+        for q in range(1, degree + 1):
+            pu[q] = pu[q - 1] * u0
+            pv[q] = pv[q - 1] * u1
+        col = 0
+        for i in range(degree + 1):
+            for j in range(degree + 1 - i):
+                mono[k, col] = pu[i] * pv[j]
+                col += 1
+        d0 = (pts[k, 0] - c[0]) / half[0]
+        d1 = (pts[k, 1] - c[1]) / half[1]
+        r2 = d0 * d0 + d1 * d1
+        r4 = r2 * r2
+        r6 = r2 * r2 * r2
+        R[2 * k, 0] = d0 * r4
+        R[2 * k + 1, 0] = d1 * r4
+        R[2 * k, 1] = d0 * r6
+        R[2 * k + 1, 1] = d1 * r6
+    return mono, R
+
+
+@njit
+def _angle_chain(x, dx_dd, dx_dc, dx_dcoef, c, f, fy, sk, src, col, dc, dsk, df, dfy):
+    """The chain rule of :func:`psdcal.calibration._verdict_linear.angle_jacobians` (the same operations in the
+    same order): parameter k moves x by nothing (``src[k]`` 0), by ``dx_dc[:, :, col[k]]`` (1) or by
+    ``dx_dcoef[:, :, col[k]]`` (2), and C by ``dc[k]`` (2,), skew by ``dsk[k]``, f by ``df[k]``, fy by ``dfy[k]``."""
+    K = x.shape[0]
+    n = src.shape[0]
+    A = np.empty((2 * K, n))
+    D = np.empty((K, 2, 2))
+    for i in range(K):
+        ty = (x[i, 1] - c[1]) / fy
+        tx = (x[i, 0] - c[0] - sk * ty) / f
+        wx = 1.0 / (1.0 + tx * tx)
+        wy = 1.0 / (1.0 + ty * ty)
+        for k in range(n):
+            dx0 = 0.0
+            dx1 = 0.0
+            if src[k] == 1:
+                dx0 = dx_dc[i, 0, col[k]]
+                dx1 = dx_dc[i, 1, col[k]]
+            elif src[k] == 2:
+                dx0 = dx_dcoef[i, 0, col[k]]
+                dx1 = dx_dcoef[i, 1, col[k]]
+            dty = (dx1 - dc[k, 1] - ty * dfy[k]) / fy
+            A[2 * i, k] = wx * ((dx0 - dc[k, 0] - dsk[k] * ty - sk * dty - tx * df[k]) / f)
+            A[2 * i + 1, k] = wy * dty
+        for j in range(2):
+            dty = dx_dd[i, 1, j] / fy
+            D[i, 0, j] = wx * ((dx_dd[i, 0, j] - sk * dty) / f)
+            D[i, 1, j] = wy * dty
+    return A, D
+
+
+def angle_jacobians(result, d_mm, names):
+    """:func:`psdcal.calibration._verdict_linear.angle_jacobians` (the same arguments and returns) from the kernels
+    above."""
+    from psdcal.model.params import DISTORTION_NAMES
+
+    intr = result.intrinsics
+    c = np.array([intr.cx_mm, intr.cy_mm], dtype=float)
+    x, dx_dd, dx_dc, dx_dcoef = undistort_jacobians(d_mm, result.distortion.as_array(), c)
+    n = len(names)
+    src = np.zeros(n, dtype=np.int64)
+    col = np.zeros(n, dtype=np.int64)
+    dc = np.zeros((n, 2))
+    dsk, df, dfy = np.zeros(n), np.zeros(n), np.zeros(n)
+    for k, nm in enumerate(names):
+        if nm == "f_mm":
+            df[k] = 1.0
+            dfy[k] = 1.0 if intr.fy_mm is None else 0.0
+        elif nm == "fy_mm":
+            dfy[k] = 1.0
+        elif nm in ("cx_mm", "cy_mm"):
+            j = 0 if nm == "cx_mm" else 1
+            src[k], col[k], dc[k, j] = 1, j, 1.0
+        elif nm == "skew":
+            dsk[k] = 1.0
+        elif nm in DISTORTION_NAMES:
+            src[k], col[k] = 2, DISTORTION_NAMES.index(nm)
+    return _angle_chain(x, dx_dd, dx_dc, dx_dcoef, c, float(intr.f_mm), float(intr.fy), float(intr.skew), src, col,
+                        dc, dsk, df, dfy)

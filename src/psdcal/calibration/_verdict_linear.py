@@ -444,6 +444,11 @@ class FieldParts:
 def field_parts(pts, c_mm, half_mm) -> FieldParts:
     """:func:`field_basis` in parts (:class:`FieldParts`)."""
     pts = np.asarray(pts, dtype=float)
+    if pts.ndim == 2 and _jit.use_compiled(pts.shape[0]):  # the same products in one loop (tested equal)
+        from psdcal.calibration._rules_kernel import field_parts as kernel
+
+        return FieldParts(*kernel(np.ascontiguousarray(pts), np.asarray(c_mm, dtype=float),
+                                  np.broadcast_to(np.asarray(half_mm, dtype=float), (2,)).copy(), FIELD_DEGREE))
     u = pts / half_mm
     n = pts.shape[0]
     # the monomials u^i v^j (i + j <= FIELD_DEGREE) from the powers of u and v, in the order i, then j
@@ -694,16 +699,15 @@ def angle_jacobians(result, d_mm, names) -> tuple[np.ndarray, np.ndarray]:
     from psdcal.model.distortion import undistort
     from psdcal.model.params import DISTORTION_NAMES
 
+    d_mm = np.ascontiguousarray(d_mm, dtype=float)
+    if d_mm.ndim == 2 and _jit.use_compiled(d_mm.shape[0]):  # the same arithmetic in loops (tested equal)
+        from psdcal.calibration import _rules_kernel
+
+        return _rules_kernel.angle_jacobians(result, d_mm, names)
     intr = result.intrinsics
     f, fy, sk = float(intr.f_mm), float(intr.fy), float(intr.skew)
     c = np.array([intr.cx_mm, intr.cy_mm], dtype=float)
-    d_mm = np.ascontiguousarray(d_mm, dtype=float)
-    if d_mm.ndim == 2 and _jit.use_compiled(d_mm.shape[0]):  # the same arithmetic in one loop (tested equal)
-        from psdcal.calibration._rules_kernel import undistort_jacobians as undistort_jac
-
-        x, dx_dd, dx_dc, dx_dcoef = undistort_jac(d_mm, result.distortion.as_array(), c)
-    else:
-        x, dx_dd, dx_dc, dx_dcoef = undistort(d_mm, result.distortion, c, jacobians=True)
+    x, dx_dd, dx_dc, dx_dcoef = undistort(d_mm, result.distortion, c, jacobians=True)
     ty = (x[:, 1] - c[1]) / fy
     tx = (x[:, 0] - c[0] - sk * ty) / f
     wx = 1.0 / (1.0 + tx * tx)  # d arctan(t) / dt
