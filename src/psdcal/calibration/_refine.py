@@ -190,8 +190,14 @@ class Problem:
     def observations(self) -> tuple:
         """``(img_idx, pt_idx, d_meas, P)``: view (N,) and template point (N,) of each valid observation, its
         measured point (N, 2) and template point (N, 2), mm (computed once per problem; do not modify)."""
-        img_idx, pt_idx = np.nonzero(self.valid)
-        return img_idx, pt_idx, self.points_mm[img_idx, pt_idx], self.template_mm[pt_idx]
+        if not self.valid.all():
+            img_idx, pt_idx = np.nonzero(self.valid)
+            return img_idx, pt_idx, self.points_mm[img_idx, pt_idx], self.template_mm[pt_idx]
+        n, M = self.valid.shape  # every point seen: np.nonzero's arrays (columns of one (N, 2) array) without a search
+        idx = np.empty((n * M, 2), dtype=np.intp)
+        idx[:, 0] = np.repeat(np.arange(n), M)
+        idx[:, 1] = np.tile(np.arange(M), n)
+        return idx[:, 0], idx[:, 1], self.points_mm.reshape(n * M, 2).copy(), np.tile(self.template_mm, (n, 1))
 
 
 def _global_columns(names, d_dintr5, d_dcoef7, d_dgains4=None):

@@ -15,6 +15,7 @@ import math
 
 import numpy as np
 
+from psdcal import _jit
 from psdcal._consistency import Check
 
 #: Focal lengths outside this range (mm) are not a PSD lens.
@@ -147,6 +148,12 @@ def _monotonic(result, n_dir: int = 16, n_r: int = 60) -> bool:
     rmax = float(np.max(np.hypot(*(corners - c).T)))
     dirs, unit = _rays(n_dir, n_r)
     rad = unit * rmax
+    if _jit.use_compiled(n_dir * n_r):  # the same test in one loop (its tests: the same answer as the code below)
+        from psdcal.calibration._rules_kernel import monotonic
+        from psdcal.model.distortion import _as_coeffs
+
+        return bool(monotonic(np.ascontiguousarray(_as_coeffs(result.distortion), dtype=float), c, half * 1.0001, rad,
+                              dirs))
     d = c + rad[None, :, None] * dirs[:, None, :]
     lim = half * 1.0001
     # the two coordinates written out: numpy's reductions over a last axis of length 2 are slow
