@@ -51,12 +51,19 @@ def _calibration_kernels() -> None:
     from psdcal.study.simulate import simulate_set
 
     s = simulate_set("lens2", n_images=6, noise_mm=0.002, seed=0)
+    res = None
     for kw in (dict(radial=2, tangential=True), dict(radial=2, tangential=False, cost="template"),
                dict(radial=2, psd_radial=1, aspect=True), dict(radial=2, tangential=False, fit_gains=True)):
         try:
-            calibrate(s.template_mm, s.points_mm, **kw)
+            r = calibrate(s.template_mm, s.points_mm, **kw)
+            res = r if res is None else res
         except Exception:  # a warm-up: the kernels are compiled even when a fit fails
             pass
+    if res is not None:  # the verdict's angle sensitivities (computed only when a check finds an effect)
+        from psdcal.calibration._verdict_linear import angle_jacobians
+        from psdcal.model.params import DISTORTION_NAMES
+
+        angle_jacobians(res, s.points_mm[0][:4], ("f_mm", "cx_mm", "cy_mm", "skew", *DISTORTION_NAMES))
 
 
 def _measure_kernels() -> None:
