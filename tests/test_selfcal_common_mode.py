@@ -3,7 +3,8 @@
 Simulated rooms come from the independent simulator of ``tests/test_selfcal.py``;
 the shared error (every sensor's two angles at one step shifted together) is
 put in here, outside the code under test. The real-data test reads the
-Lighthouse flights from ``../shared`` and skips without them.
+Lighthouse flights from the shared data folder beside the repository and skips
+without them.
 """
 from __future__ import annotations
 
