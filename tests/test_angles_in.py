@@ -487,7 +487,7 @@ def test_lighthouse_triangulation_from_the_command_line(tmp_path, capsys, folder
         sensors_entry_xfwd,
         triangulate_table,
     )
-    from psdcal.measure.angles_table import AnglesTable, align_to_sensor, read_angles
+    from psdcal.measure.angles_table import align_to_sensor, read_angles
 
     g = stations_file(tmp_path / "stations.json")
     # the converter here and the module's agree
@@ -532,20 +532,9 @@ def test_lighthouse_triangulation_from_the_command_line(tmp_path, capsys, folder
     # interpolation), the weighted triangulation scores as the Crazyflie's midpoints within 5 %
     raw = read_angles(DATA / folder / "angles.csv", "lighthouse", sigma_rad=7e-5,
                       columns={"sensor": "station", "emitter": "sensor"})
-    t1 = np.unique(raw.t_s[raw.sensor == "1"])
-    t0 = np.unique(raw.t_s[raw.sensor == "0"])
-    j = np.searchsorted(t0, t1, side="right") - 1
-    later = {}
-    for jj, tt in zip(j, t1):
-        if jj >= 0 and tt - t0[jj] < 0.05:
-            later.setdefault(t0[jj], []).append(tt)
-    idx, T = [], []
-    for i in range(len(raw)):
-        for tt in ([raw.t_s[i]] if raw.sensor[i] == "1" else later.get(raw.t_s[i], [])):
-            idx.append(i)
-            T.append(tt)
-    idx = np.array(idx)
-    held = AnglesTable(np.array(T), raw.sensor[idx], raw.emitter[idx], raw.n[idx], raw.cov_n[idx], raw.convention)
+    from _bench import load_benchmark
+
+    held = load_benchmark("study_angles_lighthouse").latest_frame(raw)  # the study's pairing (one copy)
     res_h = triangulate_table(held, load_angle_sensors(tmp_path / "stations.json"))
     cols = res_h.columns()
     rows_h = [{k: cols[k][i] for k in ("t_s", "X_mm", "Y_mm", "Z_mm")} for i in range(len(res_h))]
