@@ -6,8 +6,10 @@ Two numpy functions of the verdict spend their time in numpy's per-call cost
 distortion :func:`psdcal.model.distortion.undistort` with its Jacobians on
 the angle grid) and :func:`psdcal.calibration._verdict_rules._monotonic`
 (the undistorted radius along rays from C). The kernels below are the same
-arithmetic, operation for operation (Eq 7-16, docs/model.md#distortion),
-in scalar loops; the numpy functions stay the reference, and the tests
+arithmetic in scalar loops (Eq 7-16, docs/model.md#distortion: the one-to-one
+test evaluates the model's compiled point, :mod:`psdcal.model._point_kernel`;
+the Jacobians keep the numpy code's order of operations, to the bit for the
+points); the numpy functions stay the reference, and the tests
 compare the two (the points and Jacobians to rounding, the test's answer
 exactly). They are used where the calibration's compiled kernels are
 (:func:`psdcal._jit.use_compiled`): the command line's small problems never
@@ -18,6 +20,7 @@ from __future__ import annotations
 import numpy as np
 
 from psdcal._jit import njit
+from psdcal.model._point_kernel import _model_terms
 
 
 @njit
@@ -95,7 +98,6 @@ def monotonic(coeffs, c, lim, rad, dirs):
     """Whether the undistorted radius grows along each ray ``c + rad[j] dirs[i]`` (``rad`` (n_r,) mm increasing,
     ``dirs`` (n_dir, 2) unit) between consecutive points inside the sensor (``|d_k| <= lim[k]``), and is finite
     at every point inside: :func:`~psdcal.calibration._verdict_rules._monotonic`'s test."""
-    k1, k2, k3, p1, p2, l1, l2 = coeffs[0], coeffs[1], coeffs[2], coeffs[3], coeffs[4], coeffs[5], coeffs[6]
     for i in range(dirs.shape[0]):
         prev_in = False
         prev = 0.0
@@ -106,18 +108,7 @@ def monotonic(coeffs, c, lim, rad, dirs):
             if not inside:
                 prev_in = False
                 continue
-            h2 = d0 * d0 + d1 * d1
-            s = 1.0 + l1 * h2 + l2 * h2 * h2
-            u0 = d0 * s
-            u1 = d1 * s
-            ex = u0 - c[0]
-            ey = u1 - c[1]
-            r2 = ex * ex + ey * ey
-            rad_ = r2 * (k1 + r2 * (k2 + r2 * k3))
-            tx = p1 * (r2 + 2 * ex * ex) + 2 * p2 * ex * ey
-            ty = p2 * (r2 + 2 * ey * ey) + 2 * p1 * ex * ey
-            x0 = u0 + ex * rad_ + tx
-            x1 = u1 + ey * rad_ + ty
+            x0, x1, _, _, _, _, _, _, _, _, _, _, _ = _model_terms(d0, d1, coeffs, c[0], c[1])  # the model's point
             proj = (x0 - c[0]) * dirs[i, 0] + (x1 - c[1]) * dirs[i, 1]
             if not np.isfinite(proj):
                 return False

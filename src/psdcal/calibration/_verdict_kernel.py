@@ -27,26 +27,7 @@ from __future__ import annotations
 import numpy as np
 
 from psdcal._jit import njit
-
-
-@njit
-def _chol_lower(K):
-    """Lower Cholesky factor of the small symmetric matrix ``K`` (ok False when not positive definite)."""
-    n = K.shape[0]
-    L = np.zeros((n, n))
-    for j in range(n):
-        s = K[j, j]
-        for k in range(j):
-            s -= L[j, k] * L[j, k]
-        if not s > 0.0:
-            return False, L
-        L[j, j] = np.sqrt(s)
-        for i in range(j + 1, n):
-            t = K[i, j]
-            for k in range(j):
-                t -= L[i, k] * L[j, k]
-            L[i, j] = t / L[j, j]
-    return True, L
+from psdcal.calibration._image_kernel import _cholesky
 
 
 @njit
@@ -172,10 +153,11 @@ def _orthonormalise(A, r0, nr, unit_columns, max_cond, one_pass_cond, out):
 def _second_pass(Q, r0, nr):
     """In place on the rows ``r0 .. r0 + nr`` of ``Q``: ``Q L^-T`` with ``L L^T = Q^T Q`` (the second Cholesky-QR
     pass; False when not positive definite)."""
-    ok, L = _chol_lower(_gram(Q, r0, nr))
-    if not ok:
+    K = _gram(Q, r0, nr)
+    k = K.shape[0]
+    L = np.zeros((k, k))
+    if not _cholesky(K, L):
         return False
-    k = L.shape[0]
     LinvT = np.zeros((k, k))  # (L^-1)^T by forward substitution
     for j in range(k):
         LinvT[j, j] = 1.0 / L[j, j]
@@ -189,25 +171,46 @@ def _second_pass(Q, r0, nr):
 
 
 @njit
+def _coords(Q, r0, nr, B, c):
+    """``c = Q_s^T B_s`` (a, k) over the rows ``r0 .. r0 + nr`` of ``Q`` (m, a) and ``B`` (m, k)."""
+    c[:] = 0.0
+    for row in range(r0, r0 + nr):
+        for a in range(Q.shape[1]):
+            q = Q[row, a]
+            for j in range(B.shape[1]):
+                c[a, j] += q * B[row, j]
+
+
+@njit
+def _less_span(Q, r0, nr, c, out):
+    """``out_s -= Q_s c`` over the rows ``r0 .. r0 + nr``: the rows less their part on ``Q``'s columns."""
+    for row in range(r0, r0 + nr):
+        for a in range(Q.shape[1]):
+            q = Q[row, a]
+            for j in range(out.shape[1]):
+                out[row, j] -= q * c[a, j]
+
+
+@njit
+def _less_gram(c, out):
+    """``out -= c^T c``."""
+    k = c.shape[1]
+    for a in range(c.shape[0]):
+        for j in range(k):
+            for l in range(k):
+                out[j, l] -= c[a, j] * c[a, l]
+
+
+@njit
 def perp_pose(Qb, nr, B):
     """``B`` (m, k) less its projection on each view's pose basis: ``Qb`` (m, 6), the rows of each view (``nr``
     each, view by view) orthonormal columns."""
     m, s = Qb.shape
-    k = B.shape[1]
     out = B.copy()
-    c = np.empty((s, k))
+    c = np.empty((s, B.shape[1]))
     for r0 in range(0, m, nr):
-        c[:] = 0.0
-        for row in range(r0, r0 + nr):
-            for a in range(s):
-                q = Qb[row, a]
-                for j in range(k):
-                    c[a, j] += q * B[row, j]
-        for row in range(r0, r0 + nr):
-            for a in range(s):
-                q = Qb[row, a]
-                for j in range(k):
-                    out[row, j] -= q * c[a, j]
+        _coords(Qb, r0, nr, B, c)
+        _less_span(Qb, r0, nr, c, out)
     return out
 
 
@@ -216,18 +219,9 @@ def perp(Qb, nr, Qg, B):
     """``(I - P) B``: ``B`` (m, k) off the pose bases ``Qb`` and the global basis ``Qg`` (m, g)."""
     out = perp_pose(Qb, nr, B)
     m, k = out.shape
-    g = Qg.shape[1]
-    c = np.zeros((g, k))
-    for r in range(m):
-        for a in range(g):
-            q = Qg[r, a]
-            for j in range(k):
-                c[a, j] += q * out[r, j]
-    for r in range(m):
-        for a in range(g):
-            q = Qg[r, a]
-            for j in range(k):
-                out[r, j] -= q * c[a, j]
+    c = np.empty((Qg.shape[1], k))
+    _coords(Qg, 0, m, out, c)
+    _less_span(Qg, 0, m, c, out)
     return out
 
 
@@ -237,30 +231,14 @@ def pgram(Qb, nr, Qg, B, btb):
     as the numpy reference)."""
     m, s = Qb.shape
     k = B.shape[1]
-    g = Qg.shape[1]
     out = btb.copy()
     c = np.empty((s, k))
     for r0 in range(0, m, nr):
-        c[:] = 0.0
-        for row in range(r0, r0 + nr):
-            for a in range(s):
-                q = Qb[row, a]
-                for j in range(k):
-                    c[a, j] += q * B[row, j]
-        for a in range(s):
-            for j in range(k):
-                for l in range(k):
-                    out[j, l] -= c[a, j] * c[a, l]
-    cg = np.zeros((g, k))
-    for r in range(m):
-        for a in range(g):
-            q = Qg[r, a]
-            for j in range(k):
-                cg[a, j] += q * B[r, j]
-    for a in range(g):
-        for j in range(k):
-            for l in range(k):
-                out[j, l] -= cg[a, j] * cg[a, l]
+        _coords(Qb, r0, nr, B, c)
+        _less_gram(c, out)
+    cg = np.empty((Qg.shape[1], k))
+    _coords(Qg, 0, m, B, cg)
+    _less_gram(cg, out)
     return out
 
 
