@@ -87,11 +87,25 @@ def _beta_fraction(a: float, b: float, x: float) -> float:
     d = _TINY if abs(d) < _TINY else d
     d = 1.0 / d
     h = d
+    # the two Lentz steps of each m written out (:func:`_lentz_step` with b_n = 1, the same operations in the same
+    # order): the p-values of a verdict spend most of their time in this loop's calls otherwise
+    tiny = _TINY
     for m in range(1, _MAX_TERMS):
         m2 = 2 * m
-        c, d, delta = _lentz_step(m * (b - m) * x / ((qam + m2) * (a + m2)), 1.0, c, d)
-        h *= delta
-        c, d, delta = _lentz_step(-(a + m) * (qab + m) * x / ((a + m2) * (qap + m2)), 1.0, c, d)
+        an = m * (b - m) * x / ((qam + m2) * (a + m2))
+        d = an * d + 1.0
+        d = tiny if abs(d) < tiny else d
+        c = 1.0 + an / c
+        c = tiny if abs(c) < tiny else c
+        d = 1.0 / d
+        h *= d * c
+        an = -(a + m) * (qab + m) * x / ((a + m2) * (qap + m2))
+        d = an * d + 1.0
+        d = tiny if abs(d) < tiny else d
+        c = 1.0 + an / c
+        c = tiny if abs(c) < tiny else c
+        d = 1.0 / d
+        delta = d * c
         h *= delta
         if abs(delta - 1.0) < _EPS:
             break

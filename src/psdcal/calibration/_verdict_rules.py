@@ -208,6 +208,8 @@ def determination(result, cov, names, half) -> Check:
 def _normals(rvecs) -> np.ndarray:
     """(n, 3) the template's normal (its z axis) in the sensor frame of each view: ``R(rvec) e_z`` (Rodrigues)."""
     r = np.asarray(rvecs, dtype=float).reshape(-1, 3)
+    if len(r) <= _FEW_VIEWS:  # a few views: the same formula on floats (numpy's per-call cost dominates there)
+        return np.array([_normal(*v) for v in r.tolist()], dtype=float).reshape(-1, 3)
     th = np.sqrt(r[:, 0] * r[:, 0] + r[:, 1] * r[:, 1] + r[:, 2] * r[:, 2])
     k = r / np.where(th > 0, th, 1.0)[:, None]
     c, s = np.cos(th), np.sin(th)
@@ -215,6 +217,20 @@ def _normals(rvecs) -> np.ndarray:
     kx, ky, kz = k[:, 0], k[:, 1], k[:, 2]
     omc = 1.0 - c
     return np.stack([ky * s + kx * kz * omc, -kx * s + ky * kz * omc, c + kz * kz * omc], axis=1)
+
+
+#: Up to this many views :func:`_normals` evaluates its formula view by view on floats.
+_FEW_VIEWS = 32
+
+
+def _normal(x: float, y: float, z: float) -> tuple[float, float, float]:
+    """:func:`_normals` of one rotation vector (x, y, z)."""
+    th = math.sqrt(x * x + y * y + z * z)
+    if th > 0:
+        x, y, z = x / th, y / th, z / th
+    c, s = math.cos(th), math.sin(th)
+    omc = 1.0 - c
+    return y * s + x * z * omc, -x * s + y * z * omc, c + z * z * omc
 
 
 def _tilt_spread_deg(result) -> float | None:
