@@ -12,6 +12,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from psdcal.calibration import _verdict_diagnosis as D
 from psdcal.calibration import _verdict_linear as L
@@ -358,3 +360,28 @@ def test_compiled_jacobi_eigenproblem_equals_numpys():
         np.testing.assert_allclose(lam, lref, rtol=0, atol=1e-13 * lref[-1])
         np.testing.assert_allclose(V.T @ V, np.eye(k), atol=1e-13)
         np.testing.assert_allclose(np.abs(np.sum(V * Vref, axis=0)), np.ones(k), atol=1e-10)
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.tuples(*[st.floats(-3.0, 3.0)] * 3), min_size=1, max_size=40))
+def test_template_normals_are_the_rotated_z_axis_for_few_and_many_views(rvecs):
+    """The verdict's template normals (floats for a few views, numpy for many) are R(rvec) e_z (Rodrigues,
+    written independently in this file's ``_rot``), and both paths give the same numbers."""
+    from psdcal.calibration import _verdict_rules as R
+
+    r = np.array(rvecs, dtype=float)
+    n = R._normals(r)
+    want = np.array([_rot(v)[:, 2] for v in r])
+    np.testing.assert_allclose(n, want, atol=1e-12)
+    many = R._normals(np.concatenate([r] * (R._FEW_VIEWS // len(r) + 1)))[: len(r)]  # the numpy path
+    np.testing.assert_allclose(n, many, rtol=0, atol=1e-15)
+
+
+def _rot(r):
+    """Rotation matrix of a rotation vector (Rodrigues' formula with the cross-product matrix)."""
+    th = float(np.linalg.norm(r))
+    if th == 0.0:
+        return np.eye(3)
+    k = np.asarray(r, float) / th
+    K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    return np.eye(3) + np.sin(th) * K + (1 - np.cos(th)) * K @ K
