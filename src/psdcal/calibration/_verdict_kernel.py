@@ -294,3 +294,99 @@ def bases(Jpose, nr, G, max_cond, one_pass_cond):
             t += Qg[r, a] * Qg[r, a]
         h[r] = t
     return True, Qb, Qg, h
+
+
+@njit
+def normal_transforms(K, g, one_pass_cond):
+    """:func:`psdcal.calibration._verdict_blocks.normal_transforms` (its numpy reference: the same arguments and
+    returns, ``(ok, T, Rg, gtg_view)``) in loops, the small eigenproblems by Jacobi rotations.
+
+    ``K`` (v, k, k): each view's Gram matrix of its pose columns (6), then the ``g`` global ones, then any others.
+    """
+    v = K.shape[0]
+    s = 6
+    n = s + g
+    T = np.zeros((v, n, n))
+    Rg = np.zeros((g, g))
+    gtg_view = np.zeros((v, g, g))
+    Kn = np.empty((s, s))
+    d = np.empty(s)
+    cb = np.empty((s, g))
+    C = np.empty((v, s, g))
+    for i in range(v):
+        for a in range(s):
+            d[a] = np.sqrt(K[i, a, a])
+            if not (d[a] > 0.0 and np.isfinite(d[a])):
+                return False, T, Rg, gtg_view
+        for a in range(s):
+            for b in range(s):
+                Kn[a, b] = K[i, a, b] / (d[a] * d[b])
+        lam, V = _eigh_jacobi(Kn)
+        for a in range(s):
+            if not np.isfinite(lam[a]):
+                return False, T, Rg, gtg_view
+        if not lam[0] > lam[s - 1] / one_pass_cond ** 2:
+            return False, T, Rg, gtg_view
+        for a in range(s):  # Mb = V / d / sqrt(lam)
+            for b in range(s):
+                T[i, a, b] = V[a, b] / d[a] / np.sqrt(lam[b])
+        for b in range(s):  # cb = Mb^T K_ag (Qb_v^T G_v)
+            for j in range(g):
+                t = 0.0
+                for a in range(s):
+                    t += T[i, a, b] * K[i, a, s + j]
+                cb[b, j] = t
+        for j in range(g):  # the Schur complement K_gg - cb^T cb
+            for l in range(g):
+                t = K[i, s + j, s + l]
+                for b in range(s):
+                    t -= cb[b, j] * cb[b, l]
+                gtg_view[i, j, l] = t
+        for a in range(s):  # C = Mb cb: G_v's part on the poses is A_v C
+            for j in range(g):
+                t = 0.0
+                for b in range(s):
+                    t += T[i, a, b] * cb[b, j]
+                C[i, a, j] = t
+    if g == 0:
+        return True, T, Rg, gtg_view
+    nrm = np.empty(g)
+    for j in range(g):
+        t = 0.0
+        for i in range(v):
+            t += K[i, s + j, s + j]
+        nrm[j] = max(np.sqrt(max(t, 0.0)), 1e-300)
+    Kp = np.zeros((g, g))
+    for i in range(v):
+        for j in range(g):
+            for l in range(g):
+                Kp[j, l] += gtg_view[i, j, l]
+    for j in range(g):
+        for l in range(g):
+            Kp[j, l] /= nrm[j] * nrm[l]
+    for j in range(g):
+        dp = np.sqrt(Kp[j, j])
+        if not (dp > 0.0 and np.isfinite(dp)):
+            return False, T, Rg, gtg_view
+    lg, Vg = _eigh_jacobi(Kp)
+    for j in range(g):
+        if not np.isfinite(lg[j]):
+            return False, T, Rg, gtg_view
+    if not lg[0] > lg[g - 1] / one_pass_cond ** 2:
+        return False, T, Rg, gtg_view
+    Mg = np.empty((g, g))
+    for j in range(g):
+        for l in range(g):
+            Mg[j, l] = Vg[j, l] / nrm[j] / np.sqrt(lg[l])
+            Rg[l, j] = np.sqrt(lg[l]) * Vg[j, l] * nrm[j]
+    for i in range(v):
+        for a in range(s):  # -C Mg
+            for l in range(g):
+                t = 0.0
+                for j in range(g):
+                    t += C[i, a, j] * Mg[j, l]
+                T[i, a, s + l] = -t
+        for j in range(g):
+            for l in range(g):
+                T[i, s + j, s + l] = Mg[j, l]
+    return True, T, Rg, gtg_view

@@ -30,9 +30,19 @@ from functools import cached_property
 import numpy as np
 
 from psdcal import _jit, _stats
-
-#: Polynomial degree of the smooth residual field of the ``structure`` check.
-FIELD_DEGREE = 3
+from psdcal.calibration._verdict_blocks import (  # noqa: F401 (their names, importable from here)
+    CHOLQR_MAX_COND,
+    CHOLQR_ONE_PASS_COND,
+    FIELD_DEGREE,
+    POSE,
+    Blocks,
+    FieldParts,
+    _bmm,
+    _cholqr2,
+    field_basis,
+    field_parts,
+    normal_bases,
+)
 #: Grid of sensor points (per axis) over the points' extent on which the angles' shifts are evaluated.
 ANGLE_GRID = 7
 #: Parameters whose shift counts as an effect on their own (the distortion coefficients act through the angles).
@@ -57,6 +67,7 @@ class Linear:
     perp_pose: object = None  # B -> B projected off each view's pose columns
     held: dict | None = None  # fixed / prior-held parameters: name -> (data-only shift from the fit's value, its std)
     pgram: object = None  # B (m, k) -> ((I - P) B)^T ((I - P) B) without forming (I - P) B (None: through perp)
+    blocks: Blocks | None = None  # the per-view Gram matrices and the projector from them (None: from QR)
 
     def gram_perp(self, B, btb=None) -> np.ndarray:
         """(k, k) the Gram matrix of ``(I - P) B``: ``B^T B`` (``btb`` when given) less its part on the Jacobian's
@@ -79,18 +90,35 @@ class Linear:
     def extra_gram(self) -> tuple[np.ndarray, np.ndarray]:
         """(``extra^T extra``, the Gram matrix of ``(I - P) extra``): the left-out terms' test and their single
         tests share them."""
+        if self.blocks is not None:
+            return self.blocks.extra[:2]
         btb = self.extra.T @ self.extra
         return btb, self.gram_perp(self.extra, btb)
 
     @cached_property
     def gt(self) -> np.ndarray | None:
         """(m, ng) the profiled global Jacobian (each view's pose columns projected out), natural units."""
-        return None if self.g is None else self.perp_pose(self.g)
+        if self.g is None:
+            return None
+        return self.blocks.gt() if self.blocks is not None else self.perp_pose(self.g)
+
+    @cached_property
+    def gtg(self) -> np.ndarray | None:
+        """(ng, ng) ``Gt^T Gt`` (from the per-view Gram matrices when there are)."""
+        if self.g is None:
+            return None
+        return self.blocks.gtg if self.blocks is not None else self.gt.T @ self.gt
 
     @cached_property
     def ninv(self) -> np.ndarray | None:
         """(ng, ng) ``(Gt^T Gt)^-1``."""
-        return None if self.g is None else _pinv_sym(self.gt.T @ self.gt)
+        return None if self.g is None else _pinv_sym(self.gtg)
+
+    def gt_t(self, B) -> np.ndarray:
+        """(ng, k) ``Gt^T B`` for B (m, k) or :class:`FieldParts`."""
+        if self.blocks is not None:
+            return self.blocks.extra[2] if B is self.extra else self.blocks.gt_t(B)
+        return B.coords(self.gt) if isinstance(B, FieldParts) else self.gt.T @ B
 
     @property
     def dof(self) -> int:
@@ -109,7 +137,7 @@ def linearise(result, exclude=None) -> Linear:
 
     res = align_to_problem(result)
     p = res.problem
-    T, X = inputs_from_record(p)
+    T, obs = inputs_from_record(p)
     gains = np.asarray(res.gains, float) if res.model.fit_gains else np.ones(4)
     spec = res.model
     opts = p.get("options", {}) if isinstance(p, dict) else {}
@@ -120,7 +148,7 @@ def linearise(result, exclude=None) -> Linear:
     rich = replace(spec, radial=min(3, spec.radial + 1), tangential=True, psd_radial=max(spec.psd_radial, 1),
                    skew=spec.skew or not spec.aspect, aspect=True)
     extra_names = [n for n in rich.global_names if n not in spec.global_names]
-    prob = Problem(T, X, rich, cost="image", sensor_mm=tuple(res.sensor_mm))
+    prob = Problem(T, obs, rich, cost="image", sensor_mm=tuple(res.sensor_mm))
     ev = Evaluator(prob, res.intrinsics, res.distortion, gains)
     # the compact block Jacobian: the global columns, then each row's own view's six pose columns
     r, Jc = ev.evaluate_compact(prob.pack(res.intrinsics, res.distortion, gains, res.rvecs, res.tvecs_mm))
@@ -128,30 +156,34 @@ def linearise(result, exclude=None) -> Linear:
     Jc = np.asarray(Jc, dtype=float)
     ng_r = prob.n_global
     free = [n for n in spec.global_names if n not in fixed]
-    G = Jc[:, [prob.names.index(n) for n in free]]
-    Gh = Jc[:, [prob.names.index(n) for n in fixed]]
-    extra = Jc[:, [prob.names.index(n) for n in extra_names]]
-    Jpose = Jc[:, ng_r:]
+    g, ne = len(free), len(extra_names)
+    # one gather: each row's view's six pose columns, the free global columns, the left-out terms', the fixed ones
+    X = Jc[:, list(range(ng_r, ng_r + POSE)) + [prob.names.index(n) for n in (*free, *extra_names, *fixed)]]
     if not spec.aspect:  # the rich model's f moves x only and fy y: this model's f moves both
-        jf = Jc[:, prob.names.index("f_mm")] + Jc[:, prob.names.index("fy_mm")]
-        for M_, nm in ((G, free), (Gh, fixed)):
-            if "f_mm" in nm:
-                M_[:, list(nm).index("f_mm")] = jf
+        if "f_mm" in free or "f_mm" in fixed:
+            j = POSE + (free.index("f_mm") if "f_mm" in free else g + ne + fixed.index("f_mm"))
+            X[:, j] += Jc[:, prob.names.index("fy_mm")]
     img, led, d_meas = ev.img_idx, ev.pt_idx, ev.d_meas
     if exclude is not None:
         keep_pt = ~np.asarray(exclude, dtype=bool)[img, led]
         rows = np.repeat(keep_pt, 2)
-        r, G, Gh, extra, Jpose = r[rows], G[rows], Gh[rows], extra[rows], Jpose[rows]
+        r, X = r[rows], X[rows]
         img, led, d_meas = img[keep_pt], led[keep_pt], d_meas[keep_pt]
+    Jpose, G, extra, Gh = X[:, :POSE], X[:, POSE:POSE + g], X[:, POSE + g:POSE + g + ne], X[:, POSE + g + ne:]
     e_raw = -r
-    perp, h, rank, perp_pose, pgram = projector(G, Jpose, np.repeat(img, 2), X.shape[0], gram=True)
+    row_img = np.repeat(img, 2)
+    blocks = normal_bases(X, g, ne, row_img, obs.shape[0]) if r.size // 2 > NORMAL_BASES_MIN_POINTS else None
+    if blocks is not None:
+        perp, h, rank, perp_pose, pgram = blocks.perp, blocks.h, blocks.rank, blocks.perp_pose, blocks.pgram
+    else:
+        perp, h, rank, perp_pose, pgram = projector(G, Jpose, row_img, obs.shape[0], gram=True)
     e = perp(e_raw[:, None])[:, 0]  # the solver stops within its tolerance of the stationary point
     held = _held(free, fixed, prior_names, G, Gh, perp_pose(G), perp_pose, e_raw, e, rank) if (fixed or prior_names) \
         else None
     # the modelled points (noise-free up to the fitted parameters): fields evaluated at the measured ones would carry
     # the noise's own gradient into the test and correlate with it
     return Linear(e, perp, h, d_meas + r.reshape(-1, 2), img, led, rank, tuple(extra_names), extra,
-                  tuple(free), G, perp_pose, held, pgram)
+                  tuple(free), G, perp_pose, held, pgram, blocks)
 
 
 def _pinv_sym(N) -> np.ndarray:
@@ -292,6 +324,10 @@ def projector(G, Jpose, row_img, n_img, gram: bool = False):
     return perp, h, rank, perp_pose, pgram
 
 
+#: Above this many points (two rows each) the projector comes from each view's Gram matrix
+#: (:func:`~psdcal.calibration._verdict_blocks.normal_bases`) where the blocks are well conditioned; up to it from
+#: the compiled QR (:func:`_compiled_bases`), whose loops cost less than the numpy calls on few rows.
+NORMAL_BASES_MIN_POINTS = 500
 #: Up to this many points (two rows each) the projector comes from the compiled kernels (:func:`_compiled_bases`,
 #: :func:`_compiled_products`: loops, where a numpy call's overhead dominates); above it from numpy, whose BLAS
 #: products of the tall blocks are faster there. The verdict on 12 x 14 points: 1.8 ms compiled, 2.1 ms numpy;
@@ -337,135 +373,6 @@ def _compiled_products(pre, nr, gram):
         return vk.pgram(Qb, nr, Qg, B, np.ascontiguousarray(btb, dtype=float))
 
     return perp, h, rank, perp_pose, pgram
-
-
-#: Above this condition number of a set of columns, their orthonormal basis comes from a Householder QR instead of
-#: :func:`_cholqr2` (whose first pass loses ``cond^2`` of the precision that its second pass restores).
-CHOLQR_MAX_COND = 1e5
-#: ... and below this one, one pass is orthonormal to 1e-10 (its loss, ``eps cond^2``): no second pass.
-CHOLQR_ONE_PASS_COND = 1e3
-
-
-def _cholqr2(A, unit_columns: bool = True):
-    """An orthonormal basis (..., r, k) of the columns of ``A`` (..., r, k) (a stack of blocks or one matrix) by two
-    passes of a Cholesky QR (matrix products: several times faster than a Householder QR of tall thin blocks);
-    None when the columns of a block are conditioned worse than :data:`CHOLQR_MAX_COND` (or rank deficient), each
-    column scaled to norm 1 (``unit_columns``) or as given (a column much shorter than the longest one then counts
-    as absorbed, as in a QR's rank test)."""
-    K = np.swapaxes(A, -1, -2) @ A
-    d = np.sqrt(np.diagonal(K, axis1=-2, axis2=-1))  # the columns' norms
-    if not np.all(d > 0) or not np.all(np.isfinite(d)):
-        return None
-    if not unit_columns:
-        d = np.ones_like(d)
-    dd = d[..., :, None] * d[..., None, :]
-    lam, V = np.linalg.eigh(K / dd)
-    if not np.all(lam[..., 0] > lam[..., -1] / CHOLQR_MAX_COND ** 2) or not np.all(np.isfinite(lam)):
-        return None
-    Q = _bmm(A, V / d[..., :, None] / np.sqrt(lam)[..., None, :])
-    if np.all(lam[..., 0] > lam[..., -1] / CHOLQR_ONE_PASS_COND ** 2):
-        return Q  # orthonormal to eps cond^2 < 1e-10 already
-    L = np.linalg.cholesky(np.swapaxes(Q, -1, -2) @ Q)
-    return _bmm(Q, np.swapaxes(np.linalg.inv(L), -1, -2))
-
-
-def _bmm(A, B) -> np.ndarray:
-    """``A @ B`` for a stack of tall blocks ``A`` (v, r, k) and small ``B`` (v, k, l) (or one matrix ``A``): numpy 2's
-    batched product is faster than one BLAS call per block (Zhang's 5 x 512 x 6 blocks: 7-44 us against 21-59 us,
-    l = 1-22; 12 x 28 x 6: 2.5-8 us against 25-33 us) and equal to the last bit."""
-    return np.matmul(A, B)
-
-
-def field_basis(pts, c_mm, half_mm) -> np.ndarray:
-    """(2N, p) smooth vector fields over the sensor at ``pts`` (N, 2), rows (x0, y0, x1, y1, ...)."""
-    return field_parts(pts, c_mm, half_mm).dense()
-
-
-class FieldParts:
-    """The fields of :func:`field_basis` in parts: each monomial ``mono`` (N, p) as an x-field then a y-field
-    (columns 2k, 2k + 1), then the dense columns ``R`` (2N, r). The products the verdict needs (``B^T B``,
-    ``Q^T B``) come from the parts, without the (2N, 2p + r) matrix, whose columns are half zeros."""
-
-    def __init__(self, mono, R):
-        self.mono = mono
-        self.R = R
-        self.shape = (R.shape[0], 2 * mono.shape[1] + R.shape[1])
-
-    def dense(self) -> np.ndarray:
-        n, p = self.mono.shape
-        out = np.zeros((n, 2, 2 * p))
-        out[:, 0, 0::2] = self.mono  # x-fields
-        out[:, 1, 1::2] = self.mono  # y-fields
-        return np.concatenate([out.reshape(2 * n, 2 * p), self.R], axis=1)
-
-    def coords(self, Q) -> np.ndarray:
-        """``Q^T B`` (q, k) for ``Q`` (2N, q), rows in B's order."""
-        Q = np.ascontiguousarray(Q, dtype=float)
-        n, p = self.mono.shape
-        q = Q.shape[1]
-        # one product for both axes: Q's rows (x_i, y_i) side by side, (N, 2q); M[k, a q + j] = sum_i mono[i, k]
-        # Q[2 i + a, j], reordered to [j, 2 k + a]
-        M = self.mono.T @ Q.reshape(n, 2 * q)
-        out = np.empty((q, self.shape[1]))
-        out[:, :2 * p].reshape(q, p, 2)[...] = M.reshape(p, 2, q).transpose(2, 0, 1)
-        np.matmul(Q.T, self.R, out=out[:, 2 * p:])
-        return out
-
-    def coords_blocks(self, Qbt) -> np.ndarray:
-        """``Q_v^T B_v`` of each view, stacked (v * s, k), for ``Qbt`` (v, s, rows) whose rows are B's, view by view
-        (every view as many)."""
-        v, s_, nr = Qbt.shape
-        p = self.mono.shape[1]
-        mb = self.mono.reshape(v, nr // 2, p)
-        poly = np.stack([Qbt[:, :, 0::2] @ mb, Qbt[:, :, 1::2] @ mb], axis=3).reshape(v, s_, 2 * p)
-        rad = np.matmul(Qbt, self.R.reshape(v, nr, -1))
-        return np.concatenate([poly, rad], axis=2).reshape(v * s_, -1)
-
-    def gram(self) -> np.ndarray:
-        """``B^T B`` (k, k) (computed once: the parts are not changed after construction)."""
-        if getattr(self, "_gram", None) is None:
-            g = self._gram_of_parts()
-            g.flags.writeable = False
-            self._gram = g
-        return self._gram
-
-    def _gram_of_parts(self) -> np.ndarray:
-        p = self.mono.shape[1]
-        G = np.zeros((self.shape[1],) * 2)
-        mm = self.mono.T @ self.mono
-        G[0:2 * p:2, 0:2 * p:2] = mm
-        G[1:2 * p:2, 1:2 * p:2] = mm
-        cr = self.coords(self.R)
-        G[2 * p:, :] = cr
-        G[:, 2 * p:] = cr.T
-        return G
-
-
-def field_parts(pts, c_mm, half_mm) -> FieldParts:
-    """:func:`field_basis` in parts (:class:`FieldParts`)."""
-    pts = np.asarray(pts, dtype=float)
-    if pts.ndim == 2 and _jit.use_compiled(pts.shape[0]):  # the same products in one loop (tested equal)
-        from psdcal.calibration._rules_kernel import field_parts as kernel
-
-        return FieldParts(*kernel(np.ascontiguousarray(pts), np.asarray(c_mm, dtype=float),
-                                  np.broadcast_to(np.asarray(half_mm, dtype=float), (2,)).copy(), FIELD_DEGREE))
-    u = pts / half_mm
-    n = pts.shape[0]
-    # the monomials u^i v^j (i + j <= FIELD_DEGREE) from the powers of u and v, in the order i, then j
-    pu = np.empty((n, FIELD_DEGREE + 1))
-    pv = np.empty((n, FIELD_DEGREE + 1))
-    pu[:, 0] = pv[:, 0] = 1.0
-    for q in range(1, FIELD_DEGREE + 1):  # products, not pow
-        np.multiply(pu[:, q - 1], u[:, 0], out=pu[:, q])
-        np.multiply(pv[:, q - 1], u[:, 1], out=pv[:, q])
-    ij = [(i, j) for i in range(FIELD_DEGREE + 1) for j in range(FIELD_DEGREE + 1 - i)]
-    mono = pu[:, [i for i, _ in ij]] * pv[:, [j for _, j in ij]]  # (N, n_mono)
-    d = (pts - np.asarray(c_mm)) / half_mm
-    r2 = d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1]
-    R = np.empty((n, 2, 2))
-    R[:, :, 0] = d * (r2 * r2)[:, None]
-    R[:, :, 1] = d * (r2 * r2 * r2)[:, None]
-    return FieldParts(mono, R.reshape(2 * n, 2))
 
 
 def _sym_eig_desc(K):
@@ -544,7 +451,7 @@ def field_shift(lin: Linear, B, *, min_visible: float = 0.0) -> tuple[np.ndarray
         return np.zeros(B.shape[1]), np.zeros(len(lin.names))
 
     def gt_b(c):  # Gt^T B c (the fields' parts give Gt^T B without the dense fields)
-        return (B.coords(lin.gt) if parts else lin.gt.T @ B) @ c
+        return lin.gt_t(B) @ c
 
     if min_visible <= 0:
         ute, W = _basis(lin, B)
@@ -575,8 +482,11 @@ def field_shift(lin: Linear, B, *, min_visible: float = 0.0) -> tuple[np.ndarray
 
 def group_shift(lin: Linear, rows) -> np.ndarray:
     """The linearised shift of the global parameters (ng,) when the residual rows ``rows`` (bool (m,)) are left out."""
-    gs = lin.gt[rows]
-    Nm = lin.gt.T @ lin.gt - gs.T @ gs
+    if lin.blocks is not None:  # the rows of Gt = Qg Rg, and Gt^T Gt from the per-view Gram matrices
+        gs = lin.blocks.qg[rows] @ lin.blocks.Rg
+    else:
+        gs = lin.gt[rows]
+    Nm = lin.gtg - gs.T @ gs
     return -_pinv_sym(Nm) @ (gs.T @ lin.e[rows])
 
 
@@ -609,17 +519,22 @@ def terms_test(lin: Linear):
     if p_dim == 0:
         return None
     # each term alone too (one degree of freedom: more power for a single missing term); Bonferroni over all tests
-    single = []
     btb, K = lin.extra_gram
     norms = np.maximum(np.sqrt(np.maximum(np.diag(btb), 0.0)), 1e-300)
     nb = np.sqrt(np.maximum(np.diag(K), 0.0)) / norms  # norms of the projected unit columns
     bte = (lin.extra.T @ lin.e) / norms  # = ((I - P) Bn)^T e for the unit columns Bn: e is itself projected
+    cand = []  # (F, name) of each testable term alone
     for k, name in enumerate(lin.extra_names):
         if nb[k] > 1e-4:  # as in explained(): a column the model absorbs tests nothing
             ek = float((bte[k] / nb[k]) ** 2)
-            Fk = ek / max((ssr - ek) / (dof - 1), 1e-300)
-            single.append((float(_stats.f_sf(Fk, 1, dof - 1)), Fk, name))
-    n_tests = 1 + len(single)
+            cand.append((ek / max((ssr - ek) / (dof - 1), 1e-300), name))
+    # the p-value of one degree of freedom falls as F grows: the smallest (all that the decision and the message
+    # use) is the largest F's, unless another F ties it or it underflows to 0 (then the tuples' order decides)
+    top = max((F for F, _ in cand), default=0.0)
+    single = [(float(_stats.f_sf(F, 1, dof - 1)), F, name) for F, name in cand if F == top]
+    if len(single) > 1 or (single and single[0][0] == 0.0):
+        single = [(float(_stats.f_sf(F, 1, dof - 1)), F, name) for F, name in cand]
+    n_tests = 1 + len(cand)
     if single and min(single)[0] < p:
         pk, Fk, _ = min(single)
         return float(Fk), float(min(1.0, n_tests * pk)), 1, min(single)[2]
