@@ -447,7 +447,7 @@ def field_shift(lin: Linear, B, *, min_visible: float = 0.0) -> tuple[np.ndarray
     parts = isinstance(B, FieldParts)
     if not parts:
         B = np.asarray(B, dtype=float)
-    if lin.gt is None or B.shape[1] == 0:
+    if lin.g is None or B.shape[1] == 0:
         return np.zeros(B.shape[1]), np.zeros(len(lin.names))
 
     def gt_b(c):  # Gt^T B c (the fields' parts give Gt^T B without the dense fields)
