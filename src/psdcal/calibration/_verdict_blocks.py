@@ -119,6 +119,17 @@ class FieldParts:
         rad = np.matmul(Qbt, self.R.reshape(v, nr, -1))
         return np.concatenate([poly, rad], axis=2).reshape(v * s_, -1)
 
+    def coords_views(self, Q) -> np.ndarray:
+        """``Q_v^T B_v`` of each view (v, s, k) for ``Q`` (v, rows, s) whose rows are B's, view by view (every view
+        as many): as :meth:`coords`, one product of each view's monomials with its rows (x_i, y_i) side by side."""
+        v, nr, s_ = Q.shape
+        p = self.mono.shape[1]
+        out = np.empty((v, s_, self.shape[1]))
+        M = np.matmul(np.swapaxes(self.mono.reshape(v, nr // 2, p), 1, 2), Q.reshape(v, nr // 2, 2 * s_))
+        out[:, :, :2 * p].reshape(v, s_, p, 2)[...] = M.reshape(v, p, 2, s_).transpose(0, 3, 1, 2)
+        np.matmul(np.swapaxes(Q, 1, 2), self.R.reshape(v, nr, -1), out=out[:, :, 2 * p:])
+        return out
+
     def gram(self) -> np.ndarray:
         """``B^T B`` (k, k) (computed once: the parts are not changed after construction)."""
         if getattr(self, "_gram", None) is None:
@@ -278,11 +289,6 @@ class Blocks:
         return np.einsum("vri,vri->vr", Q, Q).reshape(-1)
 
     @cached_property
-    def qt(self) -> np.ndarray:
-        """(v, 6 + g, nr) the bases transposed, view by view (contiguous)."""
-        return np.ascontiguousarray(np.swapaxes(self.Q, 1, 2))
-
-    @cached_property
     def qg(self) -> np.ndarray:
         """(m, g) the global basis (contiguous)."""
         return np.ascontiguousarray(self.Q[:, :, POSE:]).reshape(-1, self.n_global)
@@ -298,12 +304,11 @@ class Blocks:
             memo = getattr(B, "_block_coords", None)
             if memo is not None and memo[0] is self:
                 return memo[1]
-            v, s_, _ = self.qt.shape
-            c = B.coords_blocks(self.qt).reshape(v, s_, -1)
+            c = B.coords_views(self.Q)
             B._block_coords = (self, c)
             return c
         v, nr = self.Q.shape[:2]
-        return np.matmul(self.qt, B.reshape(v, nr, B.shape[1]))
+        return np.matmul(np.swapaxes(self.Q, 1, 2), B.reshape(v, nr, B.shape[1]))
 
     def _split(self, c):
         """Coordinates ``c`` (v, 6 + g, k) -> (the pose ones (v * 6, k), the global ones (g, k))."""
@@ -314,14 +319,15 @@ class Blocks:
         B = np.asarray(B, dtype=float)
         v, nr = self.Q.shape[:2]
         Bb = B.reshape(v, nr, B.shape[1])
-        return (Bb - np.matmul(self.Q[:, :, :POSE], np.matmul(self.qt[:, :POSE], Bb))).reshape(B.shape)
+        Qb = self.Q[:, :, :POSE]
+        return (Bb - np.matmul(Qb, np.matmul(np.swapaxes(Qb, 1, 2), Bb))).reshape(B.shape)
 
     def perp(self, B) -> np.ndarray:
         """``(I - P) B`` for B (m, k): less its part on the pose bases (view by view) and on ``Qg``."""
         B = np.asarray(B, dtype=float)
         v, nr = self.Q.shape[:2]
         Bb = B.reshape(v, nr, B.shape[1])
-        c = np.matmul(self.qt, Bb)
+        c = np.matmul(np.swapaxes(self.Q, 1, 2), Bb)
         c[:, POSE:] = c[:, POSE:].sum(axis=0)  # Qg^T B: over all views
         return (Bb - np.matmul(self.Q, c)).reshape(B.shape)
 
