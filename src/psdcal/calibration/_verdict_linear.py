@@ -381,6 +381,34 @@ def _sym_eig_desc(K):
     return np.maximum(lam[::-1], 0.0), V[:, ::-1]
 
 
+def _span_basis(Kn) -> np.ndarray:
+    """M (k, r) such that ``Bn M`` is an orthonormal basis of span(Bn), from ``Kn = Bn^T Bn`` (unit columns): the
+    directions of an eigenvalue below 1e-12 of the largest dropped. ``L^-T`` of the Cholesky factor ``L`` where no
+    direction is (the smallest eigenvalue is at least ``1 / ||L^-1||_F^2``, the largest at most the trace), else from
+    the eigenproblem."""
+    try:
+        Li = np.linalg.inv(np.linalg.cholesky(Kn))
+    except np.linalg.LinAlgError:
+        Li = None
+    if Li is not None and np.all(np.isfinite(Li)) and 1.0 / float(np.sum(Li * Li)) > 1e-12 * float(np.trace(Kn)):
+        return Li.T
+    lam0, V0 = _sym_eig_desc(Kn)
+    keep = lam0 > 1e-12 * max(float(lam0[0]), 1e-300)
+    return V0[:, keep] / np.sqrt(lam0[keep])
+
+
+def _bte(lin: Linear, B) -> np.ndarray:
+    """(k,) ``B^T e`` (memoised on :class:`FieldParts`: the F-test and the shift share it)."""
+    if not isinstance(B, FieldParts):
+        return B.T @ lin.e
+    memo = getattr(B, "_bte", None)
+    if memo is not None and memo[0] is lin:
+        return memo[1]
+    bte = B.coords(lin.e[:, None])[0]
+    B._bte = (lin, bte)
+    return bte
+
+
 def _basis(lin: Linear, B):
     """The residuals' coordinates ``ute`` on an orthonormal basis U of span((I - P) B) (the fields the parameters do
     not absorb), and the map from them to coefficients of B's columns: ``c = W ute``.
@@ -407,7 +435,7 @@ def _basis(lin: Linear, B):
     s = np.sqrt(lam)
     keep = s > 1e-2 * s[0]
     s, V = s[keep], V[:, keep]
-    bte = B.coords(lin.e[:, None])[0] if parts else B.T @ lin.e
+    bte = _bte(lin, B)
     ute = (V.T @ (bte[use] / scale[use])) / s
     W = np.zeros((B.shape[1], s.size))
     W[use] = (V / s) / scale[use, None]
@@ -465,15 +493,13 @@ def field_shift(lin: Linear, B, *, min_visible: float = 0.0) -> tuple[np.ndarray
     btb = B.gram() if parts else B.T @ B
     scale = np.maximum(np.sqrt(np.maximum(np.diag(btb), 0.0)), 1e-300)
     ss = np.outer(scale, scale)
-    lam0, V0 = _sym_eig_desc(btb / ss)
-    keep = lam0 > 1e-12 * max(float(lam0[0]), 1e-300)
-    M = V0[:, keep] / np.sqrt(lam0[keep])
+    M = _span_basis(btb / ss)
     lam, V = _sym_eig_desc(M.T @ (lin.gram_perp(B, btb) / ss) @ M)
     s = np.sqrt(np.minimum(lam, 1.0))
     use = s > min_visible
     if not use.any():
         return np.zeros(B.shape[1]), np.zeros(len(lin.names))
-    bte = (B.coords(lin.e[:, None])[0] if parts else B.T @ lin.e) / scale  # Bn^T e
+    bte = _bte(lin, B) / scale  # Bn^T e
     ute = (V[:, use].T @ (M.T @ bte)) / s[use]  # the residuals on (I - P) Qb's left singular vectors
     a = M @ (V[:, use] @ (ute / s[use]))  # coefficients on Bn
     c = a / scale
