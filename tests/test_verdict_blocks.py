@@ -214,3 +214,24 @@ def test_terms_test_computes_only_the_p_value_it_needs(fit, monkeypatch):
     want = (Fk, min(1.0, n * pk), 1, name) if pk < p else (F, min(1.0, n * p), p_dim, name)
     assert got[2:] == want[2:]
     assert got[0] == pytest.approx(want[0], rel=1e-14) and got[1] == pytest.approx(want[1], rel=1e-14)
+
+
+@needs_numba
+def test_compiled_group_f_equals_numpys_to_the_last_bit(fit, monkeypatch):
+    """The per-view and per-LED F statistics in one compiled loop: the same numbers as the numpy code, bit for
+    bit, including groups too small to test (NaN) and the choice of the worst group."""
+    from psdcal import _jit
+
+    lin = L.linearise(fit)
+    ssr, dof = float(lin.e @ lin.e), lin.dof
+    small = L.Linear(lin.e, lin.perp, np.where(np.repeat(lin.led, 2) == 3, 0.99, lin.h), lin.pts, lin.img,
+                                 lin.led, lin.n)  # LED 3 all but absorbed: too few degrees of freedom to test
+    cases = [(lin, lin.img, len(fit.image_ids)), (lin, lin.led, len(fit.point_ids)),
+             (small, small.led, len(fit.point_ids))]
+    got = [L.group_f(x, g, n, ssr, dof) for x, g, n in cases]
+    monkeypatch.setattr(_jit, "use_compiled", lambda *a, **k: False)
+    want = [L.group_f(x, g, n, ssr, dof) for x, g, n in cases]
+    assert np.isnan(want[2][0][3])
+    for (F, pv), (Fr, pvr) in zip(got, want, strict=True):
+        assert np.array_equal(F, Fr, equal_nan=True) and np.array_equal(pv, pvr, equal_nan=True)
+

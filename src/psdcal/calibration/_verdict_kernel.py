@@ -390,3 +390,35 @@ def normal_transforms(K, g, one_pass_cond):
             for l in range(g):
                 T[i, s + j, s + l] = Mg[j, l]
     return True, T, Rg, gtg_view
+
+
+@njit
+def group_f(groups, h, e, n_groups, ssr, dof):
+    """:func:`psdcal.calibration._verdict_linear.group_f`'s statistics in one loop (the same operations in the same
+    order: equal to the last bit): (F, d_g, d_r, usable, worst) per group of the points ``groups`` (N,), from the
+    leverages ``h`` and residuals ``e`` (2N,), rows (x0, y0, x1, ...)."""
+    lev = np.zeros(n_groups)
+    sq = np.zeros(n_groups)
+    for i in range(groups.size):
+        g = groups[i]
+        lev[g] += (1.0 - h[2 * i]) + (1.0 - h[2 * i + 1])
+        sq[g] += e[2 * i] * e[2 * i] + e[2 * i + 1] * e[2 * i + 1]
+    F = np.empty(n_groups)
+    d_g = np.ones(n_groups)
+    d_r = np.ones(n_groups)
+    usable = np.zeros(n_groups, dtype=np.bool_)
+    worst = 0
+    best = -np.inf
+    for g in range(n_groups):
+        usable[g] = lev[g] >= 0.5 and dof - lev[g] >= 0.5
+        if usable[g]:
+            d_g[g] = lev[g]
+            d_r[g] = dof - lev[g]
+            F[g] = (sq[g] / d_g[g]) / (max(ssr - sq[g], 1e-300) / d_r[g])
+        else:
+            F[g] = np.nan
+        if np.isfinite(F[g]) and F[g] > best:
+            best = F[g]
+            worst = g
+    return F, d_g, d_r, usable, worst
+

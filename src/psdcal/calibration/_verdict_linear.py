@@ -519,6 +519,14 @@ def group_shift(lin: Linear, rows) -> np.ndarray:
 def group_f(lin: Linear, groups, n_groups, ssr, dof):
     """Per-group F statistics of the residual variance against the other groups', and the p-value of the
     largest (``pv`` is NaN for the other groups)."""
+    if _jit.use_compiled(groups.size):  # the same operations in one loop (equal to the last bit, tested)
+        from psdcal.calibration import _verdict_kernel as vk
+
+        F, d_g, d_r, usable, worst = vk.group_f(np.ascontiguousarray(groups), lin.h, lin.e, int(n_groups),
+                                                float(ssr), float(dof))
+        pv = np.full(n_groups, np.nan)
+        pv[worst] = _stats.f_sf(F[worst], d_g[worst], d_r[worst]) if usable[worst] else 1.0
+        return F, pv
     q = lin.e.reshape(-1, 2)
     # per point: the sums of its two coordinates written out (numpy's reductions over a last axis of 2 are slow)
     om = 1.0 - lin.h
