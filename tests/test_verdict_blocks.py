@@ -235,3 +235,17 @@ def test_compiled_group_f_equals_numpys_to_the_last_bit(fit, monkeypatch):
     for (F, pv), (Fr, pvr) in zip(got, want, strict=True):
         assert np.array_equal(F, Fr, equal_nan=True) and np.array_equal(pv, pvr, equal_nan=True)
 
+
+
+def test_span_basis_is_orthonormal_on_the_span_by_cholesky_or_eigenproblem():
+    """field_shift's basis of span(B): Bn M orthonormal, spanning B (Cholesky where no direction is near-null), and
+    with a near-null direction (two equal columns) dropped as the eigenproblem does."""
+    rng = np.random.default_rng(12)
+    B = rng.normal(size=(200, 6)) @ np.triu(rng.normal(size=(6, 6))) + 0.0
+    for Bc, r in ((B, 6), (np.concatenate([B, B[:, :1]], axis=1), 6)):
+        Bn = Bc / np.linalg.norm(Bc, axis=0)
+        M = L._span_basis(Bn.T @ Bn)
+        assert M.shape == (Bc.shape[1], r)
+        Q = Bn @ M
+        np.testing.assert_allclose(Q.T @ Q, np.eye(r), atol=1e-9)
+        np.testing.assert_allclose(Q @ (Q.T @ Bn), Bn, atol=1e-9)
