@@ -67,6 +67,45 @@ def _cholqr2(A, unit_columns: bool = True):
     return _bmm(Q, np.swapaxes(np.linalg.inv(L), -1, -2))
 
 
+def _compiled_bases(blocks, G):
+    """The projector's orthonormal bases from the compiled kernels (:mod:`psdcal.calibration._verdict_kernel`) for the
+    dense layout (the views' rows consecutive, as many each): (Qb (m, 6), Qg (m, g), leverages (m,), rank), None
+    when a conditioning test sends the work to the numpy code."""
+    from psdcal.calibration import _verdict_kernel as vk
+
+    n_img, nr = blocks.shape[0], blocks.shape[1]
+    ok, Qb, Qg, h = vk.bases(blocks.reshape(n_img * nr, 6), nr, np.ascontiguousarray(G, dtype=float),
+                             float(CHOLQR_MAX_COND), float(CHOLQR_ONE_PASS_COND))
+    return (Qb, Qg, h, 6 * n_img + Qg.shape[1]) if ok else None
+
+
+def _compiled_products(pre, nr, gram):
+    """:func:`psdcal.calibration._verdict_linear.projector`'s functions as compiled loops over the bases ``pre`` (:func:`_compiled_bases`); ``nr`` rows
+    per view."""
+    from psdcal.calibration import _verdict_kernel as vk
+
+    Qb, Qg, h, rank = pre
+
+    def perp_pose(B):
+        return vk.perp_pose(Qb, nr, np.ascontiguousarray(B, dtype=float))
+
+    def perp(B):
+        return vk.perp(Qb, nr, Qg, np.ascontiguousarray(B, dtype=float))
+
+    if not gram:
+        return perp, h, rank, perp_pose
+
+    def pgram(B, btb=None):
+        if isinstance(B, FieldParts):
+            btb = B.gram() if btb is None else btb
+            B = B.dense()
+        B = np.ascontiguousarray(B, dtype=float)
+        btb = B.T @ B if btb is None else btb
+        return vk.pgram(Qb, nr, Qg, B, np.ascontiguousarray(btb, dtype=float))
+
+    return perp, h, rank, perp_pose, pgram
+
+
 def _bmm(A, B) -> np.ndarray:
     """``A @ B`` for a stack of tall blocks ``A`` (v, r, k) and small ``B`` (v, k, l) (or one matrix ``A``): numpy 2's
     batched product is faster than one BLAS call per block (Zhang's 5 x 512 x 6 blocks: 7-44 us against 21-59 us,

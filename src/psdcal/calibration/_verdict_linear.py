@@ -39,6 +39,8 @@ from psdcal.calibration._verdict_blocks import (  # noqa: F401 (their names, imp
     FieldParts,
     _bmm,
     _cholqr2,
+    _compiled_bases,
+    _compiled_products,
     field_basis,
     field_parts,
     normal_bases,
@@ -341,45 +343,6 @@ NORMAL_BASES_MIN_POINTS = 500
 COMPILED_PROJECTOR_MAX_POINTS = 500
 
 
-def _compiled_bases(blocks, G):
-    """The projector's orthonormal bases from the compiled kernels (:mod:`psdcal.calibration._verdict_kernel`) for the
-    dense layout (the views' rows consecutive, as many each): (Qb (m, 6), Qg (m, g), leverages (m,), rank), None when a conditioning test sends the work to the
-    numpy code."""
-    from psdcal.calibration import _verdict_kernel as vk
-
-    n_img, nr = blocks.shape[0], blocks.shape[1]
-    ok, Qb, Qg, h = vk.bases(blocks.reshape(n_img * nr, 6), nr, np.ascontiguousarray(G, dtype=float),
-                             float(CHOLQR_MAX_COND), float(CHOLQR_ONE_PASS_COND))
-    return (Qb, Qg, h, 6 * n_img + Qg.shape[1]) if ok else None
-
-
-def _compiled_products(pre, nr, gram):
-    """:func:`projector`'s functions as compiled loops over the bases ``pre`` (:func:`_compiled_bases`); ``nr`` rows
-    per view."""
-    from psdcal.calibration import _verdict_kernel as vk
-
-    Qb, Qg, h, rank = pre
-
-    def perp_pose(B):
-        return vk.perp_pose(Qb, nr, np.ascontiguousarray(B, dtype=float))
-
-    def perp(B):
-        return vk.perp(Qb, nr, Qg, np.ascontiguousarray(B, dtype=float))
-
-    if not gram:
-        return perp, h, rank, perp_pose
-
-    def pgram(B, btb=None):
-        if isinstance(B, FieldParts):
-            btb = B.gram() if btb is None else btb
-            B = B.dense()
-        B = np.ascontiguousarray(B, dtype=float)
-        btb = B.T @ B if btb is None else btb
-        return vk.pgram(Qb, nr, Qg, B, np.ascontiguousarray(btb, dtype=float))
-
-    return perp, h, rank, perp_pose, pgram
-
-
 def _sym_eig_desc(K):
     """Eigenvalues (descending, clipped at 0) and eigenvectors (columns) of the symmetric matrix ``K``."""
     lam, V = np.linalg.eigh(K)
@@ -513,8 +476,15 @@ def field_shift(lin: Linear, B, *, min_visible: float = 0.0) -> tuple[np.ndarray
 
 def group_shift(lin: Linear, rows) -> np.ndarray:
     """The linearised shift of the global parameters (ng,) when the residual rows ``rows`` (bool (m,)) are left out."""
-    if lin.blocks is not None:  # the rows of Gt = Qg Rg, and Gt^T Gt from the per-view Gram matrices
-        gs = lin.blocks.qg[rows] @ lin.blocks.Rg
+    b = lin.blocks
+    if b is not None:  # Gt^T Gt from the per-view Gram matrices and the rows of Gt = Qg Rg
+        v, nr = b.Q.shape[:2]
+        counts = np.count_nonzero(np.asarray(rows).reshape(v, nr), axis=1)
+        k = int(np.argmax(counts))
+        if counts[k] == nr and counts.sum() == nr:  # one whole view: Gt_k^T Gt_k is its Schur complement
+            gte = b.Rg.T @ (b.Q[k, :, POSE:].T @ lin.e[k * nr:(k + 1) * nr])
+            return -_pinv_sym(lin.gtg - b.gtg_view[k]) @ gte
+        gs = b.qg[rows] @ b.Rg
     else:
         gs = lin.gt[rows]
     Nm = lin.gtg - gs.T @ gs
