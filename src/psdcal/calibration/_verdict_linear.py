@@ -152,11 +152,6 @@ def linearise(result, exclude=None) -> Linear:
     extra_names = [n for n in rich.global_names if n not in spec.global_names]
     prob = Problem(T, obs, rich, cost="image", sensor_mm=tuple(res.sensor_mm))
     ev = Evaluator(prob, res.intrinsics, res.distortion, gains)
-    # the Newton inverse of the distortion starts from the fit's modelled points (the richer model with its extra
-    # terms at 0 is the fitted one): one or two iterations instead of a cold start's several (the same tolerance)
-    R = np.asarray(res.residuals_mm, dtype=float)
-    if R.shape == obs.shape and getattr(ev, "_anchor", 0) is None:
-        ev._anchor = ev.d_meas - R[ev.img_idx, ev.pt_idx]
     # the compact block Jacobian: the global columns, then each row's own view's six pose columns
     r, Jc = ev.evaluate_compact(prob.pack(res.intrinsics, res.distortion, gains, res.rvecs, res.tvecs_mm))
     r = np.asarray(r, dtype=float)
@@ -736,19 +731,26 @@ def effect(cons: Consequences, dtheta, *, dextra=None, field_at_grid=None) -> Ef
     """The effect of a parameter shift ``dtheta`` (free parameters), with the extra terms' values ``dextra`` and
     an additive field on the sensor ``field_at_grid`` (K, 2) mm removed from the measured points."""
     n_free = len(dtheta)
-    sdp = np.sqrt(np.maximum(np.diag(cons.cov), 0.0))
+    sdp = np.sqrt(np.maximum(np.diag(cons.cov), 0.0)).tolist()
     full = np.zeros(len(cons.names))
     full[:n_free] = dtheta
     if dextra is not None:
         full[n_free:] = dextra
     da = cons.A @ full
-    if field_at_grid is not None:
-        da = da - np.einsum("kij,kj->ki", cons.D, field_at_grid).ravel()
-    ok = cons.sd > 0
-    z = np.abs(da[ok]) / cons.sd[ok] if ok.any() else np.zeros(1)
+    if field_at_grid is not None:  # D (K, 2, 2) times the field (K, 2), the sum over its two components written out
+        f = np.asarray(field_at_grid, dtype=float)
+        D = cons.D
+        da = da - (D[:, :, 0] * f[:, 0:1] + D[:, :, 1] * f[:, 1:2]).ravel()
+    sd = cons.sd
+    ok = sd > 0
+    if ok.all():
+        z = np.abs(da) / sd
+    else:
+        z = np.abs(da[ok]) / sd[ok] if ok.any() else np.zeros(1)
     ang_sig = float(np.max(z)) if z.size else 0.0
     ang_rad = float(np.max(np.abs(da))) if da.size else 0.0
-    params = {n: float(abs(dtheta[k]) / sdp[k]) for k, n in enumerate(cons.names[:n_free]) if sdp[k] > 0}
+    dth = np.abs(np.asarray(dtheta, dtype=float)).tolist()
+    params = {n: dth[k] / sdp[k] for k, n in enumerate(cons.names[:n_free]) if sdp[k] > 0}
     key = {k: v for k, v in params.items() if k in KEY_PARAMETERS}
     what, sig = "the angles", ang_sig
     if key:
