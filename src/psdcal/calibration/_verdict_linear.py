@@ -98,6 +98,11 @@ class Linear:
         return btb, self.gram_perp(self.extra, btb)
 
     @cached_property
+    def extra_te(self) -> np.ndarray:
+        """(len(extra_names),) ``extra^T e`` (the left-out terms' test and their single tests share it)."""
+        return self.extra.T @ self.e
+
+    @cached_property
     def gt(self) -> np.ndarray | None:
         """(m, ng) the profiled global Jacobian (each view's pose columns projected out), natural units."""
         if self.g is None:
@@ -362,6 +367,8 @@ def _span_basis(Kn) -> np.ndarray:
 
 def _bte(lin: Linear, B) -> np.ndarray:
     """(k,) ``B^T e`` (memoised on :class:`FieldParts`: the F-test and the shift share it)."""
+    if B is lin.extra:
+        return lin.extra_te
     if not isinstance(B, FieldParts):
         return B.T @ lin.e
     memo = getattr(B, "_bte", None)
@@ -526,7 +533,7 @@ def terms_test(lin: Linear):
     btb, K = lin.extra_gram
     norms = np.maximum(np.sqrt(np.maximum(np.diag(btb), 0.0)), 1e-300)
     nb = np.sqrt(np.maximum(np.diag(K), 0.0)) / norms  # norms of the projected unit columns
-    bte = (lin.extra.T @ lin.e) / norms  # = ((I - P) Bn)^T e for the unit columns Bn: e is itself projected
+    bte = lin.extra_te / norms  # = ((I - P) Bn)^T e for the unit columns Bn: e is itself projected
     cand = []  # (F, name) of each testable term alone
     for k, name in enumerate(lin.extra_names):
         if nb[k] > 1e-4:  # as in explained(): a column the model absorbs tests nothing
