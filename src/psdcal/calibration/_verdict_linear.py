@@ -165,7 +165,10 @@ def linearise(result, exclude=None) -> Linear:
     free = [n for n in spec.global_names if n not in fixed]
     g, ne = len(free), len(extra_names)
     # one gather: each row's view's six pose columns, the free global columns, the left-out terms', the fixed ones
-    X = Jc[:, list(range(ng_r, ng_r + POSE)) + [prob.names.index(n) for n in (*free, *extra_names, *fixed)]]
+    # (ndarray.take with an index array: about half the time of the equal fancy index on these shapes)
+    cols = np.array(list(range(ng_r, ng_r + POSE)) + [prob.names.index(n) for n in (*free, *extra_names, *fixed)],
+                    dtype=np.intp)
+    X = Jc.take(cols, axis=1)
     if not spec.aspect:  # the rich model's f moves x only and fy y: this model's f moves both
         if "f_mm" in free or "f_mm" in fixed:
             j = POSE + (free.index("f_mm") if "f_mm" in free else g + ne + fixed.index("f_mm"))
