@@ -16,7 +16,11 @@ global columns that need the Householder QR's rank test) :func:`bases`
 reports it and the caller takes the numpy path.
 
 Only views of equal row counts in view order (the "dense" layout) are
-handled; the tests compare every function with the numpy reference. The
+handled; the tests compare every function with the numpy reference.
+:func:`normal_transforms` is the small-matrix part of the projector from each
+view's Gram matrix (:func:`psdcal.calibration._verdict_blocks.normal_transforms`
+its reference) and :func:`group_f` the per-view and per-LED F statistics
+(:func:`psdcal.calibration._verdict_linear.group_f`, equal to the last bit). The
 kernels are plain loops (the small symmetric eigenproblems by cyclic Jacobi
 rotations, no LAPACK or BLAS call): they compile in seconds and load in a
 fraction of one, where numba's wrappers of ``np.linalg`` cost tens of seconds
