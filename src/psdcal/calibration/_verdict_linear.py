@@ -336,8 +336,10 @@ def projector(G, Jpose, row_img, n_img, gram: bool = False):
 
 #: Above this many points (two rows each) the projector comes from each view's Gram matrix
 #: (:func:`~psdcal.calibration._verdict_blocks.normal_bases`) where the blocks are well conditioned; up to it from
-#: the compiled QR (:func:`_compiled_bases`), whose loops cost less than the numpy calls on few rows.
-NORMAL_BASES_MIN_POINTS = 500
+#: the compiled QR (:func:`_compiled_bases`), whose loops cost as little on few rows. linearise on 5 x 64 points:
+#: 0.43 ms from the Gram matrices, 0.49 ms compiled; 5 x 100: 0.50 and 0.62 ms; 12 x 14 and 20 x 14: equal within
+#: the noise (one run, process CPU time, the fastest of 300 calls, a loaded 2-core machine).
+NORMAL_BASES_MIN_POINTS = 300
 #: Up to this many points (two rows each) the projector comes from the compiled kernels (:func:`_compiled_bases`,
 #: :func:`_compiled_products`: loops, where a numpy call's overhead dominates); above it from numpy, whose BLAS
 #: products of the tall blocks are faster there. The verdict on 12 x 14 points: 1.8 ms compiled, 2.1 ms numpy;
