@@ -165,7 +165,8 @@ def linearise(result, exclude=None) -> Linear:
     free = [n for n in spec.global_names if n not in fixed]
     g, ne = len(free), len(extra_names)
     # one gather: each row's view's six pose columns, the free global columns, the left-out terms', the fixed ones
-    # (ndarray.take with an index array: about half the time of the equal fancy index on these shapes)
+    # (ndarray.take with an index array: row-major, as normal_bases wants it, and about half the time of the fancy
+    # index, whose copy is column-major)
     cols = np.array(list(range(ng_r, ng_r + POSE)) + [prob.names.index(n) for n in (*free, *extra_names, *fixed)],
                     dtype=np.intp)
     X = Jc.take(cols, axis=1)
@@ -179,10 +180,12 @@ def linearise(result, exclude=None) -> Linear:
         rows = np.repeat(keep_pt, 2)
         r, X = r[rows], X[rows]
         img, led, d_meas = img[keep_pt], led[keep_pt], d_meas[keep_pt]
-    Jpose, G, extra, Gh = X[:, :POSE], X[:, POSE:POSE + g], X[:, POSE + g:POSE + g + ne], X[:, POSE + g + ne:]
     e_raw = -r
     row_img = np.repeat(img, 2)
     blocks = normal_bases(X, g, ne, row_img, obs.shape[0]) if r.size // 2 > NORMAL_BASES_MIN_POINTS else None
+    if blocks is None and exclude is None:  # the QR path's products on the column-major columns they have always
+        X = np.asfortranarray(X)  # had (a fancy index's copy): BLAS sums in the same order, the same numbers
+    Jpose, G, extra, Gh = X[:, :POSE], X[:, POSE:POSE + g], X[:, POSE + g:POSE + g + ne], X[:, POSE + g + ne:]
     if blocks is not None:
         perp, h, rank, perp_pose, pgram = blocks.perp, blocks.h, blocks.rank, blocks.perp_pose, blocks.pgram
     else:
