@@ -121,3 +121,38 @@ def test_tilt_spread_and_side_of_known_poses(fit):
     res = _poses(fit, [(math.pi, 0.0, 0.0), (0.0, 0.0, 0.0)], [(0.0, 0.0, 100.0), (0.0, 0.0, 100.0)])
     ch = R.template_side(res)  # view 0's normal is -z: it faces away from the sensor's side
     assert ch.passed is False and ch.statistic == 1.0 and "view(s) 0 see the template from behind" in ch.message
+
+
+NUM = st.one_of(st.none(), st.floats(allow_nan=True), st.floats(-1e3, 1e3).map(np.float64), st.integers(0, 9))
+FLAG = st.one_of(st.none(), st.booleans(), st.booleans().map(np.bool_))
+
+
+@settings(max_examples=200, deadline=None)
+@given(NUM, NUM, NUM, st.floats(0.0, 1.0), FLAG, st.text(max_size=5), st.booleans().map(np.bool_), NUM, NUM, NUM)
+def test_check_to_dict_is_the_fields_dict(stat, thr, p, alpha, passed, msg, severe, dof, eff, infl):
+    """The written-out ``Check.to_dict`` gives the dict of its fields (same keys in the same order, numbers as
+    float, flags as bool) that the generic form gives."""
+    from psdcal._consistency import Check, _fields_dict
+
+    c = Check("x", stat, thr, p, alpha, passed, msg, "advice", severe, dof, eff, infl)
+    got, want = c.to_dict(), _fields_dict(c)
+    assert list(got) == list(want) == list(Check.__dataclass_fields__)
+    for k in want:
+        assert type(got[k]) is type(want[k])
+        assert got[k] == want[k] or (got[k] != got[k] and want[k] != want[k])
+    assert Check.from_dict(got) == Check.from_dict(want)
+
+
+def test_uninflated_covariance_in_the_result_s_order_and_permuted(fit):
+    """The verdict's covariance of ``lin.names`` is the result's (over its inflation) in either order."""
+    from psdcal.calibration import _verdict_linear as L
+    from psdcal.calibration import verdict as V
+
+    res = replace(fit, stages={**fit.stages, "covariance_inflation": {"factor": 1.7}})
+    lin = L.linearise(res)
+    names = list(res.param_names)
+    assert tuple(lin.names) == tuple(names)
+    np.testing.assert_array_equal(V._uninflated_cov(res, lin), res.covariance / 1.7)
+    perm = replace(lin, names=tuple(reversed(lin.names)))
+    idx = [names.index(n) for n in perm.names]
+    np.testing.assert_array_equal(V._uninflated_cov(res, perm), res.covariance[np.ix_(idx, idx)] / 1.7)

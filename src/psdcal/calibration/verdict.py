@@ -243,7 +243,9 @@ def _uninflated_cov(result, lin: Linear):
     C = np.asarray(getattr(result, "covariance", np.zeros((0, 0))), dtype=float)
     infl = float((result.stages or {}).get("covariance_inflation", {}).get("factor", 1.0)) if isinstance(
         result.stages, dict) else 1.0
-    if C.shape == (len(names), len(names)) and all(n in names for n in lin.names) and np.all(np.isfinite(C)):
+    if C.shape == (len(names), len(names)) and all(n in names for n in lin.names) and np.isfinite(C).all():
+        if len(lin.names) == len(names) and tuple(lin.names) == tuple(names):  # the same order: all of C
+            return C / infl
         idx = [names.index(n) for n in lin.names]
         return C[np.ix_(idx, idx)] / infl
     return lin.s2 * lin.ninv
