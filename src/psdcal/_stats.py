@@ -4,7 +4,8 @@ The verdict of every calibration (:mod:`psdcal.calibration.verdict`) needs a
 handful of p-values and critical values; importing ``scipy.special`` for them
 would cost a fresh ``psdcal calibrate`` process more than the calibration
 itself. These functions use only :mod:`math` (numpy only in
-:func:`std_standard_error`, the Monte Carlo standard error of a std):
+:func:`std_standard_error`, the Monte Carlo standard error of a std; the
+incomplete beta's continued fraction compiled where numba is already loaded):
 
 - the chi-squared survival function is the regularised upper incomplete gamma
   function, ``Q(k/2, x/2)``, by its power series below ``a + 1`` and its
@@ -22,6 +23,8 @@ relative over the ranges the verdict uses.
 from __future__ import annotations
 
 import math
+
+from psdcal import _jit
 
 _EPS = 1e-15
 _TINY = 1e-300
@@ -112,6 +115,11 @@ def _beta_fraction(a: float, b: float, x: float) -> float:
     return h
 
 
+#: :func:`_beta_fraction` compiled (the same operations in the same order: the same numbers), used once numba is
+#: loaded in the process by another kernel (a light command never imports it for a p-value)
+_beta_fraction_compiled = _jit.lazy_njit(_beta_fraction)
+
+
 def beta_i(a: float, b: float, x: float, y: float | None = None) -> float:
     """Regularised incomplete beta function I_x(a, b), a, b > 0, 0 <= x <= 1.
 
@@ -124,9 +132,10 @@ def beta_i(a: float, b: float, x: float, y: float | None = None) -> float:
     if y <= 0.0:
         return 1.0
     log_front = (math.lgamma(a + b) - math.lgamma(a) - math.lgamma(b) + a * math.log(x) + b * math.log(y))
+    fraction = _beta_fraction_compiled if _jit.loaded() else _beta_fraction
     if x < (a + 1.0) / (a + b + 2.0):
-        return math.exp(log_front) * _beta_fraction(a, b, x) / a
-    return 1.0 - math.exp(log_front) * _beta_fraction(b, a, y) / b
+        return math.exp(log_front) * fraction(float(a), float(b), float(x)) / a
+    return 1.0 - math.exp(log_front) * fraction(float(b), float(a), float(y)) / b
 
 
 def chi2_sf(x: float, k: float) -> float:
