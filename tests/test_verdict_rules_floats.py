@@ -156,3 +156,31 @@ def test_uninflated_covariance_in_the_result_s_order_and_permuted(fit):
     perm = replace(lin, names=tuple(reversed(lin.names)))
     idx = [names.index(n) for n in perm.names]
     np.testing.assert_array_equal(V._uninflated_cov(res, perm), res.covariance[np.ix_(idx, idx)] / 1.7)
+
+
+FLOATS = st.one_of(st.floats(-1e6, 1e6), st.just(math.nan), st.just(math.inf), st.just(-math.inf))
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.lists(FLOATS, min_size=1, max_size=12))
+def test_views_worst_and_median_on_floats_are_numpys(x):
+    """The views check's worst view and the others' median from lists: numpy's argmax (non-finite as -inf) and
+    :func:`_median`."""
+    from psdcal.calibration import verdict as V
+
+    a = np.array(x, dtype=float)
+    assert V._argmax_finite(x) == int(np.argmax(np.where(np.isfinite(a), a, -np.inf)))
+    with np.errstate(invalid="ignore"):  # inf + -inf in the middle pair
+        assert _same(V._median_floats(list(x)), V._median(a))
+    assert _same(V._median_floats([]), V._median(np.array([])))
+
+
+@settings(max_examples=100, deadline=None)
+@given(st.lists(st.floats(-1.0, 1.0), min_size=2, max_size=40).filter(lambda v: len(v) % 2 == 0))
+def test_led_offset_is_the_numpy_rms(v):
+    """The leds check's RMS offset of the worst LED's points (one sum of squares) as ``np.sqrt(np.mean(...))``."""
+    from psdcal.calibration import verdict as V
+
+    q = np.array(v, dtype=float).reshape(-1, 2)
+    assert V._rms_points(q) == float(np.sqrt(np.mean(q[:, 0] ** 2 + q[:, 1] ** 2)))
+    assert V._rms_points(q[:0]) == 0.0
