@@ -1,5 +1,5 @@
-"""The incomplete beta's continued fraction compiled (psdcal._stats, used once numba is loaded) against the Python
-loop it copies: the same operations in the same order, so the same numbers to the bit."""
+"""The incomplete beta's and gamma's loops compiled (psdcal._stats, used once numba is loaded) against the Python
+loops they compile: the same operations in the same order, so the same numbers to the bit."""
 from __future__ import annotations
 
 import math
@@ -14,8 +14,8 @@ from psdcal import _jit, _stats
 pytestmark = pytest.mark.skipif(not _jit.AVAILABLE, reason="numba not available")
 
 
-def _compiled():
-    f = _stats._beta_fraction_compiled
+def _compiled(name: str = "_beta_fraction"):
+    f = getattr(_stats, name + "_compiled")
     return f.compiled() if hasattr(f, "compiled") else f
 
 
@@ -51,3 +51,29 @@ def test_f_tails_and_critical_values_are_the_same_with_and_without_the_compiled_
     crit_slow = [_stats.f_isf(1e-3, d1, d2) for d1, d2 in ((14, 2508), (1, 2521), (2, 2520), (9.7, 2512), (40, 100))]
     assert all(_same(p, q) for p, q in zip(fast, slow))
     assert crit == crit_slow
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.floats(0.05, 2e4), st.floats(0.0, 3.0))
+def test_compiled_gamma_loops_are_the_python_loops(a, t):
+    x = a * t
+    if x < a + 1.0:
+        assert _same(_compiled("_gamma_p_sum")(a, x), _stats._gamma_p_sum(a, x))
+    else:
+        assert _same(_compiled("_gamma_fraction")(a, x), _stats._gamma_fraction(a, x))
+
+
+def test_chi2_tails_and_critical_values_are_the_same_with_and_without_the_compiled_loops(monkeypatch):
+    """4000 chi-squared tails (1-6000 dof, both sides of the series/fraction switch) and 5 critical values."""
+    rng = np.random.default_rng(5)
+    args = [(float(rng.uniform(0.0, 3.0)) * k, float(k)) for k in rng.integers(1, 6000, 3000)]
+    args += [(float(rng.uniform(0.0, 60.0)), float(rng.uniform(0.5, 40.0))) for _ in range(1000)]
+    dofs = (1, 2, 14, 2520, 40000)
+    _compiled("_gamma_p_sum"), _compiled("_gamma_fraction")
+    assert _jit.loaded()
+    fast = [_stats.chi2_sf(x, k) for x, k in args]
+    crit = [_stats.chi2_isf(1e-3, k) for k in dofs]
+    monkeypatch.setattr(_jit, "loaded", lambda: False)
+    assert all(_same(p, _stats.chi2_sf(x, k)) for p, (x, k) in zip(fast, args))
+    assert crit == [_stats.chi2_isf(1e-3, k) for k in dofs]
+    assert _stats.chi2_sf(2.0, 2) == pytest.approx(math.exp(-1.0), rel=1e-14)

@@ -31,8 +31,8 @@ _TINY = 1e-300
 _MAX_TERMS = 10_000
 
 
-def _gamma_p_series(a: float, x: float) -> float:
-    """Regularised lower incomplete gamma P(a, x) by its power series (x < a + 1)."""
+def _gamma_p_sum(a: float, x: float) -> float:
+    """The power series of P(a, x) without its front factor: ``sum_n x^n / (a (a + 1) ... (a + n))``."""
     term = 1.0 / a
     total = term
     ap = a
@@ -42,34 +42,41 @@ def _gamma_p_series(a: float, x: float) -> float:
         total += term
         if abs(term) < abs(total) * _EPS:
             break
+    return total
+
+
+def _gamma_p_series(a: float, x: float) -> float:
+    """Regularised lower incomplete gamma P(a, x) by its power series (x < a + 1)."""
+    total = (_gamma_p_sum_compiled if _jit.loaded() else _gamma_p_sum)(float(a), float(x))
     return total * math.exp(-x + a * math.log(x) - math.lgamma(a))
 
 
-def _lentz_step(a_n: float, b_n: float, c: float, d: float) -> tuple[float, float, float]:
-    """One term ``b_n + a_n / ...`` of a continued fraction by the modified Lentz method.
-
-    Returns the new ``(c, d)`` and the factor ``delta = c d`` that multiplies the running value.
-    """
-    d = a_n * d + b_n
-    d = _TINY if abs(d) < _TINY else d
-    c = b_n + a_n / c
-    c = _TINY if abs(c) < _TINY else c
-    d = 1.0 / d
-    return c, d, d * c
-
-
-def _gamma_q_fraction(a: float, x: float) -> float:
-    """Regularised upper incomplete gamma Q(a, x) by its continued fraction (x >= a + 1), Lentz's method."""
+def _gamma_fraction(a: float, x: float) -> float:
+    """The continued fraction of Q(a, x) without its front factor (converges for x >= a + 1), Lentz's method."""
     b = x + 1.0 - a
     c = 1.0 / _TINY
     d = 1.0 / b
     h = d
+    # each term b + an / ... by the modified Lentz method, written out (no call per term)
+    tiny = _TINY
     for i in range(1, _MAX_TERMS):
         b += 2.0
-        c, d, delta = _lentz_step(-i * (i - a), b, c, d)
+        an = -i * (i - a)
+        d = an * d + b
+        d = tiny if abs(d) < tiny else d
+        c = b + an / c
+        c = tiny if abs(c) < tiny else c
+        d = 1.0 / d
+        delta = d * c
         h *= delta
         if abs(delta - 1.0) < _EPS:
             break
+    return h
+
+
+def _gamma_q_fraction(a: float, x: float) -> float:
+    """Regularised upper incomplete gamma Q(a, x) by its continued fraction (x >= a + 1), Lentz's method."""
+    h = (_gamma_fraction_compiled if _jit.loaded() else _gamma_fraction)(float(a), float(x))
     return math.exp(-x + a * math.log(x) - math.lgamma(a)) * h
 
 
@@ -90,7 +97,7 @@ def _beta_fraction(a: float, b: float, x: float) -> float:
     d = _TINY if abs(d) < _TINY else d
     d = 1.0 / d
     h = d
-    # the two Lentz steps of each m written out (:func:`_lentz_step` with b_n = 1, the same operations in the same
+    # the two Lentz steps of each m written out (b_n = 1; as in :func:`_gamma_fraction`, the same operations in the same
     # order): the p-values of a verdict spend most of their time in this loop's calls otherwise
     tiny = _TINY
     for m in range(1, _MAX_TERMS):
@@ -115,9 +122,12 @@ def _beta_fraction(a: float, b: float, x: float) -> float:
     return h
 
 
-#: :func:`_beta_fraction` compiled (the same operations in the same order: the same numbers), used once numba is
-#: loaded in the process by another kernel (a light command never imports it for a p-value)
+#: :func:`_beta_fraction`, :func:`_gamma_fraction` and :func:`_gamma_p_sum` compiled (the same operations in the
+#: same order: the same numbers), used once numba is loaded in the process by another kernel (a light command never
+#: imports it for a p-value)
 _beta_fraction_compiled = _jit.lazy_njit(_beta_fraction)
+_gamma_fraction_compiled = _jit.lazy_njit(_gamma_fraction)
+_gamma_p_sum_compiled = _jit.lazy_njit(_gamma_p_sum)
 
 
 def beta_i(a: float, b: float, x: float, y: float | None = None) -> float:
