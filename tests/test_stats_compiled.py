@@ -39,6 +39,7 @@ def test_f_tails_and_critical_values_are_the_same_with_and_without_the_compiled_
              for _ in range(500)]
     _compiled()  # numba loaded: f_sf takes the compiled fraction
     assert _jit.loaded()
+    monkeypatch.setattr(_stats, "COMPILED_AFTER", 0)
     calls = []
     real = _stats._beta_fraction_compiled
     monkeypatch.setattr(_stats, "_beta_fraction_compiled", lambda *a: calls.append(a) or real(*a))
@@ -71,9 +72,23 @@ def test_chi2_tails_and_critical_values_are_the_same_with_and_without_the_compil
     dofs = (1, 2, 14, 2520, 40000)
     _compiled("_gamma_p_sum"), _compiled("_gamma_fraction")
     assert _jit.loaded()
+    monkeypatch.setattr(_stats, "COMPILED_AFTER", 0)
     fast = [_stats.chi2_sf(x, k) for x, k in args]
     crit = [_stats.chi2_isf(1e-3, k) for k in dofs]
     monkeypatch.setattr(_jit, "loaded", lambda: False)
     assert all(_same(p, _stats.chi2_sf(x, k)) for p, (x, k) in zip(fast, args))
     assert crit == [_stats.chi2_isf(1e-3, k) for k in dofs]
     assert _stats.chi2_sf(2.0, 2) == pytest.approx(math.exp(-1.0), rel=1e-14)
+
+
+def test_the_first_tails_of_a_process_take_the_python_loops(monkeypatch):
+    """A one-shot command's dozen tails never load the compiled loops; from COMPILED_AFTER tails on they are used
+    (numba loaded)."""
+    _compiled()
+    calls = []
+    real = _stats._beta_fraction_compiled
+    monkeypatch.setattr(_stats, "_beta_fraction_compiled", lambda *a: calls.append(a) or real(*a))
+    monkeypatch.setattr(_stats, "COMPILED_AFTER", 5)
+    monkeypatch.setattr(_stats, "_n_tails", 0)
+    p = [_stats.f_sf(2.0, 14.0, 2508.0) for _ in range(8)]
+    assert len(calls) == 3 and len(set(p)) == 1

@@ -5,7 +5,8 @@ handful of p-values and critical values; importing ``scipy.special`` for them
 would cost a fresh ``psdcal calibrate`` process more than the calibration
 itself. These functions use only :mod:`math` (numpy only in
 :func:`std_standard_error`, the Monte Carlo standard error of a std; the
-incomplete beta's continued fraction compiled where numba is already loaded):
+incomplete beta's and gamma's loops compiled where numba is already loaded,
+after the process's first hundred tails):
 
 - the chi-squared survival function is the regularised upper incomplete gamma
   function, ``Q(k/2, x/2)``, by its power series below ``a + 1`` and its
@@ -25,6 +26,23 @@ from __future__ import annotations
 import math
 
 from psdcal import _jit
+
+#: The tails computed in a process by the Python loops before the compiled ones are used (where numba is loaded):
+#: loading a compiled loop from numba's cache costs a process some 3 ms, what the Python loops take for about a
+#: hundred tails (10-40 us each at the verdict's degrees of freedom, 1-3 us compiled). A one-shot command's verdict
+#: (a dozen tails) never loads them; a Monte Carlo run or a benchmark does after its first verdicts.
+COMPILED_AFTER = 100
+_n_tails = 0
+
+
+def _compiled_pays() -> bool:
+    """Whether this tail takes the compiled loops: numba loaded and :data:`COMPILED_AFTER` tails done already."""
+    global _n_tails
+    if _n_tails < COMPILED_AFTER:
+        _n_tails += 1
+        return False
+    return _jit.loaded()
+
 
 _EPS = 1e-15
 _TINY = 1e-300
@@ -47,7 +65,7 @@ def _gamma_p_sum(a: float, x: float) -> float:
 
 def _gamma_p_series(a: float, x: float) -> float:
     """Regularised lower incomplete gamma P(a, x) by its power series (x < a + 1)."""
-    total = (_gamma_p_sum_compiled if _jit.loaded() else _gamma_p_sum)(float(a), float(x))
+    total = (_gamma_p_sum_compiled if _compiled_pays() else _gamma_p_sum)(float(a), float(x))
     return total * math.exp(-x + a * math.log(x) - math.lgamma(a))
 
 
@@ -76,7 +94,7 @@ def _gamma_fraction(a: float, x: float) -> float:
 
 def _gamma_q_fraction(a: float, x: float) -> float:
     """Regularised upper incomplete gamma Q(a, x) by its continued fraction (x >= a + 1), Lentz's method."""
-    h = (_gamma_fraction_compiled if _jit.loaded() else _gamma_fraction)(float(a), float(x))
+    h = (_gamma_fraction_compiled if _compiled_pays() else _gamma_fraction)(float(a), float(x))
     return math.exp(-x + a * math.log(x) - math.lgamma(a)) * h
 
 
@@ -124,7 +142,7 @@ def _beta_fraction(a: float, b: float, x: float) -> float:
 
 #: :func:`_beta_fraction`, :func:`_gamma_fraction` and :func:`_gamma_p_sum` compiled (the same operations in the
 #: same order: the same numbers), used once numba is loaded in the process by another kernel (a light command never
-#: imports it for a p-value)
+#: imports it for a p-value) and the process has computed :data:`COMPILED_AFTER` tails (:func:`_compiled_pays`)
 _beta_fraction_compiled = _jit.lazy_njit(_beta_fraction)
 _gamma_fraction_compiled = _jit.lazy_njit(_gamma_fraction)
 _gamma_p_sum_compiled = _jit.lazy_njit(_gamma_p_sum)
@@ -142,7 +160,7 @@ def beta_i(a: float, b: float, x: float, y: float | None = None) -> float:
     if y <= 0.0:
         return 1.0
     log_front = (math.lgamma(a + b) - math.lgamma(a) - math.lgamma(b) + a * math.log(x) + b * math.log(y))
-    fraction = _beta_fraction_compiled if _jit.loaded() else _beta_fraction
+    fraction = _beta_fraction_compiled if _compiled_pays() else _beta_fraction
     if x < (a + 1.0) / (a + b + 2.0):
         return math.exp(log_front) * fraction(float(a), float(b), float(x)) / a
     return 1.0 - math.exp(log_front) * fraction(float(b), float(a), float(y)) / b
