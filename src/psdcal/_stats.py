@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import math
 
-from psdcal import _jit
+import psdcal._jit as _jit
 
 #: The tails computed in a process by the Python loops before the compiled ones are used (where numba is loaded):
 #: loading a compiled loop from numba's cache costs a process some 3 ms, what the Python loops take for about a
