@@ -112,9 +112,9 @@ def template_side(result) -> Check | None:
     if len(rv) < 1:
         return None
     if rv.shape == tv.shape == (len(rv), 3) and len(rv) <= _FEW_VIEWS:  # a few views: on floats, as below
-        rl, tl = rv.tolist(), tv.tolist()
-        if not (_all_finite(rl) and _all_finite(tl)):
+        if not (np.isfinite(rv).all() and np.isfinite(tv).all()):
             return None
+        rl, tl = rv.tolist(), tv.tolist()
         # the einsum's sum n . t in its order; the template is behind when -(n . t) > 0
         behind = [i for i, (r, t) in enumerate(zip(rl, tl)) if _front_dot(_normal(*r), t) < 0.0]
         n_views = len(rl)
@@ -269,7 +269,7 @@ def _tilt_spread_deg(result) -> float | None:
     """The largest angle (deg) between two views' template normals (None with fewer than two finite poses)."""
     rv = np.asarray(result.rvecs, dtype=float)
     if rv.ndim == 2 and rv.shape[1] == 3 and len(rv) <= _FEW_VIEWS:  # a few views: the normals on floats
-        rows = [r for r in rv.tolist() if _all_finite((r,))]
+        rows = rv.tolist() if np.isfinite(rv).all() else [r for r in rv.tolist() if _all_finite((r,))]
         if len(rows) < 2:
             return None
         n = np.array([_normal(*r) for r in rows], dtype=float)
