@@ -184,3 +184,31 @@ def test_led_offset_is_the_numpy_rms(v):
     q = np.array(v, dtype=float).reshape(-1, 2)
     assert V._rms_points(q) == float(np.sqrt(np.mean(q[:, 0] ** 2 + q[:, 1] ** 2)))
     assert V._rms_points(q[:0]) == 0.0
+
+
+@settings(max_examples=100, deadline=None)
+@given(NUM, NUM, NUM, st.floats(0.0, 1.0), FLAG, st.text(max_size=5), st.booleans(), NUM, NUM, NUM)
+def test_check_init_is_the_generated_dataclass_init(stat, thr, p, alpha, passed, msg, severe, dof, eff, infl):
+    """The written-out ``Check.__init__`` builds what a frozen dataclass's generated one does: the same fields
+    (positional and keyword, defaults), equality, hash, repr, replace, pickling, and no assignment."""
+    import dataclasses
+    import pickle
+
+    from psdcal._consistency import Check
+
+    Ref = dataclasses.make_dataclass("Check", [(f.name, f.type, f) for f in dataclasses.fields(Check)], frozen=True)
+    args = ("x", stat, thr, p, alpha, passed, msg, "advice", severe, dof, eff, infl)
+    for a, kw in ((args, {}), (args[:7], {}), (args[:6], dict(zip(("message", "advice", "severe", "dof",
+                                                                  "effect_sigma", "inflation"), args[6:])))):
+        c, r = Check(*a, **kw), Ref(*a, **kw)
+        assert list(vars(c)) == [f.name for f in dataclasses.fields(Check)]
+        assert all(getattr(c, f.name) is getattr(r, f.name) for f in dataclasses.fields(Check))
+        assert repr(c) == repr(r)
+    c = Check(*args)
+    assert dataclasses.replace(c, message="m").message == "m" and dataclasses.replace(c, message="m").name == "x"
+    d = pickle.loads(pickle.dumps(c))
+    assert repr(d) == repr(c)
+    if not any(isinstance(v, float) and v != v for v in vars(c).values()):  # NaN: equal only to itself
+        assert d == c and hash(d) == hash(c) == hash(Ref(*args))
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        c.name = "y"
