@@ -4,7 +4,9 @@ The verdict of every calibration (:mod:`psdcal.calibration.verdict`) needs a
 handful of p-values and critical values; importing ``scipy.special`` for them
 would cost a fresh ``psdcal calibrate`` process more than the calibration
 itself. These functions use only :mod:`math` (numpy only in
-:func:`std_standard_error`, the Monte Carlo standard error of a std):
+:func:`std_standard_error`, the Monte Carlo standard error of a std; the
+incomplete beta's and gamma's loops compiled where numba is already loaded,
+after the process's first hundred tails):
 
 - the chi-squared survival function is the regularised upper incomplete gamma
   function, ``Q(k/2, x/2)``, by its power series below ``a + 1`` and its
@@ -23,13 +25,32 @@ from __future__ import annotations
 
 import math
 
+import psdcal._jit as _jit
+
+#: The tails computed in a process by the Python loops before the compiled ones are used (where numba is loaded):
+#: loading a compiled loop from numba's cache costs a process some 3 ms, what the Python loops take for about a
+#: hundred tails (10-40 us each at the verdict's degrees of freedom, 1-3 us compiled). A one-shot command's verdict
+#: (a dozen tails) never loads them; a Monte Carlo run or a benchmark does after its first verdicts.
+COMPILED_AFTER = 100
+_n_tails = 0
+
+
+def _compiled_pays() -> bool:
+    """Whether this tail takes the compiled loops: numba loaded and :data:`COMPILED_AFTER` tails done already."""
+    global _n_tails
+    if _n_tails < COMPILED_AFTER:
+        _n_tails += 1
+        return False
+    return _jit.loaded()
+
+
 _EPS = 1e-15
 _TINY = 1e-300
 _MAX_TERMS = 10_000
 
 
-def _gamma_p_series(a: float, x: float) -> float:
-    """Regularised lower incomplete gamma P(a, x) by its power series (x < a + 1)."""
+def _gamma_p_sum(a: float, x: float) -> float:
+    """The power series of P(a, x) without its front factor: ``sum_n x^n / (a (a + 1) ... (a + n))``."""
     term = 1.0 / a
     total = term
     ap = a
@@ -39,34 +60,41 @@ def _gamma_p_series(a: float, x: float) -> float:
         total += term
         if abs(term) < abs(total) * _EPS:
             break
+    return total
+
+
+def _gamma_p_series(a: float, x: float) -> float:
+    """Regularised lower incomplete gamma P(a, x) by its power series (x < a + 1)."""
+    total = (_gamma_p_sum_compiled if _compiled_pays() else _gamma_p_sum)(float(a), float(x))
     return total * math.exp(-x + a * math.log(x) - math.lgamma(a))
 
 
-def _lentz_step(a_n: float, b_n: float, c: float, d: float) -> tuple[float, float, float]:
-    """One term ``b_n + a_n / ...`` of a continued fraction by the modified Lentz method.
-
-    Returns the new ``(c, d)`` and the factor ``delta = c d`` that multiplies the running value.
-    """
-    d = a_n * d + b_n
-    d = _TINY if abs(d) < _TINY else d
-    c = b_n + a_n / c
-    c = _TINY if abs(c) < _TINY else c
-    d = 1.0 / d
-    return c, d, d * c
-
-
-def _gamma_q_fraction(a: float, x: float) -> float:
-    """Regularised upper incomplete gamma Q(a, x) by its continued fraction (x >= a + 1), Lentz's method."""
+def _gamma_fraction(a: float, x: float) -> float:
+    """The continued fraction of Q(a, x) without its front factor (converges for x >= a + 1), Lentz's method."""
     b = x + 1.0 - a
     c = 1.0 / _TINY
     d = 1.0 / b
     h = d
+    # each term b + an / ... by the modified Lentz method, written out (no call per term)
+    tiny = _TINY
     for i in range(1, _MAX_TERMS):
         b += 2.0
-        c, d, delta = _lentz_step(-i * (i - a), b, c, d)
+        an = -i * (i - a)
+        d = an * d + b
+        d = tiny if abs(d) < tiny else d
+        c = b + an / c
+        c = tiny if abs(c) < tiny else c
+        d = 1.0 / d
+        delta = d * c
         h *= delta
         if abs(delta - 1.0) < _EPS:
             break
+    return h
+
+
+def _gamma_q_fraction(a: float, x: float) -> float:
+    """Regularised upper incomplete gamma Q(a, x) by its continued fraction (x >= a + 1), Lentz's method."""
+    h = (_gamma_fraction_compiled if _compiled_pays() else _gamma_fraction)(float(a), float(x))
     return math.exp(-x + a * math.log(x) - math.lgamma(a)) * h
 
 
@@ -87,7 +115,7 @@ def _beta_fraction(a: float, b: float, x: float) -> float:
     d = _TINY if abs(d) < _TINY else d
     d = 1.0 / d
     h = d
-    # the two Lentz steps of each m written out (:func:`_lentz_step` with b_n = 1, the same operations in the same
+    # the two Lentz steps of each m written out (b_n = 1; as in :func:`_gamma_fraction`, the same operations in the same
     # order): the p-values of a verdict spend most of their time in this loop's calls otherwise
     tiny = _TINY
     for m in range(1, _MAX_TERMS):
@@ -112,6 +140,14 @@ def _beta_fraction(a: float, b: float, x: float) -> float:
     return h
 
 
+#: :func:`_beta_fraction`, :func:`_gamma_fraction` and :func:`_gamma_p_sum` compiled (the same operations in the
+#: same order: the same numbers), used once numba is loaded in the process by another kernel (a light command never
+#: imports it for a p-value) and the process has computed :data:`COMPILED_AFTER` tails (:func:`_compiled_pays`)
+_beta_fraction_compiled = _jit.lazy_njit(_beta_fraction)
+_gamma_fraction_compiled = _jit.lazy_njit(_gamma_fraction)
+_gamma_p_sum_compiled = _jit.lazy_njit(_gamma_p_sum)
+
+
 def beta_i(a: float, b: float, x: float, y: float | None = None) -> float:
     """Regularised incomplete beta function I_x(a, b), a, b > 0, 0 <= x <= 1.
 
@@ -124,9 +160,10 @@ def beta_i(a: float, b: float, x: float, y: float | None = None) -> float:
     if y <= 0.0:
         return 1.0
     log_front = (math.lgamma(a + b) - math.lgamma(a) - math.lgamma(b) + a * math.log(x) + b * math.log(y))
+    fraction = _beta_fraction_compiled if _compiled_pays() else _beta_fraction
     if x < (a + 1.0) / (a + b + 2.0):
-        return math.exp(log_front) * _beta_fraction(a, b, x) / a
-    return 1.0 - math.exp(log_front) * _beta_fraction(b, a, y) / b
+        return math.exp(log_front) * fraction(float(a), float(b), float(x)) / a
+    return 1.0 - math.exp(log_front) * fraction(float(b), float(a), float(y)) / b
 
 
 def chi2_sf(x: float, k: float) -> float:

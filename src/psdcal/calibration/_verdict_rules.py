@@ -41,11 +41,12 @@ def plausibility(result, lin, sensor, half) -> list:
     checks = []
     X = lin.pts
     span = float(np.max(np.ptp(X.T.copy(), axis=1))) if len(X) > 1 else 0.0  # (2, N) rows: fast reduction
-    frac = span / float(np.max(sensor))
+    smax = float(np.max(sensor))
+    frac = span / smax
     ok = frac >= SPAN_SUSPECT
     checks.append(Check(
-        "scale", span, SPAN_SUSPECT * float(np.max(sensor)), None, 0.0, ok,
-        f"the points span {_length(span)} of the {np.max(sensor):g} mm sensor",
+        "scale", span, SPAN_SUSPECT * smax, None, 0.0, ok,
+        f"the points span {_length(span)} of the {smax:g} mm sensor",
         "" if ok else (f"points span {_length(span)}: are they in metres? The points file is in mm"
                        if frac < SPAN_WRONG else "the views cover a small part of the sensor: bring the template closer"),
         severe=frac < SPAN_WRONG,
@@ -60,12 +61,14 @@ def plausibility(result, lin, sensor, half) -> list:
                             "a camera (see the other checks: a mislabelled view, a template permutation)"),
         severe=not ok,
     ))
-    c = np.asarray(result.intrinsics.c, dtype=float)
-    rel = float(np.max(np.abs(c) / half))
+    intr = result.intrinsics
+    cx, cy = float(intr.cx_mm), float(intr.cy_mm)
+    hx, hy = float(half[0]), float(half[1])
+    rel = _max_nan(abs(cx) / hx, abs(cy) / hy)  # np.max(np.abs(c) / half) on floats
     ok = rel <= C_FRACTION
     checks.append(Check(
-        "optical_centre", float(np.hypot(*c)), float(C_FRACTION * np.min(half)), None, 0.0, ok,
-        f"C = ({c[0]:.3g}, {c[1]:.3g}) mm from the electrical centre",
+        "optical_centre", float(np.hypot(cx, cy)), C_FRACTION * _min_nan(hx, hy), None, 0.0, ok,
+        f"C = ({cx:.3g}, {cy:.3g}) mm from the electrical centre",
         "" if ok else "farther from the electrical centre than a lens mount puts it: a wrong minimum or ignored "
                       "channel gains (raw amplitudes: --fit-gains)",
         severe=rel > 1.0,
@@ -106,14 +109,25 @@ def template_side(result) -> Check | None:
     """
     rv = np.asarray(result.rvecs, dtype=float)
     tv = np.asarray(result.tvecs_mm, dtype=float)
-    if len(rv) < 1 or not np.all(np.isfinite(rv)) or not np.all(np.isfinite(tv)):
+    if len(rv) < 1:
         return None
-    side = -np.einsum("ij,ij->i", _normals(rv), tv)
-    behind = np.nonzero(side > 0)[0]
+    if rv.shape == tv.shape == (len(rv), 3) and len(rv) <= _FEW_VIEWS:  # a few views: on floats, as below
+        if not (np.isfinite(rv).all() and np.isfinite(tv).all()):
+            return None
+        rl, tl = rv.tolist(), tv.tolist()
+        # the einsum's sum n . t in its order; the template is behind when -(n . t) > 0
+        behind = [i for i, (r, t) in enumerate(zip(rl, tl)) if _front_dot(_normal(*r), t) < 0.0]
+        n_views = len(rl)
+    else:
+        if not np.all(np.isfinite(rv)) or not np.all(np.isfinite(tv)):
+            return None
+        side = -np.einsum("ij,ij->i", _normals(rv), tv)
+        behind = np.nonzero(side > 0)[0].tolist()
+        n_views = len(side)
     ids = ", ".join(str(result.image_ids[i]) for i in behind)
     if len(behind) == 0:
         return Check("template_side", 0.0, None, None, 0.0, True, "every view sees the template from the front")
-    if len(behind) == len(side):
+    if len(behind) == n_views:
         return Check("template_side", float(len(behind)), None, None, 0.0, False,
                      "every view sees the template from behind: the template's handedness is flipped (x or y negated, "
                      "or X and Y swapped); the intrinsics are unaffected, the poses are mirror images",
@@ -126,6 +140,23 @@ def template_side(result) -> Check | None:
 
 
 _CORNER_SIGNS = np.array([[sx, sy] for sx in (-1.0, 1.0) for sy in (-1.0, 1.0)])
+_CORNER_SIGN_PAIRS = tuple(tuple(r) for r in _CORNER_SIGNS.tolist())
+
+
+def _farthest_corner(cx: float, cy: float, hx: float, hy: float) -> float:
+    """The distance from C (cx, cy) to the sensor's farthest corner (half-size hx, hy), mm:
+    ``np.max(np.hypot(*(_CORNER_SIGNS * half - c).T))`` with the four corners on floats (the same numbers)."""
+    return functools.reduce(_max_nan, [float(np.hypot(sx * hx - cx, sy * hy - cy)) for sx, sy in _CORNER_SIGN_PAIRS])
+
+
+def _max_nan(a: float, b: float) -> float:
+    """``np.max`` of two floats: NaN when either is (and the second of two equal ones, as numpy's)."""
+    return a if a > b or a != a else b
+
+
+def _min_nan(a: float, b: float) -> float:
+    """``np.min`` of two floats: NaN when either is (and the second of two equal ones, as numpy's)."""
+    return a if a < b or a != a else b
 
 
 @functools.lru_cache(maxsize=8)
@@ -144,8 +175,7 @@ def _monotonic(result, n_dir: int = 16, n_r: int = 60) -> bool:
 
     c = np.asarray(result.intrinsics.c, dtype=float)
     half = np.asarray(result.sensor_mm, dtype=float) / 2
-    corners = _CORNER_SIGNS * half
-    rmax = float(np.max(np.hypot(*(corners - c).T)))
+    rmax = _farthest_corner(float(c[0]), float(c[1]), float(half[0]), float(half[1]))
     dirs, unit = _rays(n_dir, n_r)
     rad = unit * rmax
     if _jit.use_compiled(n_dir * n_r):  # the same test in one loop (its tests: the same answer as the code below)
@@ -174,7 +204,9 @@ def determination(result, cov, names, half) -> Check:
     suspect, worse than :data:`F_REL_WRONG` wrong (undetermined); C worse
     than :data:`C_STD_SUSPECT` of the sensor's half-size suspect.
     """
-    sd = dict(zip(names, np.sqrt(np.maximum(np.diag(np.asarray(cov, float)), 0.0)))) if len(names) else {}
+    # np.sqrt(np.maximum(diag, 0)) on floats (np.maximum keeps a NaN)
+    sd = {n: math.sqrt(_max_nan(v, 0.0)) for n, v in zip(names, np.diag(np.asarray(cov, float)).tolist())} if len(
+        names) else {}
     f = float(result.intrinsics.f_mm)
     parts, worst, severe = [], 0.0, False
     rel_f = sd["f_mm"] / abs(f) if "f_mm" in sd and f else None
@@ -185,7 +217,7 @@ def determination(result, cov, names, half) -> Check:
     csd = max(sd.get("cx_mm", 0.0), sd.get("cy_mm", 0.0))
     if "cx_mm" in sd or "cy_mm" in sd:
         parts.append(f"C to +- {_length(csd)}")
-        worst = max(worst, csd / (C_STD_SUSPECT * float(np.min(half))))
+        worst = max(worst, csd / (C_STD_SUSPECT * min(float(h) for h in half)))
     spread = _tilt_spread_deg(result)
     alike = spread is not None and spread < VIEWS_ALIKE_DEG
     ok = bool(worst <= 1.0) and not alike
@@ -236,12 +268,29 @@ def _normal(x: float, y: float, z: float) -> tuple[float, float, float]:
 def _tilt_spread_deg(result) -> float | None:
     """The largest angle (deg) between two views' template normals (None with fewer than two finite poses)."""
     rv = np.asarray(result.rvecs, dtype=float)
-    rv = rv[np.all(np.isfinite(rv), axis=1)]
-    if len(rv) < 2:
-        return None
-    n = _normals(rv)
-    cosang = np.clip(n @ n.T, -1.0, 1.0)
-    return float(np.degrees(np.arccos(np.min(cosang))))
+    if rv.ndim == 2 and rv.shape[1] == 3 and len(rv) <= _FEW_VIEWS:  # a few views: the normals on floats
+        rows = rv.tolist() if np.isfinite(rv).all() else [r for r in rv.tolist() if _all_finite((r,))]
+        if len(rows) < 2:
+            return None
+        n = np.array([_normal(*r) for r in rows], dtype=float)
+    else:
+        rv = rv[np.all(np.isfinite(rv), axis=1)]
+        if len(rv) < 2:
+            return None
+        n = _normals(rv)
+    # the smallest cosine (np.clip's and np.degrees' arithmetic on the one float that matters)
+    cmin = min(max(float((n @ n.T).min()), -1.0), 1.0)
+    return math.degrees(math.acos(cmin))
+
+
+def _all_finite(rows) -> bool:
+    """Whether every float of the lists ``rows`` is finite."""
+    return all(math.isfinite(v) for r in rows for v in r)
+
+
+def _front_dot(n, t) -> float:
+    """``n . t`` of two 3-vectors (floats) summed in the order of ``np.einsum("ij,ij->i")``."""
+    return n[0] * t[0] + n[1] * t[1] + n[2] * t[2]
 
 
 def held_values(result, lin, alpha: float) -> Check | None:

@@ -243,7 +243,9 @@ def _uninflated_cov(result, lin: Linear):
     C = np.asarray(getattr(result, "covariance", np.zeros((0, 0))), dtype=float)
     infl = float((result.stages or {}).get("covariance_inflation", {}).get("factor", 1.0)) if isinstance(
         result.stages, dict) else 1.0
-    if C.shape == (len(names), len(names)) and all(n in names for n in lin.names) and np.all(np.isfinite(C)):
+    if C.shape == (len(names), len(names)) and all(n in names for n in lin.names) and np.isfinite(C).all():
+        if len(lin.names) == len(names) and tuple(lin.names) == tuple(names):  # the same order: all of C
+            return C / infl
         idx = [names.index(n) for n in lin.names]
         return C[np.ix_(idx, idx)] / infl
     return lin.s2 * lin.ninv
@@ -308,10 +310,11 @@ def _assess(result, *, noise_mm, points_kind, diagnose) -> Verdict:
     bad_view = None
     if n_img >= 3:
         F, pv = group_f(lin, lin.img, n_img, ssr, dof)
-        worst = int(np.nanargmax(np.where(np.isfinite(F), F, -np.inf)))
+        worst = _argmax_finite(F.tolist())
         p = float(min(1.0, pv[worst] * n_img))
         per = result.per_image_rms_mm * 1e3
-        others = np.delete(per, worst)
+        others = per.tolist()
+        del others[worst]
         vid = result.image_ids[worst]
         eff = None
         if p < ALPHA and cons:
@@ -319,7 +322,7 @@ def _assess(result, *, noise_mm, points_kind, diagnose) -> Verdict:
         ch = _judge(
             "views", float(F[worst]), None, p, None, eff,
             f"view {vid} disagrees with the others (F = {F[worst]:.3g}, p = {p:.2g} after {n_img} views)",
-            f"RMS {per[worst]:.3g} um against a median of {_median(others):.3g} um",
+            f"RMS {per[worst]:.3g} um against a median of {_median_floats(others):.3g} um",
             f"view {vid} disagrees with the others: check its labels (two LEDs merged or shifted by the "
             "demodulator?) or leave it out", lead="leaving it out ",
             ok_words=f"view {vid} is the least consistent (F = {F[worst]:.3g}, p = {p:.2g} after {n_img} views): "
@@ -336,10 +339,7 @@ def _assess(result, *, noise_mm, points_kind, diagnose) -> Verdict:
     eff = None
     if p < ALPHA and cons:
         eff = effect(cons, group_shift(lin, np.repeat(lin.led == worst, 2)))
-    q = lin.e.reshape(-1, 2)
-    sel = lin.led == worst
-    qs = q[sel]
-    off = np.sqrt(np.mean(qs[:, 0] ** 2 + qs[:, 1] ** 2)) if sel.any() else 0.0
+    off = _rms_points(lin.e.reshape(-1, 2)[lin.led == worst])
     checks.append(_judge(
         "leds", float(F[worst]), None, p, None, eff,
         f"template LED {pid} is off in every view (F = {F[worst]:.3g}, p = {p:.2g} after {M} LEDs)",
@@ -396,6 +396,32 @@ def _median(x) -> float:
         return float("nan")
     k = x.size // 2
     return float(x[k]) if x.size % 2 else float(0.5 * (x[k - 1] + x[k]))
+
+
+def _rms_points(q) -> float:
+    """RMS length of the points ``q`` (k, 2), 0 for none: ``np.sqrt(np.mean(q[:, 0] ** 2 + q[:, 1] ** 2))`` on
+    its one sum (the same number)."""
+    sq = q[:, 0] * q[:, 0] + q[:, 1] * q[:, 1]
+    return math.sqrt(float(sq.sum()) / sq.size) if sq.size else 0.0
+
+
+def _median_floats(x: list) -> float:
+    """:func:`_median` of a list of floats (the same number: NaN when one is NaN or the list is empty)."""
+    if not x or any(v != v for v in x):
+        return float("nan")
+    x = sorted(x)
+    k = len(x) // 2
+    return float(x[k]) if len(x) % 2 else 0.5 * (x[k - 1] + x[k])
+
+
+def _argmax_finite(x: list) -> int:
+    """``np.argmax(np.where(np.isfinite(x), x, -np.inf))`` of a list of floats (the first largest finite; 0 when
+    none is finite)."""
+    best, k = -math.inf, 0
+    for i, v in enumerate(x):
+        if v > best and v != math.inf:
+            best, k = v, i
+    return k
 
 
 def _um(mm: float) -> str:

@@ -64,6 +64,12 @@ def _calibration_kernels() -> None:
         from psdcal.model.params import DISTORTION_NAMES
 
         angle_jacobians(res, s.points_mm[0][:4], ("f_mm", "cx_mm", "cy_mm", "skew", *DISTORTION_NAMES))
+    # the p-values' loops (taken after a process's first hundred tails: psdcal._stats.COMPILED_AFTER)
+    from psdcal import _stats
+
+    _stats._beta_fraction_compiled(7.0, 0.5, 0.9)
+    _stats._gamma_fraction_compiled(3.0, 9.0)
+    _stats._gamma_p_sum_compiled(3.0, 1.0)
 
 
 def _measure_kernels() -> None:
