@@ -434,9 +434,9 @@ def calibrate(
             fix=fix, priors=priors, f_guess_mm=f_guess_mm, verdict=verdict, noise_mm=noise_mm,
         )
     # small dense linear algebra: one BLAS thread is fastest. Without the verdict, a problem of fewer than
-    # BLAS_THREADS_MIN_POINTS points makes no BLAS call that OpenBLAS would thread (its work is in the compiled
-    # kernels and 9 x 9 factorisations), and the limit itself would cost some 6 us.
-    needed = verdict or _n_points(points_mm) >= BLAS_THREADS_MIN_POINTS
+    # BLAS_THREADS_MIN_POINTS points on the compiled path makes no BLAS call that OpenBLAS would thread (its work
+    # is in the compiled kernels and 9 x 9 factorisations), and the limit itself costs some 100 us a call.
+    needed = verdict or _n_points(points_mm) >= BLAS_THREADS_MIN_POINTS or not _compiled_fit(points_mm)
     with _single_threaded_blas(needed):
         try:
             res = _calibrate(
@@ -453,6 +453,14 @@ def calibrate(
         if verdict:
             res = with_verdict(res, noise_mm=noise_mm, diagnose=False)
         return res
+
+
+def _compiled_fit(points_mm) -> bool:
+    """Whether the fit of ``points_mm`` runs on the compiled kernels (psdcal._jit.use_compiled)."""
+    from psdcal import _jit
+
+    n = _n_points(points_mm)
+    return _jit.use_compiled(int(n) if math.isfinite(n) else 0)
 
 
 def _n_points(points_mm) -> float:
@@ -576,9 +584,14 @@ def _calibrate(template_mm, points_mm, *, cost, radial, tangential, psd_radial, 
         from psdcal.calibration.gains import correct_points
 
         known_gains, X, g0 = g0, correct_points(X, g0, *sensor_mm), np.ones(4)
+    # Many points per view (a chessboard): the homographies of the closed form, and the starts, are fitted and
+    # compared on a spread subset of each view's points (the basins of the cost are those of the whole set), and
+    # the final refinement takes every point.
+    Xs = subsample_views(T, X)
+    sub = Xs is not None
     primary, cands = linear_starts(
         T, X, preliminary=preliminary, normalize=normalize, radial=radial, skew=skew, aspect=aspect,
-        general=fit_gains, f_guess_mm=f_guess_mm, image_ids=ids, point_ids=pids,
+        general=fit_gains, f_guess_mm=f_guess_mm, image_ids=ids, point_ids=pids, dlt_points=Xs,
     )
     start = primary
     g0_start = g0
@@ -587,10 +600,6 @@ def _calibrate(template_mm, points_mm, *, cost, radial, tangential, psd_radial, 
     # Every start is refined on the image cost with the core model (or the model itself
     # when it has nothing beyond the core); the lowest cost wins (global minimum).
     first = staged if staged is not None else spec
-    # Many points per view (a chessboard): the starts are compared on a spread subset of each view's points
-    # (the basins of the cost are those of the whole set), and the final refinement takes every point.
-    Xs = subsample_views(T, X)
-    sub = Xs is not None
     if Xs is None and first is spec and cost == "image":
         pfirst = prob  # the same problem (and its per-problem caches)
     else:
@@ -655,9 +664,10 @@ def _calibrate(template_mm, points_mm, *, cost, radial, tangential, psd_radial, 
     return result
 
 
-#: Below this many observations (and without the verdict) :func:`calibrate` does not ask threadpoolctl for one
-#: BLAS thread: no BLAS call of such a problem is large enough for OpenBLAS to thread.
-BLAS_THREADS_MIN_POINTS = 1000
+#: Below this many observations (without the verdict, on the compiled path) :func:`calibrate` does not ask
+#: threadpoolctl for one BLAS thread: no BLAS call of such a problem is large enough for OpenBLAS to thread,
+#: and the limit costs some 100 us a call (a fit of 5 views x 256 points takes some 3 ms).
+BLAS_THREADS_MIN_POINTS = 5000
 
 
 def _make_result(prob, ref, start, ids, pids, spec, cost, g0, preliminary, normalize, solver, extra_stages=None):
@@ -696,7 +706,8 @@ def _make_result(prob, ref, start, ids, pids, spec, cost, g0, preliminary, norma
     sigma_mm = math.sqrt(float(sq.sum()) / dof) if cost == "image" else float(rms / np.sqrt(2.0) * np.sqrt(m / dof))
     stages = {
         "preliminary": {"k1": float(start.preliminary_k[0]), "k2": float(start.preliminary_k[1]), "line_groups": start.n_lines, "applied": bool(preliminary and start.n_lines > 0)},
-        "closed_form": {**start.intrinsics.to_dict(), "normalized": bool(normalize)},
+        "closed_form": {**start.intrinsics.to_dict(), "normalized": bool(normalize),
+                        **({"points_per_view": int(ppv)} if (ppv := getattr(start, "points_per_view", None)) else {})},
         "initial_extrinsics": [{"image_id": _plain(i), "rvec": r.tolist(), "tvec_mm": t.tolist()} for i, r, t in zip(ids, start.rvecs, start.tvecs_mm)],
         **(extra_stages or {}),
     }

@@ -51,6 +51,8 @@ class InitialEstimate:
     homographies : (n_images, 3, 3)
     intrinsics : Intrinsics from the closed form.
     rvecs, tvecs_mm : (n_images, 3) poses from the homographies.
+    points_per_view : int or None, the homographies were fitted to the spread subset of each view's points
+        (:func:`subsample_views`, about this many points a view); None: to every point.
     """
 
     preliminary_k: np.ndarray
@@ -59,6 +61,7 @@ class InitialEstimate:
     intrinsics: Intrinsics
     rvecs: np.ndarray
     tvecs_mm: np.ndarray
+    points_per_view: int | None = None
 
     def distortion(self, radial: int) -> Distortion:
         """The preliminary k1, k2 as a start for a model with ``radial`` lens terms."""
@@ -102,6 +105,7 @@ def initial_estimate(
     skew: bool = False,
     aspect: bool = False,
     image_ids=None,
+    dlt_points=None,
 ) -> InitialEstimate:
     """The first, linear stage of the calibration (Sections 3.1-3.3).
 
@@ -112,8 +116,13 @@ def initial_estimate(
     preliminary : apply the line-straightness distortion estimate first.
     normalize : Hartley-normalise the DLT.
     radial_terms : how many of k1, k2 the preliminary step estimates (0-2).
+    dlt_points : (n_images, M, 2), optional
+        The points the homographies (and so the closed form) are fitted to: a spread subset of
+        ``points_mm`` (:func:`subsample_views`, NaN elsewhere); the preliminary step and the checks use
+        ``points_mm``. Default: ``points_mm`` itself.
     """
     T, X, ids = _check_inputs(template_mm, points_mm, image_ids, 3 if (skew or aspect) else 2)
+    Xd = X if dlt_points is None else np.asarray(dlt_points, dtype=float)
     k = np.zeros(2)
     n_lines = 0
     c0 = np.zeros(2)
@@ -131,11 +140,11 @@ def initial_estimate(
         if _jit.use_compiled(X.shape[0] * X.shape[1]):
             from psdcal.calibration._image_kernel import undistort_points
 
-            Xc = undistort_points(X, coef, c0)  # undistort's arithmetic, compiled (tests/test_lm_kernel.py)
+            Xc = undistort_points(Xd, coef, c0)  # undistort's arithmetic, compiled (tests/test_lm_kernel.py)
         else:
-            Xc = undistort(X, coef, c0)
+            Xc = undistort(Xd, coef, c0)
     else:
-        Xc = X
+        Xc = Xd
     Hs = homographies(T, Xc, normalize=normalize, labels=[f"image {i}" for i in ids])
     intr = intrinsics_from_homographies(Hs, skew=skew, aspect=aspect)
     extent = _extent(X)
@@ -144,7 +153,8 @@ def initial_estimate(
             f"the views do not determine the intrinsics (closed form gives f = {intr.f_mm:.3g} mm, "
             f"C = ({intr.cx_mm:.3g}, {intr.cy_mm:.3g}) mm): tilt the template differently between views"
         )
-    return InitialEstimate(k, n_lines, Hs, intr, *poses_from_homographies(Hs, intr))
+    return InitialEstimate(k, n_lines, Hs, intr, *poses_from_homographies(Hs, intr),
+                           points_per_view=None if dlt_points is None else SUBSAMPLE_POINTS)
 
 
 def _extent(X) -> float:
@@ -459,7 +469,7 @@ def template_hint(T, X, Hs, point_ids=None) -> str:
 
 
 def linear_starts(T, X, *, preliminary=True, normalize=True, radial=2, skew=False, aspect=False, general=False,
-                  f_guess_mm=None, image_ids=None, point_ids=None):
+                  f_guess_mm=None, image_ids=None, point_ids=None, dlt_points=None):
     """Starts of the refinement from the linear stages, the first that fail being replaced by ones that cannot.
 
     Returns ``(primary, starts)``: ``primary`` is the :class:`InitialEstimate`
@@ -483,6 +493,9 @@ def linear_starts(T, X, *, preliminary=True, normalize=True, radial=2, skew=Fals
     - ``f-grid``: C at the electrical centre and each of :data:`F_GRID_MM`,
       only when nothing above gave a start.
 
+    ``dlt_points``: the spread subset of ``X`` (:func:`subsample_views`) the
+    homographies are fitted to (:func:`initial_estimate`); default every point.
+
     Raises DegenerateViewsError only when the views are degenerate in fact:
     collinear template points (no homography) or no view tilted enough to
     fix a focal length, and no ``f_guess_mm``.
@@ -496,12 +509,14 @@ def linear_starts(T, X, *, preliminary=True, normalize=True, radial=2, skew=Fals
     labels = [f"image {i}" for i in ids]
     try:
         est = initial_estimate(T, X, preliminary=preliminary, normalize=normalize, radial_terms=radial,
-                               skew=skew or general, aspect=aspect or general, image_ids=ids)
+                               skew=skew or general, aspect=aspect or general, image_ids=ids, dlt_points=dlt_points)
     except DegenerateViewsError as exc:
         closed_error, est = exc, None
+    Xd = X if dlt_points is None else np.asarray(dlt_points, dtype=float)
+    ppv = None if dlt_points is None else SUBSAMPLE_POINTS
     # the views' homographies (after the preliminary step when it applied: the better start); raises on collinear
     # points, views that are degenerate in fact
-    Hs_raw = est.homographies if est is not None else homographies(T, X, normalize=normalize, labels=labels)
+    Hs_raw = est.homographies if est is not None else homographies(T, Xd, normalize=normalize, labels=labels)
     raw_too = False
     if est is None and preliminary and radial > 0:
         raw_too = True  # the closed form failed after the preliminary step: try it on the raw points
@@ -514,7 +529,8 @@ def linear_starts(T, X, *, preliminary=True, normalize=True, radial=2, skew=Fals
             except DegenerateViewsError as exc:
                 closed_error = exc
                 continue
-            est_i = InitialEstimate(np.zeros(2), 0, Hs_raw, intr, *poses_from_homographies(Hs_raw, intr))
+            est_i = InitialEstimate(np.zeros(2), 0, Hs_raw, intr, *poses_from_homographies(Hs_raw, intr),
+                                    points_per_view=ppv)
         elif est_i.n_lines == 0:
             label = "closed-form-raw"
         if general:
@@ -551,7 +567,7 @@ def linear_starts(T, X, *, preliminary=True, normalize=True, radial=2, skew=Fals
         rv, tv = poses_from_homographies(Hs_raw, i0)
         starts.append((label, i0, zero, rv, tv))
         if primary is None:
-            primary = InitialEstimate(np.zeros(2), 0, Hs_raw, i0, rv, tv)
+            primary = InitialEstimate(np.zeros(2), 0, Hs_raw, i0, rv, tv, points_per_view=ppv)
     return primary, starts
 
 
