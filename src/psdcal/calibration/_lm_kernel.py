@@ -8,7 +8,7 @@ around them as much again. :func:`lm_image` runs the same iterations inside
 numba: the same kernels
 (:func:`~psdcal.calibration._image_kernel.image_model` or
 :func:`~psdcal.calibration._image_kernel.template_model`,
-:func:`~psdcal.calibration._image_kernel.block_normal`,
+:func:`~psdcal.calibration._gram_kernel.gram_block_normal` (``block_normal`` with long runs in chunks),
 :func:`~psdcal.calibration._image_kernel.schur_solve`), the same damping and
 stopping rules in the same order, the Newton inverse of each trial point
 warm-started from the last accepted point, as the Python loop does.
@@ -21,7 +21,8 @@ from __future__ import annotations
 import numpy as np
 
 from psdcal._jit import njit
-from psdcal.calibration._image_kernel import block_normal, image_model, schur_covariance, schur_solve, template_model
+from psdcal.calibration._gram_kernel import gram_block_normal
+from psdcal.calibration._image_kernel import image_model, schur_covariance, schur_solve, template_model
 from psdcal.calibration._lm_rules import next_damping, trial_verdict
 
 #: status codes of :func:`lm_image` (those of ``levenberg_marquardt``, and 5: its damping overflow, a 2 there)
@@ -168,7 +169,7 @@ def lm_image(P, img, theta0, separate_fy, gmap, gain_basis, meas, z0, n_views, f
     nfev = 1
     njev = 1
     F = 0.5 * np.dot(r, r)
-    U, W, V, gg, gp = block_normal(J, r, img, n_views)
+    U, W, V, gg, gp = gram_block_normal(J, r, img, n_views)
     g, diagA = _system_vectors(U, V, gg, gp)
     D = np.maximum(diagA, 1e-300)
     mu = 1e-8
@@ -230,7 +231,7 @@ def lm_image(P, img, theta0, separate_fy, gmap, gain_basis, meas, z0, n_views, f
         if accept:
             x, r, F, J, d, y = x_new, r_new, F_new, J_new, d_new, y_new
             njev += 1
-            U, W, V, gg, gp = block_normal(J, r, img, n_views)
+            U, W, V, gg, gp = gram_block_normal(J, r, img, n_views)
             g, diagA = _system_vectors(U, V, gg, gp)
             D = np.maximum(D, diagA)
             fresh = True

@@ -236,15 +236,15 @@ class Evaluator:
             from psdcal import _jit
 
             if _jit.use_compiled(len(self.img_idx)):  # the compiled costs (psdcal.calibration._image_kernel); this class's numpy code is their reference
-                from psdcal.calibration._image_kernel import (block_normal, image_model, normal_equations,
-                                                              template_model)
+                from psdcal.calibration._gram_kernel import gram_block_normal
+                from psdcal.calibration._image_kernel import image_model, normal_equations, template_model
 
                 if prob.cost == "image":
                     self._kernel = image_model
                 else:
                     self._tkernel = template_model
                 self._normal = normal_equations
-                self._blocks = block_normal
+                self._blocks = gram_block_normal  # (the compiled LM loop's: long runs in chunks)
                 self._gmap, self._no_warm, self._gain_basis = prob.kernel_constants
                 self._separate_fy = prob.spec.aspect
                 skew = base_intr.skew if prob.spec.skew else 0.0
