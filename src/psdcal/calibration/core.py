@@ -273,7 +273,10 @@ def _plain(v):
 def _plain_ids(ids) -> tuple:
     """``ids`` as a tuple of plain Python values (numpy scalars converted)."""
     ids = tuple(ids)
-    return tuple(_plain(v) for v in ids) if any(isinstance(v, np.generic) for v in ids) else ids
+    # the types present, found at C speed (a chessboard has hundreds of ids, almost always plain ints)
+    if any(issubclass(t, np.generic) for t in set(map(type, ids))):
+        return tuple(_plain(v) for v in ids)
+    return ids
 
 
 def _frozen(a) -> np.ndarray:
@@ -674,24 +677,31 @@ def _make_result(prob, ref, start, ids, pids, spec, cost, g0, preliminary, norma
     X = prob.points_mm
     intr = ref.intrinsics
     dist = Distortion.from_array(ref.coeffs)
+    valid = prob.valid
+    every = bool(valid.all())  # every point seen: the valid points are all of them, in order (no boolean indexing)
     # modelled measured points on the sensor, whichever cost was minimised
-    if ref.model_mm is not None:  # the image cost already has them
+    if ref.model_mm is not None and every:  # the image cost already has them
+        model = ref.model_mm.reshape(X.shape)
+    elif ref.model_mm is not None:
         model = np.full(X.shape, np.nan)
-        model[prob.valid] = ref.model_mm
+        model[valid] = ref.model_mm
     else:
         x = np.stack([project(prob.template_mm, intr, r, t) for r, t in zip(ref.rvecs, ref.tvecs)])
         model = distort(x, dist, intr.c, d0_mm=X).d_mm
         if spec.fit_gains or not np.allclose(ref.gains, 1.0):
             model = gain_map(model, ref.gains, *prob.sensor_mm)
     res = X - model
-    valid = prob.valid
     # squared residual of each valid point (0 elsewhere; a non-finite residual counts as 0, as nan_to_num makes it)
-    rv = res[valid]
+    rv = res.reshape(-1, 2) if every else res[valid]
     if not np.isfinite(rv).all():
         rv = np.nan_to_num(rv)
-    sq = np.zeros(valid.shape)
-    sq[valid] = rv[:, 0] ** 2 + rv[:, 1] ** 2
-    n_valid = int(valid.sum())
+    if every:
+        sq = (rv[:, 0] ** 2 + rv[:, 1] ** 2).reshape(valid.shape)
+        n_valid = valid.size
+    else:
+        sq = np.zeros(valid.shape)
+        sq[valid] = rv[:, 0] ** 2 + rv[:, 1] ** 2
+        n_valid = int(valid.sum())
     rms = math.sqrt(float(sq.sum()) / max(n_valid, 1))
     per_image = np.sqrt(sq.sum(axis=1) / np.maximum(valid.sum(axis=1), 1))
     cov = ref.covariance_global  # the reduced (Schur) system's inverse: no matrix of all poses

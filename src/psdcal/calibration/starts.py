@@ -237,11 +237,20 @@ def subsample_views(T, X, k: int = SUBSAMPLE_POINTS):
     X : (n_images, M, 2) measured points, mm, NaN where missing
     """
     T = np.asarray(T, dtype=float)
-    valid = np.all(np.isfinite(X), axis=-1)  # (n_images, M)
-    if T.shape[0] <= 2 * k or not np.any(valid.sum(axis=1) > 2 * k):
+    if T.shape[0] <= 2 * k:
         return None
-    keep = valid & _subsample_mask(*_template_key(T), k)[None, :]
-    few = (keep.sum(axis=1) < k // 2) | (valid.sum(axis=1) <= 2 * k)
+    X = np.asarray(X, dtype=float)
+    valid = np.isfinite(X[..., 0]) & np.isfinite(X[..., 1])  # (n_images, M)
+    mask = _subsample_mask(*_template_key(T), k)
+    if valid.all():  # every view sees every point (a chessboard): the same subset of each
+        if int(np.count_nonzero(mask)) < k // 2:  # (as below: every view keeps all its points)
+            return X.copy()
+        return np.where(mask[:, None], X, np.nan)
+    n_valid = valid.sum(axis=1)
+    if not np.any(n_valid > 2 * k):
+        return None
+    keep = valid & mask[None, :]
+    few = (keep.sum(axis=1) < k // 2) | (n_valid <= 2 * k)
     keep[few] = valid[few]
     return np.where(keep[..., None], X, np.nan)
 
