@@ -12,6 +12,7 @@ several starts, are gathered in :mod:`.starts`):
 from __future__ import annotations
 
 import datetime as _dt
+import functools
 import math
 import threading
 from dataclasses import dataclass, field, replace
@@ -565,7 +566,7 @@ def _calibrate(template_mm, points_mm, *, cost, radial, tangential, psd_radial, 
                aspect, fit_gains, gains, image_ids, point_ids, sensor_mm, solver, f_guess_mm=None) -> CalibrationResult:
     if cost not in COSTS:
         raise InputError(f"cost must be one of {COSTS}, got {cost!r}", field="cost")
-    spec = ModelSpec(radial=radial, tangential=tangential, psd_radial=psd_radial, skew=skew, aspect=aspect, fit_gains=fit_gains)
+    spec = _model_spec(radial, tangential, psd_radial, skew, aspect, fit_gains)
     if fit_gains and cost != "image":
         raise InputError("fit_gains needs the image cost", field="cost")
     if fit_gains and (skew or aspect or (radial == 0 and psd_radial == 0)):
@@ -665,6 +666,22 @@ def _calibrate(template_mm, points_mm, *, cost, radial, tangential, psd_radial, 
             result=result,
         )
     return result
+
+
+def _model_spec(radial, tangential, psd_radial, skew, aspect, fit_gains) -> ModelSpec:
+    """``ModelSpec(...)`` of :func:`calibrate`'s switches, the same (validated) object for the same switches
+    (the type of each switch is part of the key: ``radial=True`` is refused, never taken for ``radial=1``)."""
+    try:
+        return _model_spec_cached(radial, tangential, psd_radial, skew, aspect, fit_gains)
+    except TypeError:  # an unhashable switch: ModelSpec says what is wrong with it
+        return ModelSpec(radial=radial, tangential=tangential, psd_radial=psd_radial, skew=skew, aspect=aspect,
+                         fit_gains=fit_gains)
+
+
+@functools.lru_cache(maxsize=64, typed=True)
+def _model_spec_cached(radial, tangential, psd_radial, skew, aspect, fit_gains) -> ModelSpec:
+    return ModelSpec(radial=radial, tangential=tangential, psd_radial=psd_radial, skew=skew, aspect=aspect,
+                     fit_gains=fit_gains)
 
 
 #: Below this many observations (without the verdict, on the compiled path) :func:`calibrate` does not ask

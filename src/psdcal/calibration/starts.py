@@ -651,8 +651,10 @@ def _stage_solver(solver: SolverOptions) -> SolverOptions:
     return replace(solver, ftol=max(solver.ftol, 1e-7), xtol=max(solver.xtol, 1e-8))
 
 
+@functools.lru_cache(maxsize=32)
 def staged_start(spec: ModelSpec) -> ModelSpec | None:
-    """The core model refined first when ``spec`` has terms beyond it (None otherwise)."""
+    """The core model refined first when ``spec`` has terms beyond it (None otherwise); cached per spec (a
+    frozen dataclass: the answer is the same object for equal specs)."""
     core = ModelSpec(radial=min(spec.radial, 2), tangential=False, psd_radial=0, skew=False, aspect=False, fit_gains=False)
     extra = spec.psd_radial > 0 or spec.skew or spec.aspect or spec.fit_gains or spec.radial > 2
     return core if extra else None
