@@ -12,7 +12,6 @@ several starts, are gathered in :mod:`.starts`):
 from __future__ import annotations
 
 import datetime as _dt
-import functools
 import math
 import threading
 from dataclasses import dataclass, field, replace
@@ -36,6 +35,9 @@ from psdcal.calibration.starts import (
     initial_estimate,
     InitialEstimate,
     linear_starts,
+    _compiled_fit,
+    _model_spec,
+    _n_points,
     MISFIT_FRACTION,
     _psd_multistart,
     _refine_starts,
@@ -459,23 +461,6 @@ def calibrate(
         return res
 
 
-def _compiled_fit(points_mm) -> bool:
-    """Whether the fit of ``points_mm`` runs on the compiled kernels (psdcal._jit.use_compiled)."""
-    from psdcal import _jit
-
-    n = _n_points(points_mm)
-    return _jit.use_compiled(int(n) if math.isfinite(n) else 0)
-
-
-def _n_points(points_mm) -> float:
-    """n_images x M of a points array (inf when it has no such shape: the checks report that)."""
-    try:
-        shape = np.shape(points_mm)
-    except ValueError:  # ragged
-        return math.inf
-    return shape[0] * shape[1] if len(shape) >= 2 else math.inf
-
-
 def with_verdict(res: CalibrationResult, *, noise_mm: float | None = None, points_kind: str | None = None,
                  diagnose: bool = True) -> CalibrationResult:
     """``res`` with its statistical verdict attached (:func:`psdcal.calibration.verdict.assess`).
@@ -666,22 +651,6 @@ def _calibrate(template_mm, points_mm, *, cost, radial, tangential, psd_radial, 
             result=result,
         )
     return result
-
-
-def _model_spec(radial, tangential, psd_radial, skew, aspect, fit_gains) -> ModelSpec:
-    """``ModelSpec(...)`` of :func:`calibrate`'s switches, the same (validated) object for the same switches
-    (the type of each switch is part of the key: ``radial=True`` is refused, never taken for ``radial=1``)."""
-    try:
-        return _model_spec_cached(radial, tangential, psd_radial, skew, aspect, fit_gains)
-    except TypeError:  # an unhashable switch: ModelSpec says what is wrong with it
-        return ModelSpec(radial=radial, tangential=tangential, psd_radial=psd_radial, skew=skew, aspect=aspect,
-                         fit_gains=fit_gains)
-
-
-@functools.lru_cache(maxsize=64, typed=True)
-def _model_spec_cached(radial, tangential, psd_radial, skew, aspect, fit_gains) -> ModelSpec:
-    return ModelSpec(radial=radial, tangential=tangential, psd_radial=psd_radial, skew=skew, aspect=aspect,
-                     fit_gains=fit_gains)
 
 
 #: Below this many observations (without the verdict, on the compiled path) :func:`calibrate` does not ask

@@ -658,3 +658,36 @@ def staged_start(spec: ModelSpec) -> ModelSpec | None:
     core = ModelSpec(radial=min(spec.radial, 2), tangential=False, psd_radial=0, skew=False, aspect=False, fit_gains=False)
     extra = spec.psd_radial > 0 or spec.skew or spec.aspect or spec.fit_gains or spec.radial > 2
     return core if extra else None
+
+
+def _model_spec(radial, tangential, psd_radial, skew, aspect, fit_gains) -> ModelSpec:
+    """``ModelSpec(...)`` of :func:`calibrate`'s switches, the same (validated) object for the same switches
+    (the type of each switch is part of the key: ``radial=True`` is refused, never taken for ``radial=1``)."""
+    try:
+        return _model_spec_cached(radial, tangential, psd_radial, skew, aspect, fit_gains)
+    except TypeError:  # an unhashable switch: ModelSpec says what is wrong with it
+        return ModelSpec(radial=radial, tangential=tangential, psd_radial=psd_radial, skew=skew, aspect=aspect,
+                         fit_gains=fit_gains)
+
+
+@functools.lru_cache(maxsize=64, typed=True)
+def _model_spec_cached(radial, tangential, psd_radial, skew, aspect, fit_gains) -> ModelSpec:
+    return ModelSpec(radial=radial, tangential=tangential, psd_radial=psd_radial, skew=skew, aspect=aspect,
+                     fit_gains=fit_gains)
+
+
+def _compiled_fit(points_mm) -> bool:
+    """Whether the fit of ``points_mm`` runs on the compiled kernels (psdcal._jit.use_compiled)."""
+    from psdcal import _jit
+
+    n = _n_points(points_mm)
+    return _jit.use_compiled(int(n) if math.isfinite(n) else 0)
+
+
+def _n_points(points_mm) -> float:
+    """n_images x M of a points array (inf when it has no such shape: the checks report that)."""
+    try:
+        shape = np.shape(points_mm)
+    except ValueError:  # ragged
+        return math.inf
+    return shape[0] * shape[1] if len(shape) >= 2 else math.inf
