@@ -164,8 +164,9 @@ def _extent(X) -> float:
 
 
 def _straightness_lines(T) -> list:
-    """The template lines of the straightness step, thinned (:func:`_thin_lines`); cached per template."""
-    return [ln.copy() for ln in _lines_of(*_template_key(T), MAX_STRAIGHTNESS_LINES, MAX_LINE_POINTS)]
+    """The template lines of the straightness step, thinned (:func:`_thin_lines`); cached per template (read-only
+    index arrays, shared by the calls)."""
+    return list(_lines_of(*_template_key(T), MAX_STRAIGHTNESS_LINES, MAX_LINE_POINTS))
 
 
 def _template_key(T) -> tuple:
@@ -182,7 +183,10 @@ def _template_of(shape, data) -> np.ndarray:
 @functools.lru_cache(maxsize=8)
 def _lines_of(shape, data, max_lines, max_points) -> tuple:
     T = _template_of(shape, data)
-    return tuple(_thin_lines(T, find_lines(T, max_lines=max_lines), max_points))
+    out = tuple(np.array(ln) for ln in _thin_lines(T, find_lines(T, max_lines=max_lines), max_points))
+    for ln in out:
+        ln.flags.writeable = False
+    return out
 
 
 def _thin_lines(T, lines, k: int) -> list:
