@@ -6,7 +6,7 @@ calls: on 5 views of 14 points an iteration's kernels (residuals and
 Jacobian, block normal equations, Schur step) take about 15 us and the Python
 around them as much again. :func:`lm_image` runs the same iterations inside
 numba: the same kernels
-(:func:`~psdcal.calibration._image_kernel.image_model` or
+(:func:`~psdcal.calibration._image_kernel.image_model`, into arrays reused from one evaluation to the next, or
 :func:`~psdcal.calibration._image_kernel.template_model`,
 :func:`~psdcal.calibration._gram_kernel.gram_block_normal` (``block_normal`` with long runs in chunks),
 :func:`~psdcal.calibration._image_kernel.schur_solve`), the same damping and
