@@ -157,3 +157,32 @@ def test_kernel_inverse_is_an_inverse_over_the_sensor(k1, k2, p1, p2, l1, cx, cy
     np.testing.assert_array_equal(ok, ref)
     np.testing.assert_array_equal(y, d)  # no gains: the modelled point is the spot position
     np.testing.assert_allclose(undistort(d[ok], coef, c), x[ok], rtol=0, atol=1e-11)
+
+
+@pytest.mark.parametrize("k", range(len(SPECS)))
+def test_image_model_into_overwrites_its_arrays_with_image_model_s_values(k):
+    """The LM loop's buffers: every entry written (garbage in them does not show), the same bits as image_model;
+    the PSD columns are computed only when asked for, the others unchanged by that."""
+    from psdcal.calibration._image_kernel import GLOBAL_ORDER, image_model, image_model_into
+
+    prob, fast, _, z = _pair("lens2", SPECS[k], k)
+    theta = fast._theta(z)
+    poses = z[fast._gmap.size:].reshape(-1, 6)
+    N = fast.P.shape[0]
+    args = (fast.P, fast.img_idx, theta, fast._separate_fy, poses, np.full((N, 2), np.nan), fast.d_meas)
+    gains_on = fast._gain_basis.shape[0] == 4
+    d, ok, y, J = image_model(*args, fast._gmap, True, 1e-13, 50, fast._gain_basis)
+    d2, y2 = np.full((N, 2), np.inf), np.full((N, 2), -np.inf)
+    ok2, J2 = np.ones(N, dtype=bool), np.full(J.shape, np.nan)
+    image_model_into(*args, fast._gmap, True, 1e-13, 50, fast._gain_basis, d2, ok2, y2 if gains_on else d2, J2)
+    np.testing.assert_array_equal(d2, d)
+    np.testing.assert_array_equal(ok2, ok)
+    np.testing.assert_array_equal(J2, J)
+    if gains_on:
+        np.testing.assert_array_equal(y2, y)
+    # every derivative (PSD terms included) against the model's own, column by column
+    full = np.arange(12 if not gains_on else 16, dtype=np.int64)
+    _, _, _, Jf = image_model(*args, full, True, 1e-13, 50, fast._gain_basis)
+    for c, g in enumerate(fast._gmap):
+        np.testing.assert_array_equal(J[:, c], Jf[:, g], err_msg=GLOBAL_ORDER[g])
+    np.testing.assert_array_equal(J[:, -6:], Jf[:, -6:])

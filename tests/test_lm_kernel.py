@@ -168,8 +168,12 @@ def test_bad_residuals_are_replaced_as_the_python_loop_does():
     z[ng : ng + 3] = 0.0  # view 0 parallel to the sensor ...
     z[ng + 5] = 0.0  # ... in its plane: every point at Z = 0 projects to infinity
     r_ref, J_ref = ev.evaluate_compact(z)
-    r, J, d, y = _evaluate(ev.P, ev.img_idx, ev._theta0, ev._separate_fy, ev._gmap, ev._gain_basis, ev.d_meas, z,
-                           prob.n_images, np.full(ev.d_meas.shape, np.nan), 1e-13, 50)
+    N = ev.d_meas.shape[0]
+    # the kernel writes into given arrays: start them with garbage, every entry must be overwritten
+    r, J, d = np.full(2 * N, 7.0), np.full((2 * N, ng + 6), np.nan), np.full((N, 2), np.inf)
+    ok = np.zeros(N, dtype=bool)
+    _evaluate(ev.P, ev.img_idx, ev._theta0, ev._separate_fy, ev._gmap, ev._gain_basis, ev.d_meas, z,
+              prob.n_images, np.full(ev.d_meas.shape, np.nan), 1e-13, 50, r, J, d, ok, d)
     assert np.any(r_ref == 1e3), "the test must reach the bad-residual path"
     np.testing.assert_array_equal(r == 1e3, r_ref == 1e3)
     assert np.all(np.isfinite(r)) and np.all(np.isfinite(J))

@@ -1,8 +1,8 @@
 """Starts compared on a spread subset of each view's points, the optimum on all of them.
 
-``calibrate`` refines and compares its starts on at most ~32 points per view
-when views carry more than 64 (:func:`psdcal.calibration.core.subsample_views`);
-the final refinement takes every point. These tests check the subset (spread,
+``calibrate`` fits the closed form's homographies, and refines and compares its
+starts, on at most ~32 points per view when views carry more than 64
+(:func:`psdcal.calibration.core.subsample_views`); the final refinement takes every point. These tests check the subset (spread,
 corners, partial views) and that the answer is the one without the subset.
 """
 from __future__ import annotations
@@ -80,5 +80,56 @@ def test_the_record_of_the_subset_is_in_the_schema():
     d = calibrate(T, X, sensor_mm=(6.4, 4.8)).to_dict()
     jsonschema.Draft202012Validator(calibration_schema()).validate(d)
     bad = {**d, "stages": {**d["stages"], "multistart": {**d["stages"]["multistart"], "points_per_view": 0}}}
+    with pytest.raises(jsonschema.ValidationError):
+        jsonschema.Draft202012Validator(calibration_schema()).validate(bad)
+
+
+def test_the_subset_is_deterministic_and_the_same_with_and_without_missing_points():
+    T = _grid(16)
+    rng = np.random.default_rng(0)
+    X = T[None] * 0.01 + 1e-4 * rng.standard_normal((3, 256, 2))
+    a, b = subsample_views(T, X), subsample_views(T.copy(), X.copy())
+    np.testing.assert_array_equal(a, b)  # the same points, every call (the mask is cached per template)
+    kept = np.isfinite(a[..., 0])
+    assert np.array_equal(kept[0], kept[1]) and np.array_equal(kept[0], kept[2])
+    # one point missing that the subset does not use: the general path gives the every-point path's subset
+    drop = int(np.flatnonzero(~kept[0])[0])
+    X2 = X.copy()
+    X2[1, drop] = np.nan
+    np.testing.assert_array_equal(subsample_views(T, X2), a)
+
+
+def test_the_closed_form_is_fitted_to_the_subset_and_says_so():
+    ids, T = read_template(ZHANG / "template.csv")
+    X = read_points(ZHANG / "points.csv", ids, sensor_mm=(6.4, 4.8)).points_mm
+    res = calibrate(T, X, sensor_mm=(6.4, 4.8), verdict=False)
+    cf = res.stages["closed_form"]
+    assert cf["points_per_view"] == SUBSAMPLE_POINTS
+    # the subset's closed form is the every-point one to well within the start's own error (a few %)
+    from psdcal.calibration.starts import initial_estimate
+
+    full = initial_estimate(T, X)
+    sub = initial_estimate(T, X, dlt_points=subsample_views(T, X))
+    assert full.points_per_view is None and sub.points_per_view == SUBSAMPLE_POINTS
+    assert abs(sub.intrinsics.f_mm - full.intrinsics.f_mm) < 0.01 * full.intrinsics.f_mm
+    assert abs(cf["f_mm"] - sub.intrinsics.f_mm) < 1e-12 * sub.intrinsics.f_mm  # the recorded start is the subset's
+    assert np.hypot(sub.intrinsics.cx_mm - full.intrinsics.cx_mm, sub.intrinsics.cy_mm - full.intrinsics.cy_mm) < 0.05
+    # a 14-point template has no subset, and no record of one
+    s = simulate_set("lens2", n_images=5, noise_mm=0.002, seed=0)
+    small = calibrate(s.template_mm, s.points_mm, verdict=False)
+    assert "points_per_view" not in small.stages["closed_form"]
+    assert "points_per_view" not in small.stages["multistart"]
+
+
+def test_the_closed_form_record_is_in_the_schema():
+    jsonschema = pytest.importorskip("jsonschema")
+    from psdcal.schema import calibration_schema
+
+    ids, T = read_template(ZHANG / "template.csv")
+    X = read_points(ZHANG / "points.csv", ids, sensor_mm=(6.4, 4.8)).points_mm
+    d = calibrate(T, X, sensor_mm=(6.4, 4.8), verdict=False).to_dict()
+    assert d["stages"]["closed_form"]["points_per_view"] == SUBSAMPLE_POINTS
+    jsonschema.Draft202012Validator(calibration_schema()).validate(d)
+    bad = {**d, "stages": {**d["stages"], "closed_form": {**d["stages"]["closed_form"], "points_per_view": 0}}}
     with pytest.raises(jsonschema.ValidationError):
         jsonschema.Draft202012Validator(calibration_schema()).validate(bad)

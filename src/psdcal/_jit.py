@@ -129,6 +129,15 @@ def njit_inline(fn):
     return _compile(fn, inline="always")
 
 
+def njit_sum(fn):
+    """As :func:`njit` for a kernel of long sums (dot products, Gram matrices): its floating-point additions may
+    be reassociated and multiply-adds fused (numba's ``fastmath={"reassoc", "contract"}``, no other fast-math
+    assumption: NaN and infinities keep their meaning), so that the compiler can split a sum over several SIMD
+    accumulators. The sums then differ from a sequential loop's at rounding level only; keep such kernels to
+    sums whose order does not matter beyond rounding, and compare them with their reference to a tolerance."""
+    return _compile(fn, fastmath={"reassoc", "contract"})
+
+
 def _compile(fn, **options):
     """``numba.njit`` of ``fn`` with the project's settings (and ``options``); ``fn`` itself without numba."""
     if not AVAILABLE:

@@ -185,7 +185,13 @@ def calibration_schema() -> dict:
         {
             "preliminary": _obj({"k1": _NUM, "k2": _NUM, "line_groups": {"type": "integer", "minimum": 0},
                                  "applied": {"type": "boolean"}}, extra=True),
-            "closed_form": {"type": "object"},
+            "closed_form": _obj(
+                {"f_mm": _NUM, "cx_mm": _NUM, "cy_mm": _NUM, "skew": _NUM, "fy_mm": _NUM_OR_NULL,
+                 "normalized": {"type": "boolean", "description": "Hartley normalisation of the DLT"},
+                 "points_per_view": {"type": "integer", "minimum": 1,
+                                     "description": "the homographies were fitted to this many spread points per "
+                                                    "view (about; the final fit takes every point)"}},
+                extra=True, description="the closed-form intrinsics (the paper's Tables 1-2) and `normalized`"),
             "initial_extrinsics": {"type": "array", "items": _obj(
                 {"image_id": _ID, "rvec": _VEC3, "tvec_mm": _VEC3}, ("image_id", "rvec", "tvec_mm"))},
             "multistart": _obj(

@@ -38,8 +38,12 @@ import math
 
 import numpy as np
 
-from psdcal._jit import njit
-from psdcal.model._point_kernel import _model_terms
+from psdcal._jit import njit, njit_inline
+from psdcal.model._point_kernel import _model_terms as _model_terms_kernel
+
+#: the model's point (psdcal.model._point_kernel._model_terms, the same function) inlined into the kernels here:
+#: the per-point calls of the Newton inverse and the Jacobian cost no call and no passing of ``coef``
+_model_terms = njit_inline(getattr(_model_terms_kernel, "py_func", _model_terms_kernel))
 
 #: order of the global derivatives the kernel computes (``gmap`` indexes it)
 GLOBAL_ORDER = ("f_mm", "cx_mm", "cy_mm", "skew", "fy_mm", "k1", "k2", "k3", "p1", "p2", "l1", "l2",
@@ -103,7 +107,7 @@ def _rotations(rv, want_d):
 
 
 
-@njit
+@njit_inline
 def _undistort_point(dx, dy, coef, cx, cy):
     """x = undistort(d) and dx/dd = (I + G) U (Eq 7-16) of one point; returns (x0, x1, J00, J01, J10, J11)."""
     x0, x1, _, _, _, _, G00, G01, G10, G11, U00, U01, U11 = _model_terms(dx, dy, coef, cx, cy)
@@ -111,7 +115,7 @@ def _undistort_point(dx, dy, coef, cx, cy):
             G10 * U00 + (1 + G11) * U01, G10 * U01 + (1 + G11) * U11)
 
 
-@njit
+@njit_inline
 def _monotone(dx, dy, coef, cx, cy):
     """Whether d lies on the branch of the model that starts at the centre (distortion._on_monotone_branch)."""
     k1, k2, k3, l1, l2 = coef[0], coef[1], coef[2], coef[5], coef[6]
@@ -125,7 +129,7 @@ def _monotone(dx, dy, coef, cx, cy):
     return s_psd > 0 and ds_psd > 0 and s_lens > 0 and ds_lens > 0
 
 
-@njit
+@njit_inline
 def _newton(x0, x1, sx, sy, coef, cx, cy, tol, max_iter):
     """d with undistort(d) = x from the start (sx, sy); as :func:`psdcal.model.distortion.distort`.
 
@@ -167,7 +171,7 @@ def _newton(x0, x1, sx, sy, coef, cx, cy, tol, max_iter):
     return d0, d1, ok
 
 
-@njit
+@njit_inline
 def _fixed_point_start(x0, x1, coef, cx, cy):
     """Start of the Newton inverse: a few fixed-point steps of the lens radial part about c."""
     k1, k2, k3 = coef[0], coef[1], coef[2]
@@ -217,6 +221,25 @@ def image_model(P, img, theta, separate_fy, poses, warm, meas, gmap, want_jac, t
         pose columns are zero; :func:`expand_compact` gives the dense matrix); (0, 0) without ``want_jac``
     """
     N = P.shape[0]
+    d = np.empty((N, 2))
+    y = np.empty((N, 2)) if gain_basis.shape[0] == 4 else d
+    ok = np.empty(N, dtype=np.bool_)
+    J = np.empty((2 * N, gmap.shape[0] + 6)) if want_jac else np.zeros((0, 0))  # every entry is written
+    image_model_into(P, img, theta, separate_fy, poses, warm, meas, gmap, want_jac, tol_mm, max_iter, gain_basis,
+                     d, ok, y, J)
+    return d, ok, y, J
+
+
+@njit
+def image_model_into(P, img, theta, separate_fy, poses, warm, meas, gmap, want_jac, tol_mm, max_iter, gain_basis,
+                     d, ok, y, J):
+    """:func:`image_model` into given arrays (the LM loop's buffers, reused from one evaluation to the next).
+
+    ``d`` (N, 2), ``ok`` (N,) bool, ``y`` (N, 2) (``d`` itself without gains) and, with ``want_jac``,
+    ``J`` (2N, n_global + 6) are overwritten entirely (the values of :func:`image_model`, bit for bit).
+    The derivatives of the PSD terms l1, l2 (Eq 7-10) are computed only when ``gmap`` asks for one of them.
+    """
+    N = P.shape[0]
     ng = gmap.shape[0]
     R, dR = _rotations(poses[:, :3], want_jac)
     tv = poses[:, 3:]
@@ -228,13 +251,10 @@ def image_model(P, img, theta, separate_fy, poses, warm, meas, gmap, want_jac, t
     if gains_on:
         for j in range(4):
             Hg += theta[12 + j] * gain_basis[j]
-    d = np.empty((N, 2))
-    y = np.empty((N, 2)) if gains_on else d
-    ok = np.zeros(N, dtype=np.bool_)
-    if want_jac:
-        J = np.zeros((2 * N, ng + 6))
-    else:
-        J = np.zeros((0, 0))
+    psd_free = False
+    for k in range(ng):
+        if gmap[k] == 10 or gmap[k] == 11:
+            psd_free = True
     D = np.zeros((2, 16))
     for i in range(N):
         v = img[i]
@@ -297,7 +317,7 @@ def image_model(P, img, theta, separate_fy, poses, warm, meas, gmap, want_jac, t
         for j in range(5):
             D[0, 5 + j] = -(I00 * q0[j] + I01 * q1[j])
             D[1, 5 + j] = -(I10 * q0[j] + I11 * q1[j])
-        for j in range(2):
+        for j in range(2 if psd_free else 0):
             hp = h2 if j == 0 else h2 * h2
             u0, u1 = d0 * hp, d1 * hp
             w0 = (1 + G00) * u0 + G01 * u1
@@ -346,7 +366,6 @@ def image_model(P, img, theta, separate_fy, poses, warm, meas, gmap, want_jac, t
             J[row + 1, base + k] = E10 * g0 + E11 * g1 + E12 * g2
         J[row, base + 3], J[row, base + 4], J[row, base + 5] = E00, E01, E02
         J[row + 1, base + 3], J[row + 1, base + 4], J[row + 1, base + 5] = E10, E11, E12
-    return d, ok, y, J
 
 
 def global_map(names) -> np.ndarray:

@@ -6,9 +6,9 @@ calls: on 5 views of 14 points an iteration's kernels (residuals and
 Jacobian, block normal equations, Schur step) take about 15 us and the Python
 around them as much again. :func:`lm_image` runs the same iterations inside
 numba: the same kernels
-(:func:`~psdcal.calibration._image_kernel.image_model` or
+(:func:`~psdcal.calibration._image_kernel.image_model`, into arrays reused from one evaluation to the next, or
 :func:`~psdcal.calibration._image_kernel.template_model`,
-:func:`~psdcal.calibration._image_kernel.block_normal`,
+:func:`~psdcal.calibration._gram_kernel.gram_block_normal` (``block_normal`` with long runs in chunks),
 :func:`~psdcal.calibration._image_kernel.schur_solve`), the same damping and
 stopping rules in the same order, the Newton inverse of each trial point
 warm-started from the last accepted point, as the Python loop does.
@@ -21,7 +21,8 @@ from __future__ import annotations
 import numpy as np
 
 from psdcal._jit import njit
-from psdcal.calibration._image_kernel import block_normal, image_model, schur_covariance, schur_solve, template_model
+from psdcal.calibration._gram_kernel import gram_block_normal
+from psdcal.calibration._image_kernel import image_model_into, schur_covariance, schur_solve, template_model
 from psdcal.calibration._lm_rules import next_damping, trial_verdict
 
 #: status codes of :func:`lm_image` (those of ``levenberg_marquardt``, and 5: its damping overflow, a 2 there)
@@ -52,23 +53,24 @@ def _state(theta0, gmap, z, n_views):
 
 
 @njit
-def _evaluate(P, img, theta0, separate_fy, gmap, gain_basis, meas, z, n_views, warm, tol_mm, max_newton):
-    """Residuals (2N,), compact Jacobian (2N, ng + 6), model points d and y (N, 2) at the state ``z``.
+def _evaluate(P, img, theta0, separate_fy, gmap, gain_basis, meas, z, n_views, warm, tol_mm, max_newton, r, J, d, ok,
+              y):
+    """Residuals ``r`` (2N,), compact Jacobian ``J`` (2N, ng + 6), model points ``d`` and ``y`` (N, 2) at the
+    state ``z``, written into the given arrays (``y`` is ``d`` without gains; ``ok`` (N,): the Newton inverse
+    converged).
 
     As ``Evaluator.evaluate_compact`` with the compiled kernel: non-finite
     residuals become 1e3 with zero Jacobian rows, and then the Jacobian's
     non-finite entries are replaced as ``np.nan_to_num`` does.
     """
     theta, poses = _state(theta0, gmap, z, n_views)
-    d, ok, y, J = image_model(P, img, theta, separate_fy, poses, warm, meas, gmap, True, tol_mm, max_newton,
-                              gain_basis)
+    image_model_into(P, img, theta, separate_fy, poses, warm, meas, gmap, True, tol_mm, max_newton, gain_basis,
+                     d, ok, y, J)
     N = meas.shape[0]
-    r = np.empty(2 * N)
     for i in range(N):
         r[2 * i] = y[i, 0] - meas[i, 0]
         r[2 * i + 1] = y[i, 1] - meas[i, 1]
     _clean(r, J)
-    return r, J, d, y
 
 
 @njit
@@ -157,18 +159,30 @@ def lm_image(P, img, theta0, separate_fy, gmap, gain_basis, meas, z0, n_views, f
     """
     ng = gmap.shape[0]
     x = z0.copy()
-    no_warm = np.full(meas.shape, np.nan)
+    # the image cost's evaluations go into two sets of arrays, the accepted point's and the trial's, swapped at
+    # each accepted step (no allocation, and no first touch of fresh pages, per evaluation)
+    N = meas.shape[0] if not template else 0
+    gains_on = gain_basis.shape[0] == 4
+    conv = np.empty(N, dtype=np.bool_)
+    r_s = np.empty(2 * N)
+    J_s = np.empty((2 * N, ng + 6))
+    d_s = np.empty((N, 2))
+    y_s = np.empty((N, 2)) if gains_on else d_s
     if template:
         r, J = _evaluate_template(P, img, theta0, separate_fy, gmap, meas, x, n_views, True)
         d = np.empty((0, 2))
         y = d
     else:
-        r, J, d, y = _evaluate(P, img, theta0, separate_fy, gmap, gain_basis, meas, x, n_views, no_warm, tol_mm,
-                               max_newton)
+        r = np.empty(2 * N)
+        J = np.empty((2 * N, ng + 6))
+        d = np.empty((N, 2))
+        y = np.empty((N, 2)) if gains_on else d
+        _evaluate(P, img, theta0, separate_fy, gmap, gain_basis, meas, x, n_views, np.full(meas.shape, np.nan),
+                  tol_mm, max_newton, r, J, d, conv, y)
     nfev = 1
     njev = 1
     F = 0.5 * np.dot(r, r)
-    U, W, V, gg, gp = block_normal(J, r, img, n_views)
+    U, W, V, gg, gp = gram_block_normal(J, r, img, n_views)
     g, diagA = _system_vectors(U, V, gg, gp)
     D = np.maximum(diagA, 1e-300)
     mu = 1e-8
@@ -219,18 +233,21 @@ def lm_image(P, img, theta0, separate_fy, gmap, gain_basis, meas, z0, n_views, f
             r_new, J_new = _evaluate_template(P, img, theta0, separate_fy, gmap, meas, x_new, n_views, True)
             d_new = d
             y_new = y
-        else:
-            r_new, J_new, d_new, y_new = _evaluate(P, img, theta0, separate_fy, gmap, gain_basis, meas, x_new,
-                                                   n_views, d, tol_mm, max_newton)
+        else:  # into the spare set; the Newton inverses start from the accepted point's d
+            _evaluate(P, img, theta0, separate_fy, gmap, gain_basis, meas, x_new, n_views, d, tol_mm, max_newton,
+                      r_s, J_s, d_s, conv, y_s)
+            r_new, J_new, d_new, y_new = r_s, J_s, d_s, y_s
         nfev += 1
         F_new = 0.5 * np.dot(r_new, r_new)
         pred = 0.5 * np.dot(h, mu * D * h - g)
         accept, small, rho = trial_verdict(F, F_new, pred, nu, ftol)
         mu, nu = next_damping(mu, nu, rho, accept)
         if accept:
+            if not template:  # the old accepted point's arrays become the spare set
+                r_s, J_s, d_s, y_s = r, J, d, y
             x, r, F, J, d, y = x_new, r_new, F_new, J_new, d_new, y_new
             njev += 1
-            U, W, V, gg, gp = block_normal(J, r, img, n_views)
+            U, W, V, gg, gp = gram_block_normal(J, r, img, n_views)
             g, diagA = _system_vectors(U, V, gg, gp)
             D = np.maximum(D, diagA)
             fresh = True

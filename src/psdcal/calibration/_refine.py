@@ -194,10 +194,13 @@ class Problem:
             img_idx, pt_idx = np.nonzero(self.valid)
             return img_idx, pt_idx, self.points_mm[img_idx, pt_idx], self.template_mm[pt_idx]
         n, M = self.valid.shape  # every point seen: np.nonzero's arrays (columns of one (N, 2) array) without a search
-        idx = np.empty((n * M, 2), dtype=np.intp)
-        idx[:, 0] = np.repeat(np.arange(n), M)
-        idx[:, 1] = np.tile(np.arange(M), n)
-        return idx[:, 0], idx[:, 1], self.points_mm.reshape(n * M, 2).copy(), np.tile(self.template_mm, (n, 1))
+        idx = np.empty((n, M, 2), dtype=np.intp)  # (filled by broadcasting: no repeat / tile temporaries)
+        idx[:, :, 0] = np.arange(n)[:, None]
+        idx[:, :, 1] = np.arange(M)
+        P = np.empty((n, M, 2))
+        P[:] = self.template_mm
+        idx = idx.reshape(n * M, 2)
+        return idx[:, 0], idx[:, 1], self.points_mm.reshape(n * M, 2).copy(), P.reshape(n * M, 2)
 
 
 def _global_columns(names, d_dintr5, d_dcoef7, d_dgains4=None):
@@ -236,15 +239,15 @@ class Evaluator:
             from psdcal import _jit
 
             if _jit.use_compiled(len(self.img_idx)):  # the compiled costs (psdcal.calibration._image_kernel); this class's numpy code is their reference
-                from psdcal.calibration._image_kernel import (block_normal, image_model, normal_equations,
-                                                              template_model)
+                from psdcal.calibration._gram_kernel import gram_block_normal
+                from psdcal.calibration._image_kernel import image_model, normal_equations, template_model
 
                 if prob.cost == "image":
                     self._kernel = image_model
                 else:
                     self._tkernel = template_model
                 self._normal = normal_equations
-                self._blocks = block_normal
+                self._blocks = gram_block_normal  # (the compiled LM loop's: long runs in chunks)
                 self._gmap, self._no_warm, self._gain_basis = prob.kernel_constants
                 self._separate_fy = prob.spec.aspect
                 skew = base_intr.skew if prob.spec.skew else 0.0

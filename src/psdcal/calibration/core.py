@@ -35,6 +35,9 @@ from psdcal.calibration.starts import (
     initial_estimate,
     InitialEstimate,
     linear_starts,
+    _compiled_fit,
+    _model_spec,
+    _n_points,
     MISFIT_FRACTION,
     _psd_multistart,
     _refine_starts,
@@ -273,7 +276,10 @@ def _plain(v):
 def _plain_ids(ids) -> tuple:
     """``ids`` as a tuple of plain Python values (numpy scalars converted)."""
     ids = tuple(ids)
-    return tuple(_plain(v) for v in ids) if any(isinstance(v, np.generic) for v in ids) else ids
+    # the types present, found at C speed (a chessboard has hundreds of ids, almost always plain ints)
+    if any(issubclass(t, np.generic) for t in set(map(type, ids))):
+        return tuple(_plain(v) for v in ids)
+    return ids
 
 
 def _frozen(a) -> np.ndarray:
@@ -434,9 +440,9 @@ def calibrate(
             fix=fix, priors=priors, f_guess_mm=f_guess_mm, verdict=verdict, noise_mm=noise_mm,
         )
     # small dense linear algebra: one BLAS thread is fastest. Without the verdict, a problem of fewer than
-    # BLAS_THREADS_MIN_POINTS points makes no BLAS call that OpenBLAS would thread (its work is in the compiled
-    # kernels and 9 x 9 factorisations), and the limit itself would cost some 6 us.
-    needed = verdict or _n_points(points_mm) >= BLAS_THREADS_MIN_POINTS
+    # BLAS_THREADS_MIN_POINTS points on the compiled path makes no BLAS call that OpenBLAS would thread (its work
+    # is in the compiled kernels and 9 x 9 factorisations), and the limit itself costs some 100 us a call.
+    needed = verdict or _n_points(points_mm) >= BLAS_THREADS_MIN_POINTS or not _compiled_fit(points_mm)
     with _single_threaded_blas(needed):
         try:
             res = _calibrate(
@@ -453,15 +459,6 @@ def calibrate(
         if verdict:
             res = with_verdict(res, noise_mm=noise_mm, diagnose=False)
         return res
-
-
-def _n_points(points_mm) -> float:
-    """n_images x M of a points array (inf when it has no such shape: the checks report that)."""
-    try:
-        shape = np.shape(points_mm)
-    except ValueError:  # ragged
-        return math.inf
-    return shape[0] * shape[1] if len(shape) >= 2 else math.inf
 
 
 def with_verdict(res: CalibrationResult, *, noise_mm: float | None = None, points_kind: str | None = None,
@@ -554,7 +551,7 @@ def _calibrate(template_mm, points_mm, *, cost, radial, tangential, psd_radial, 
                aspect, fit_gains, gains, image_ids, point_ids, sensor_mm, solver, f_guess_mm=None) -> CalibrationResult:
     if cost not in COSTS:
         raise InputError(f"cost must be one of {COSTS}, got {cost!r}", field="cost")
-    spec = ModelSpec(radial=radial, tangential=tangential, psd_radial=psd_radial, skew=skew, aspect=aspect, fit_gains=fit_gains)
+    spec = _model_spec(radial, tangential, psd_radial, skew, aspect, fit_gains)
     if fit_gains and cost != "image":
         raise InputError("fit_gains needs the image cost", field="cost")
     if fit_gains and (skew or aspect or (radial == 0 and psd_radial == 0)):
@@ -576,9 +573,14 @@ def _calibrate(template_mm, points_mm, *, cost, radial, tangential, psd_radial, 
         from psdcal.calibration.gains import correct_points
 
         known_gains, X, g0 = g0, correct_points(X, g0, *sensor_mm), np.ones(4)
+    # Many points per view (a chessboard): the homographies of the closed form, and the starts, are fitted and
+    # compared on a spread subset of each view's points (the basins of the cost are those of the whole set), and
+    # the final refinement takes every point.
+    Xs = subsample_views(T, X)
+    sub = Xs is not None
     primary, cands = linear_starts(
         T, X, preliminary=preliminary, normalize=normalize, radial=radial, skew=skew, aspect=aspect,
-        general=fit_gains, f_guess_mm=f_guess_mm, image_ids=ids, point_ids=pids,
+        general=fit_gains, f_guess_mm=f_guess_mm, image_ids=ids, point_ids=pids, dlt_points=Xs,
     )
     start = primary
     g0_start = g0
@@ -587,10 +589,6 @@ def _calibrate(template_mm, points_mm, *, cost, radial, tangential, psd_radial, 
     # Every start is refined on the image cost with the core model (or the model itself
     # when it has nothing beyond the core); the lowest cost wins (global minimum).
     first = staged if staged is not None else spec
-    # Many points per view (a chessboard): the starts are compared on a spread subset of each view's points
-    # (the basins of the cost are those of the whole set), and the final refinement takes every point.
-    Xs = subsample_views(T, X)
-    sub = Xs is not None
     if Xs is None and first is spec and cost == "image":
         pfirst = prob  # the same problem (and its per-problem caches)
     else:
@@ -655,33 +653,41 @@ def _calibrate(template_mm, points_mm, *, cost, radial, tangential, psd_radial, 
     return result
 
 
-#: Below this many observations (and without the verdict) :func:`calibrate` does not ask threadpoolctl for one
-#: BLAS thread: no BLAS call of such a problem is large enough for OpenBLAS to thread.
-BLAS_THREADS_MIN_POINTS = 1000
+#: Below this many observations (without the verdict, on the compiled path) :func:`calibrate` does not ask
+#: threadpoolctl for one BLAS thread: no BLAS call of such a problem is large enough for OpenBLAS to thread,
+#: and the limit costs some 100 us a call (a fit of 5 views x 256 points takes some 3 ms).
+BLAS_THREADS_MIN_POINTS = 5000
 
 
 def _make_result(prob, ref, start, ids, pids, spec, cost, g0, preliminary, normalize, solver, extra_stages=None):
     X = prob.points_mm
     intr = ref.intrinsics
     dist = Distortion.from_array(ref.coeffs)
+    valid = prob.valid
+    every = bool(valid.all())  # every point seen: the valid points are all of them, in order (no boolean indexing)
     # modelled measured points on the sensor, whichever cost was minimised
-    if ref.model_mm is not None:  # the image cost already has them
+    if ref.model_mm is not None and every:  # the image cost already has them
+        model = ref.model_mm.reshape(X.shape)
+    elif ref.model_mm is not None:
         model = np.full(X.shape, np.nan)
-        model[prob.valid] = ref.model_mm
+        model[valid] = ref.model_mm
     else:
         x = np.stack([project(prob.template_mm, intr, r, t) for r, t in zip(ref.rvecs, ref.tvecs)])
         model = distort(x, dist, intr.c, d0_mm=X).d_mm
         if spec.fit_gains or not np.allclose(ref.gains, 1.0):
             model = gain_map(model, ref.gains, *prob.sensor_mm)
     res = X - model
-    valid = prob.valid
     # squared residual of each valid point (0 elsewhere; a non-finite residual counts as 0, as nan_to_num makes it)
-    rv = res[valid]
+    rv = res.reshape(-1, 2) if every else res[valid]
     if not np.isfinite(rv).all():
         rv = np.nan_to_num(rv)
-    sq = np.zeros(valid.shape)
-    sq[valid] = rv[:, 0] ** 2 + rv[:, 1] ** 2
-    n_valid = int(valid.sum())
+    if every:
+        sq = (rv[:, 0] ** 2 + rv[:, 1] ** 2).reshape(valid.shape)
+        n_valid = valid.size
+    else:
+        sq = np.zeros(valid.shape)
+        sq[valid] = rv[:, 0] ** 2 + rv[:, 1] ** 2
+        n_valid = int(valid.sum())
     rms = math.sqrt(float(sq.sum()) / max(n_valid, 1))
     per_image = np.sqrt(sq.sum(axis=1) / np.maximum(valid.sum(axis=1), 1))
     cov = ref.covariance_global  # the reduced (Schur) system's inverse: no matrix of all poses
@@ -696,7 +702,8 @@ def _make_result(prob, ref, start, ids, pids, spec, cost, g0, preliminary, norma
     sigma_mm = math.sqrt(float(sq.sum()) / dof) if cost == "image" else float(rms / np.sqrt(2.0) * np.sqrt(m / dof))
     stages = {
         "preliminary": {"k1": float(start.preliminary_k[0]), "k2": float(start.preliminary_k[1]), "line_groups": start.n_lines, "applied": bool(preliminary and start.n_lines > 0)},
-        "closed_form": {**start.intrinsics.to_dict(), "normalized": bool(normalize)},
+        "closed_form": {**start.intrinsics.to_dict(), "normalized": bool(normalize),
+                        **({"points_per_view": int(ppv)} if (ppv := getattr(start, "points_per_view", None)) else {})},
         "initial_extrinsics": [{"image_id": _plain(i), "rvec": r.tolist(), "tvec_mm": t.tolist()} for i, r, t in zip(ids, start.rvecs, start.tvecs_mm)],
         **(extra_stages or {}),
     }

@@ -51,6 +51,8 @@ class InitialEstimate:
     homographies : (n_images, 3, 3)
     intrinsics : Intrinsics from the closed form.
     rvecs, tvecs_mm : (n_images, 3) poses from the homographies.
+    points_per_view : int or None, the homographies were fitted to the spread subset of each view's points
+        (:func:`subsample_views`, about this many points a view); None: to every point.
     """
 
     preliminary_k: np.ndarray
@@ -59,6 +61,7 @@ class InitialEstimate:
     intrinsics: Intrinsics
     rvecs: np.ndarray
     tvecs_mm: np.ndarray
+    points_per_view: int | None = None
 
     def distortion(self, radial: int) -> Distortion:
         """The preliminary k1, k2 as a start for a model with ``radial`` lens terms."""
@@ -102,6 +105,7 @@ def initial_estimate(
     skew: bool = False,
     aspect: bool = False,
     image_ids=None,
+    dlt_points=None,
 ) -> InitialEstimate:
     """The first, linear stage of the calibration (Sections 3.1-3.3).
 
@@ -112,8 +116,13 @@ def initial_estimate(
     preliminary : apply the line-straightness distortion estimate first.
     normalize : Hartley-normalise the DLT.
     radial_terms : how many of k1, k2 the preliminary step estimates (0-2).
+    dlt_points : (n_images, M, 2), optional
+        The points the homographies (and so the closed form) are fitted to: a spread subset of
+        ``points_mm`` (:func:`subsample_views`, NaN elsewhere); the preliminary step and the checks use
+        ``points_mm``. Default: ``points_mm`` itself.
     """
     T, X, ids = _check_inputs(template_mm, points_mm, image_ids, 3 if (skew or aspect) else 2)
+    Xd = X if dlt_points is None else np.asarray(dlt_points, dtype=float)
     k = np.zeros(2)
     n_lines = 0
     c0 = np.zeros(2)
@@ -131,11 +140,11 @@ def initial_estimate(
         if _jit.use_compiled(X.shape[0] * X.shape[1]):
             from psdcal.calibration._image_kernel import undistort_points
 
-            Xc = undistort_points(X, coef, c0)  # undistort's arithmetic, compiled (tests/test_lm_kernel.py)
+            Xc = undistort_points(Xd, coef, c0)  # undistort's arithmetic, compiled (tests/test_lm_kernel.py)
         else:
-            Xc = undistort(X, coef, c0)
+            Xc = undistort(Xd, coef, c0)
     else:
-        Xc = X
+        Xc = Xd
     Hs = homographies(T, Xc, normalize=normalize, labels=[f"image {i}" for i in ids])
     intr = intrinsics_from_homographies(Hs, skew=skew, aspect=aspect)
     extent = _extent(X)
@@ -144,7 +153,8 @@ def initial_estimate(
             f"the views do not determine the intrinsics (closed form gives f = {intr.f_mm:.3g} mm, "
             f"C = ({intr.cx_mm:.3g}, {intr.cy_mm:.3g}) mm): tilt the template differently between views"
         )
-    return InitialEstimate(k, n_lines, Hs, intr, *poses_from_homographies(Hs, intr))
+    return InitialEstimate(k, n_lines, Hs, intr, *poses_from_homographies(Hs, intr),
+                           points_per_view=None if dlt_points is None else SUBSAMPLE_POINTS)
 
 
 def _extent(X) -> float:
@@ -154,8 +164,9 @@ def _extent(X) -> float:
 
 
 def _straightness_lines(T) -> list:
-    """The template lines of the straightness step, thinned (:func:`_thin_lines`); cached per template."""
-    return [ln.copy() for ln in _lines_of(*_template_key(T), MAX_STRAIGHTNESS_LINES, MAX_LINE_POINTS)]
+    """The template lines of the straightness step, thinned (:func:`_thin_lines`); cached per template (read-only
+    index arrays, shared by the calls)."""
+    return list(_lines_of(*_template_key(T), MAX_STRAIGHTNESS_LINES, MAX_LINE_POINTS))
 
 
 def _template_key(T) -> tuple:
@@ -172,7 +183,10 @@ def _template_of(shape, data) -> np.ndarray:
 @functools.lru_cache(maxsize=8)
 def _lines_of(shape, data, max_lines, max_points) -> tuple:
     T = _template_of(shape, data)
-    return tuple(_thin_lines(T, find_lines(T, max_lines=max_lines), max_points))
+    out = tuple(np.array(ln) for ln in _thin_lines(T, find_lines(T, max_lines=max_lines), max_points))
+    for ln in out:
+        ln.flags.writeable = False
+    return out
 
 
 def _thin_lines(T, lines, k: int) -> list:
@@ -227,11 +241,20 @@ def subsample_views(T, X, k: int = SUBSAMPLE_POINTS):
     X : (n_images, M, 2) measured points, mm, NaN where missing
     """
     T = np.asarray(T, dtype=float)
-    valid = np.all(np.isfinite(X), axis=-1)  # (n_images, M)
-    if T.shape[0] <= 2 * k or not np.any(valid.sum(axis=1) > 2 * k):
+    if T.shape[0] <= 2 * k:
         return None
-    keep = valid & _subsample_mask(*_template_key(T), k)[None, :]
-    few = (keep.sum(axis=1) < k // 2) | (valid.sum(axis=1) <= 2 * k)
+    X = np.asarray(X, dtype=float)
+    valid = np.isfinite(X[..., 0]) & np.isfinite(X[..., 1])  # (n_images, M)
+    mask = _subsample_mask(*_template_key(T), k)
+    if valid.all():  # every view sees every point (a chessboard): the same subset of each
+        if int(np.count_nonzero(mask)) < k // 2:  # (as below: every view keeps all its points)
+            return X.copy()
+        return np.where(mask[:, None], X, np.nan)
+    n_valid = valid.sum(axis=1)
+    if not np.any(n_valid > 2 * k):
+        return None
+    keep = valid & mask[None, :]
+    few = (keep.sum(axis=1) < k // 2) | (n_valid <= 2 * k)
     keep[few] = valid[few]
     return np.where(keep[..., None], X, np.nan)
 
@@ -459,7 +482,7 @@ def template_hint(T, X, Hs, point_ids=None) -> str:
 
 
 def linear_starts(T, X, *, preliminary=True, normalize=True, radial=2, skew=False, aspect=False, general=False,
-                  f_guess_mm=None, image_ids=None, point_ids=None):
+                  f_guess_mm=None, image_ids=None, point_ids=None, dlt_points=None):
     """Starts of the refinement from the linear stages, the first that fail being replaced by ones that cannot.
 
     Returns ``(primary, starts)``: ``primary`` is the :class:`InitialEstimate`
@@ -483,6 +506,9 @@ def linear_starts(T, X, *, preliminary=True, normalize=True, radial=2, skew=Fals
     - ``f-grid``: C at the electrical centre and each of :data:`F_GRID_MM`,
       only when nothing above gave a start.
 
+    ``dlt_points``: the spread subset of ``X`` (:func:`subsample_views`) the
+    homographies are fitted to (:func:`initial_estimate`); default every point.
+
     Raises DegenerateViewsError only when the views are degenerate in fact:
     collinear template points (no homography) or no view tilted enough to
     fix a focal length, and no ``f_guess_mm``.
@@ -496,12 +522,14 @@ def linear_starts(T, X, *, preliminary=True, normalize=True, radial=2, skew=Fals
     labels = [f"image {i}" for i in ids]
     try:
         est = initial_estimate(T, X, preliminary=preliminary, normalize=normalize, radial_terms=radial,
-                               skew=skew or general, aspect=aspect or general, image_ids=ids)
+                               skew=skew or general, aspect=aspect or general, image_ids=ids, dlt_points=dlt_points)
     except DegenerateViewsError as exc:
         closed_error, est = exc, None
+    Xd = X if dlt_points is None else np.asarray(dlt_points, dtype=float)
+    ppv = None if dlt_points is None else SUBSAMPLE_POINTS
     # the views' homographies (after the preliminary step when it applied: the better start); raises on collinear
     # points, views that are degenerate in fact
-    Hs_raw = est.homographies if est is not None else homographies(T, X, normalize=normalize, labels=labels)
+    Hs_raw = est.homographies if est is not None else homographies(T, Xd, normalize=normalize, labels=labels)
     raw_too = False
     if est is None and preliminary and radial > 0:
         raw_too = True  # the closed form failed after the preliminary step: try it on the raw points
@@ -514,7 +542,8 @@ def linear_starts(T, X, *, preliminary=True, normalize=True, radial=2, skew=Fals
             except DegenerateViewsError as exc:
                 closed_error = exc
                 continue
-            est_i = InitialEstimate(np.zeros(2), 0, Hs_raw, intr, *poses_from_homographies(Hs_raw, intr))
+            est_i = InitialEstimate(np.zeros(2), 0, Hs_raw, intr, *poses_from_homographies(Hs_raw, intr),
+                                    points_per_view=ppv)
         elif est_i.n_lines == 0:
             label = "closed-form-raw"
         if general:
@@ -551,7 +580,7 @@ def linear_starts(T, X, *, preliminary=True, normalize=True, radial=2, skew=Fals
         rv, tv = poses_from_homographies(Hs_raw, i0)
         starts.append((label, i0, zero, rv, tv))
         if primary is None:
-            primary = InitialEstimate(np.zeros(2), 0, Hs_raw, i0, rv, tv)
+            primary = InitialEstimate(np.zeros(2), 0, Hs_raw, i0, rv, tv, points_per_view=ppv)
     return primary, starts
 
 
@@ -626,8 +655,43 @@ def _stage_solver(solver: SolverOptions) -> SolverOptions:
     return replace(solver, ftol=max(solver.ftol, 1e-7), xtol=max(solver.xtol, 1e-8))
 
 
+@functools.lru_cache(maxsize=32)
 def staged_start(spec: ModelSpec) -> ModelSpec | None:
-    """The core model refined first when ``spec`` has terms beyond it (None otherwise)."""
+    """The core model refined first when ``spec`` has terms beyond it (None otherwise); cached per spec (a
+    frozen dataclass: the answer is the same object for equal specs)."""
     core = ModelSpec(radial=min(spec.radial, 2), tangential=False, psd_radial=0, skew=False, aspect=False, fit_gains=False)
     extra = spec.psd_radial > 0 or spec.skew or spec.aspect or spec.fit_gains or spec.radial > 2
     return core if extra else None
+
+
+def _model_spec(radial, tangential, psd_radial, skew, aspect, fit_gains) -> ModelSpec:
+    """``ModelSpec(...)`` of :func:`calibrate`'s switches, the same (validated) object for the same switches
+    (the type of each switch is part of the key: ``radial=True`` is refused, never taken for ``radial=1``)."""
+    try:
+        return _model_spec_cached(radial, tangential, psd_radial, skew, aspect, fit_gains)
+    except TypeError:  # an unhashable switch: ModelSpec says what is wrong with it
+        return ModelSpec(radial=radial, tangential=tangential, psd_radial=psd_radial, skew=skew, aspect=aspect,
+                         fit_gains=fit_gains)
+
+
+@functools.lru_cache(maxsize=64, typed=True)
+def _model_spec_cached(radial, tangential, psd_radial, skew, aspect, fit_gains) -> ModelSpec:
+    return ModelSpec(radial=radial, tangential=tangential, psd_radial=psd_radial, skew=skew, aspect=aspect,
+                     fit_gains=fit_gains)
+
+
+def _compiled_fit(points_mm) -> bool:
+    """Whether the fit of ``points_mm`` runs on the compiled kernels (psdcal._jit.use_compiled)."""
+    from psdcal import _jit
+
+    n = _n_points(points_mm)
+    return _jit.use_compiled(int(n) if math.isfinite(n) else 0)
+
+
+def _n_points(points_mm) -> float:
+    """n_images x M of a points array (inf when it has no such shape: the checks report that)."""
+    try:
+        shape = np.shape(points_mm)
+    except ValueError:  # ragged
+        return math.inf
+    return shape[0] * shape[1] if len(shape) >= 2 else math.inf
