@@ -136,14 +136,15 @@ class Problem:
 
     # -- state vector ---------------------------------------------------------------
     def pack(self, intr: Intrinsics, dist: Distortion, gains, rvecs, tvecs) -> np.ndarray:
-        vals = {**intr.to_dict(), **dist.to_dict()}
-        if "fy_mm" in self.names and intr.fy_mm is None:
-            vals["fy_mm"] = intr.f_mm
-        g = np.asarray(gains, dtype=float) / float(gains[0])
-        vals.update({"g_x2": g[1], "g_y1": g[2], "g_y2": g[3]})
-        head = np.array([vals[n] for n in self.names], dtype=float)
-        poses = np.concatenate([np.asarray(rvecs, float), np.asarray(tvecs, float)], axis=1).ravel()
-        return np.concatenate([head, poses])
+        g = np.asarray(gains, dtype=float) / float(gains[0])  # (no dicts, no concatenations: packed per refinement)
+        head = [intr.fy if n == "fy_mm" else getattr(intr, n) if n in _INTR_COLS
+                else g[_GAIN_IDX[n]] if n in _GAIN_IDX else getattr(dist, n) for n in self.names]
+        rv = np.asarray(rvecs, dtype=float)
+        z = np.empty(len(head) + 6 * rv.shape[0])
+        z[:len(head)] = head
+        poses = z[len(head):].reshape(rv.shape[0], 6)  # (a view of z)
+        poses[:, :3], poses[:, 3:] = rv, tvecs
+        return z
 
     def unpack(self, z, base_intr: Intrinsics, base_dist: Distortion, base_gains):
         vals = dict(zip(self.names, z[: self.n_global].tolist()))
@@ -823,7 +824,7 @@ def _finish(prob, ev, sol, r, Jc, m, n, options, system=None):
     Cg, Cp, Cx = sysm.covariance_blocks()
     intr, coef, gains, rv, tv = ev.unpack(sol.x)
     iterations = int(sol.njev) if sol.njev is not None else int(sol.nfev)
-    converged = bool(sol.status > 0) and bool(np.all(np.isfinite(sol.x))) and iterations <= options.max_iterations
+    converged = bool(sol.status > 0) and bool(np.isfinite(sol.x).all()) and iterations <= options.max_iterations
     return RefineResult(
         z=sol.x,
         intrinsics=intr,

@@ -688,18 +688,20 @@ def _make_result(prob, ref, start, ids, pids, spec, cost, g0, preliminary, norma
         sq = np.zeros(valid.shape)
         sq[valid] = rv[:, 0] ** 2 + rv[:, 1] ** 2
         n_valid = int(valid.sum())
-    rms = math.sqrt(float(sq.sum()) / max(n_valid, 1))
-    per_image = np.sqrt(sq.sum(axis=1) / np.maximum(valid.sum(axis=1), 1))
+    sq_total = float(sq.sum())
+    rms = math.sqrt(sq_total / max(n_valid, 1))
+    # (every point seen: each view's count is M, the same division as by the counts' array)
+    per_image = np.sqrt(sq.sum(axis=1) / (max(valid.shape[1], 1) if every else np.maximum(valid.sum(axis=1), 1)))
     cov = ref.covariance_global  # the reduced (Schur) system's inverse: no matrix of all poses
     std = {n: None for n in ("f_mm", "cx_mm", "cy_mm", "skew", *DISTORTION_NAMES)}
     if spec.aspect:
         std["fy_mm"] = None
     for k, n in enumerate(prob.names):
         std[n] = float(np.sqrt(max(cov[k, k], 0.0)))
-    pose_std = np.sqrt(np.maximum(np.einsum("naa->na", ref.pose_covariance), 0.0))
+    pose_std = np.sqrt(np.maximum(np.diagonal(ref.pose_covariance, axis1=1, axis2=2), 0.0))  # (n, 6)
     m = 2 * n_valid
     dof = max(m - ref.z.size, 1)
-    sigma_mm = math.sqrt(float(sq.sum()) / dof) if cost == "image" else float(rms / np.sqrt(2.0) * np.sqrt(m / dof))
+    sigma_mm = math.sqrt(sq_total / dof) if cost == "image" else float(rms / np.sqrt(2.0) * np.sqrt(m / dof))
     stages = {
         "preliminary": {"k1": float(start.preliminary_k[0]), "k2": float(start.preliminary_k[1]), "line_groups": start.n_lines, "applied": bool(preliminary and start.n_lines > 0)},
         "closed_form": {**start.intrinsics.to_dict(), "normalized": bool(normalize),

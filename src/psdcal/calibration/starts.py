@@ -601,7 +601,7 @@ def implausible(result: CalibrationResult) -> str:
     if (result.problem or {}).get("kind") == "directions":  # the one pose is the stage's rotation and offsets
         return ""
     tz = np.asarray(result.tvecs_mm, dtype=float)[:, 2]
-    if np.any(~np.isfinite(tz)) or np.any(tz <= 0):
+    if not all(math.isfinite(v) and v > 0 for v in tz.tolist()):  # (a few views: plain floats beat the ufuncs)
         i = int(np.argmin(np.nan_to_num(tz, nan=-np.inf)))
         return f"image {result.image_ids[i]} behind the sensor (t_z = {tz[i]:.3g} mm)"
     return ""
