@@ -21,12 +21,14 @@ cross-check, see the tests).
 from __future__ import annotations
 
 import contextlib
+import functools
 import math
 import threading
 from dataclasses import dataclass, field
 
 import numpy as np
 
+from psdcal import _jit
 from psdcal._cache import cached_attribute
 from psdcal.calibration._normal import BlockNormal, _as_system, block_normal_reference, compact_from_dense
 from psdcal.model.distortion import distort, distort_jacobians, undistort
@@ -217,6 +219,13 @@ def _global_columns(names, d_dintr5, d_dcoef7, d_dgains4=None):
     return np.stack(cols, axis=-1)
 
 
+@functools.cache
+def _compiled_costs() -> tuple:
+    """The compiled image cost, normal equations, template cost and block normal equations (imported once)."""
+    from psdcal.calibration import _gram_kernel, _image_kernel as ik
+    return ik.image_model, ik.normal_equations, ik.template_model, _gram_kernel.gram_block_normal
+
+
 class Evaluator:
     """Residuals and Jacobian of a :class:`Problem` at a state vector (cached per state)."""
 
@@ -237,12 +246,8 @@ class Evaluator:
         #: costs nothing more than its residuals did, instead of a second pass over the points
         self.trial_jacobians = False
         if prob.cost == "image" or not prob.spec.fit_gains:
-            from psdcal import _jit
-
             if _jit.use_compiled(len(self.img_idx)):  # the compiled costs (psdcal.calibration._image_kernel); this class's numpy code is their reference
-                from psdcal.calibration._gram_kernel import gram_block_normal
-                from psdcal.calibration._image_kernel import image_model, normal_equations, template_model
-
+                image_model, normal_equations, template_model, gram_block_normal = _compiled_costs()
                 if prob.cost == "image":
                     self._kernel = image_model
                 else:
@@ -826,16 +831,8 @@ def _finish(prob, ev, sol, r, Jc, m, n, options, system=None):
     iterations = int(sol.njev) if sol.njev is not None else int(sol.nfev)
     converged = bool(sol.status > 0) and bool(np.isfinite(sol.x).all()) and iterations <= options.max_iterations
     return RefineResult(
-        z=sol.x,
-        intrinsics=intr,
-        coeffs=coef,
-        gains=gains,
-        rvecs=rv,
-        tvecs=tv,
-        covariance_global=sigma2 * Cg,
-        pose_covariance=sigma2 * Cp,
-        cross_covariance=sigma2 * Cx,
-        sigma2=sigma2,
+        z=sol.x, intrinsics=intr, coeffs=coef, gains=gains, rvecs=rv, tvecs=tv,
+        covariance_global=sigma2 * Cg, pose_covariance=sigma2 * Cp, cross_covariance=sigma2 * Cx, sigma2=sigma2,
         cost_rms=math.sqrt(float(np.add.reduce(r * r)) / r.size) * math.sqrt(2.0),  # np.mean's sum, then the rms
         iterations=iterations,
         converged=converged,
