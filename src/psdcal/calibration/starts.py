@@ -334,7 +334,7 @@ def _refine_starts(pfirst, first, cands, g0, solver):
             r = refine(pfirst, i0, d0, g0r, rv, tv, solver)
         except (np.linalg.LinAlgError, FloatingPointError, ValueError):  # a start that breaks the solver is not a candidate
             continue
-        ok = bool(r.converged and np.isfinite(r.cost_rms) and r.intrinsics.f_mm > 0 and np.all(r.tvecs[:, 2] > 0))
+        ok = bool(r.converged and np.isfinite(r.cost_rms) and r.intrinsics.f_mm > 0 and (r.tvecs[:, 2] > 0).all())
         tried.append((label, r, ok))
         if ok:
             seen.append((x0, _fc(r.intrinsics)))
@@ -351,7 +351,7 @@ def _refine_starts(pfirst, first, cands, g0, solver):
                        replace(solver, max_iterations=2 * solver.max_iterations))
         except (np.linalg.LinAlgError, FloatingPointError, ValueError):
             break
-        ok = bool(r.converged and np.isfinite(r.cost_rms) and r.intrinsics.f_mm > 0 and np.all(r.tvecs[:, 2] > 0))
+        ok = bool(r.converged and np.isfinite(r.cost_rms) and r.intrinsics.f_mm > 0 and (r.tvecs[:, 2] > 0).all())
         tried = [t for t in tried if t[1] is not r0] + [(label + "+", r, ok)]
         if not ok and not r.cost_rms < r0.cost_rms:
             break
