@@ -21,12 +21,14 @@ cross-check, see the tests).
 from __future__ import annotations
 
 import contextlib
+import functools
 import math
 import threading
 from dataclasses import dataclass, field
 
 import numpy as np
 
+from psdcal import _jit
 from psdcal._cache import cached_attribute
 from psdcal.calibration._normal import BlockNormal, _as_system, block_normal_reference, compact_from_dense
 from psdcal.model.distortion import distort, distort_jacobians, undistort
@@ -136,14 +138,15 @@ class Problem:
 
     # -- state vector ---------------------------------------------------------------
     def pack(self, intr: Intrinsics, dist: Distortion, gains, rvecs, tvecs) -> np.ndarray:
-        vals = {**intr.to_dict(), **dist.to_dict()}
-        if "fy_mm" in self.names and intr.fy_mm is None:
-            vals["fy_mm"] = intr.f_mm
-        g = np.asarray(gains, dtype=float) / float(gains[0])
-        vals.update({"g_x2": g[1], "g_y1": g[2], "g_y2": g[3]})
-        head = np.array([vals[n] for n in self.names], dtype=float)
-        poses = np.concatenate([np.asarray(rvecs, float), np.asarray(tvecs, float)], axis=1).ravel()
-        return np.concatenate([head, poses])
+        g = np.asarray(gains, dtype=float) / float(gains[0])  # (no dicts, no concatenations: packed per refinement)
+        head = [intr.fy if n == "fy_mm" else getattr(intr, n) if n in _INTR_COLS
+                else g[_GAIN_IDX[n]] if n in _GAIN_IDX else getattr(dist, n) for n in self.names]
+        rv = np.asarray(rvecs, dtype=float)
+        z = np.empty(len(head) + 6 * rv.shape[0])
+        z[:len(head)] = head
+        poses = z[len(head):].reshape(rv.shape[0], 6)  # (a view of z)
+        poses[:, :3], poses[:, 3:] = rv, tvecs
+        return z
 
     def unpack(self, z, base_intr: Intrinsics, base_dist: Distortion, base_gains):
         vals = dict(zip(self.names, z[: self.n_global].tolist()))
@@ -216,6 +219,13 @@ def _global_columns(names, d_dintr5, d_dcoef7, d_dgains4=None):
     return np.stack(cols, axis=-1)
 
 
+@functools.cache
+def _compiled_costs() -> tuple:
+    """The compiled image cost, normal equations, template cost and block normal equations (imported once)."""
+    from psdcal.calibration import _gram_kernel, _image_kernel as ik
+    return ik.image_model, ik.normal_equations, ik.template_model, _gram_kernel.gram_block_normal
+
+
 class Evaluator:
     """Residuals and Jacobian of a :class:`Problem` at a state vector (cached per state)."""
 
@@ -236,12 +246,8 @@ class Evaluator:
         #: costs nothing more than its residuals did, instead of a second pass over the points
         self.trial_jacobians = False
         if prob.cost == "image" or not prob.spec.fit_gains:
-            from psdcal import _jit
-
             if _jit.use_compiled(len(self.img_idx)):  # the compiled costs (psdcal.calibration._image_kernel); this class's numpy code is their reference
-                from psdcal.calibration._gram_kernel import gram_block_normal
-                from psdcal.calibration._image_kernel import image_model, normal_equations, template_model
-
+                image_model, normal_equations, template_model, gram_block_normal = _compiled_costs()
                 if prob.cost == "image":
                     self._kernel = image_model
                 else:
@@ -823,18 +829,10 @@ def _finish(prob, ev, sol, r, Jc, m, n, options, system=None):
     Cg, Cp, Cx = sysm.covariance_blocks()
     intr, coef, gains, rv, tv = ev.unpack(sol.x)
     iterations = int(sol.njev) if sol.njev is not None else int(sol.nfev)
-    converged = bool(sol.status > 0) and bool(np.all(np.isfinite(sol.x))) and iterations <= options.max_iterations
+    converged = bool(sol.status > 0) and bool(np.isfinite(sol.x).all()) and iterations <= options.max_iterations
     return RefineResult(
-        z=sol.x,
-        intrinsics=intr,
-        coeffs=coef,
-        gains=gains,
-        rvecs=rv,
-        tvecs=tv,
-        covariance_global=sigma2 * Cg,
-        pose_covariance=sigma2 * Cp,
-        cross_covariance=sigma2 * Cx,
-        sigma2=sigma2,
+        z=sol.x, intrinsics=intr, coeffs=coef, gains=gains, rvecs=rv, tvecs=tv,
+        covariance_global=sigma2 * Cg, pose_covariance=sigma2 * Cp, cross_covariance=sigma2 * Cx, sigma2=sigma2,
         cost_rms=math.sqrt(float(np.add.reduce(r * r)) / r.size) * math.sqrt(2.0),  # np.mean's sum, then the rms
         iterations=iterations,
         converged=converged,

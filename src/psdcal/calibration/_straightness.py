@@ -312,7 +312,7 @@ def estimate_radial(points_mm, lines, *, c_mm=(0.0, 0.0), n_terms: int = 2) -> S
                 if n_groups == 0:
                     return StraightnessResult(np.zeros(n_terms), c, 0, float("nan"), False)
                 rms = math.sqrt(2 * cost / max(n_points, 1))
-                return StraightnessResult(k, c, n_groups, rms, bool(status > 0 and math.isfinite(rms) and np.all(np.isfinite(k))))
+                return StraightnessResult(k, c, n_groups, rms, bool(status > 0 and math.isfinite(rms) and np.isfinite(k).all()))
     return _estimate_radial_reference(pts, lines, c, n_terms)
 
 

@@ -688,30 +688,33 @@ def _make_result(prob, ref, start, ids, pids, spec, cost, g0, preliminary, norma
         sq = np.zeros(valid.shape)
         sq[valid] = rv[:, 0] ** 2 + rv[:, 1] ** 2
         n_valid = int(valid.sum())
-    rms = math.sqrt(float(sq.sum()) / max(n_valid, 1))
-    per_image = np.sqrt(sq.sum(axis=1) / np.maximum(valid.sum(axis=1), 1))
+    sq_total = float(sq.sum())
+    rms = math.sqrt(sq_total / max(n_valid, 1))
+    # (every point seen: each view's count is M, the same division as by the counts' array)
+    per_image = np.sqrt(sq.sum(axis=1) / (max(valid.shape[1], 1) if every else np.maximum(valid.sum(axis=1), 1)))
     cov = ref.covariance_global  # the reduced (Schur) system's inverse: no matrix of all poses
     std = {n: None for n in ("f_mm", "cx_mm", "cy_mm", "skew", *DISTORTION_NAMES)}
     if spec.aspect:
         std["fy_mm"] = None
-    for k, n in enumerate(prob.names):
-        std[n] = float(np.sqrt(max(cov[k, k], 0.0)))
-    pose_std = np.sqrt(np.maximum(np.einsum("naa->na", ref.pose_covariance), 0.0))
+    for n, c in zip(prob.names, np.diagonal(cov).tolist()):  # (plain floats: math.sqrt rounds as np.sqrt does)
+        std[n] = math.sqrt(max(c, 0.0))
+    pose_std = np.sqrt(np.maximum(np.diagonal(ref.pose_covariance, axis1=1, axis2=2), 0.0))  # (n, 6)
     m = 2 * n_valid
     dof = max(m - ref.z.size, 1)
-    sigma_mm = math.sqrt(float(sq.sum()) / dof) if cost == "image" else float(rms / np.sqrt(2.0) * np.sqrt(m / dof))
+    sigma_mm = math.sqrt(sq_total / dof) if cost == "image" else float(rms / np.sqrt(2.0) * np.sqrt(m / dof))
+    plain_ids = [_plain(i) for i in ids]
     stages = {
         "preliminary": {"k1": float(start.preliminary_k[0]), "k2": float(start.preliminary_k[1]), "line_groups": start.n_lines, "applied": bool(preliminary and start.n_lines > 0)},
         "closed_form": {**start.intrinsics.to_dict(), "normalized": bool(normalize),
                         **({"points_per_view": int(ppv)} if (ppv := getattr(start, "points_per_view", None)) else {})},
-        "initial_extrinsics": [{"image_id": _plain(i), "rvec": r.tolist(), "tvec_mm": t.tolist()} for i, r, t in zip(ids, start.rvecs, start.tvecs_mm)],
+        "initial_extrinsics": [{"image_id": i, "rvec": r, "tvec_mm": t} for i, r, t in zip(plain_ids, start.rvecs.tolist(), start.tvecs_mm.tolist())],
         **(extra_stages or {}),
     }
     pids = _plain_ids(pids)
     # the inputs are kept as (read-only) arrays; to_dict() writes them as lists, NaN as null
     problem = {
         "template": {"point_ids": list(pids), "xy_mm": _frozen(prob.template_mm)},
-        "points": {"image_ids": [_plain(i) for i in ids], "xy_mm": _frozen(X)},
+        "points": {"image_ids": list(plain_ids), "xy_mm": _frozen(X)},
         "options": {
             "cost": cost,
             "radial": spec.radial,
@@ -722,7 +725,7 @@ def _make_result(prob, ref, start, ids, pids, spec, cost, g0, preliminary, norma
             "fit_gains": spec.fit_gains,
             "preliminary": preliminary,
             "normalize": normalize,
-            "gains": [float(g) for g in g0],
+            "gains": np.asarray(g0, dtype=float).tolist(),
             "sensor_mm": list(prob.sensor_mm),
             "solver": {"ftol": solver.ftol, "xtol": solver.xtol, "gtol": solver.gtol, "max_iterations": solver.max_iterations},
         },
@@ -736,7 +739,7 @@ def _make_result(prob, ref, start, ids, pids, spec, cost, g0, preliminary, norma
         param_names=tuple(prob.names),
         covariance=cov,
         std=std,
-        image_ids=tuple(_plain(i) for i in ids),
+        image_ids=tuple(plain_ids),
         point_ids=pids,
         rvecs=ref.rvecs,
         tvecs_mm=ref.tvecs,

@@ -334,7 +334,7 @@ def _refine_starts(pfirst, first, cands, g0, solver):
             r = refine(pfirst, i0, d0, g0r, rv, tv, solver)
         except (np.linalg.LinAlgError, FloatingPointError, ValueError):  # a start that breaks the solver is not a candidate
             continue
-        ok = bool(r.converged and np.isfinite(r.cost_rms) and r.intrinsics.f_mm > 0 and np.all(r.tvecs[:, 2] > 0))
+        ok = bool(r.converged and np.isfinite(r.cost_rms) and r.intrinsics.f_mm > 0 and (r.tvecs[:, 2] > 0).all())
         tried.append((label, r, ok))
         if ok:
             seen.append((x0, _fc(r.intrinsics)))
@@ -351,7 +351,7 @@ def _refine_starts(pfirst, first, cands, g0, solver):
                        replace(solver, max_iterations=2 * solver.max_iterations))
         except (np.linalg.LinAlgError, FloatingPointError, ValueError):
             break
-        ok = bool(r.converged and np.isfinite(r.cost_rms) and r.intrinsics.f_mm > 0 and np.all(r.tvecs[:, 2] > 0))
+        ok = bool(r.converged and np.isfinite(r.cost_rms) and r.intrinsics.f_mm > 0 and (r.tvecs[:, 2] > 0).all())
         tried = [t for t in tried if t[1] is not r0] + [(label + "+", r, ok)]
         if not ok and not r.cost_rms < r0.cost_rms:
             break
@@ -601,7 +601,7 @@ def implausible(result: CalibrationResult) -> str:
     if (result.problem or {}).get("kind") == "directions":  # the one pose is the stage's rotation and offsets
         return ""
     tz = np.asarray(result.tvecs_mm, dtype=float)[:, 2]
-    if np.any(~np.isfinite(tz)) or np.any(tz <= 0):
+    if not all(math.isfinite(v) and v > 0 for v in tz.tolist()):  # (a few views: plain floats beat the ufuncs)
         i = int(np.argmin(np.nan_to_num(tz, nan=-np.inf)))
         return f"image {result.image_ids[i]} behind the sensor (t_z = {tz[i]:.3g} mm)"
     return ""
