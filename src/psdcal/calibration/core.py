@@ -406,7 +406,7 @@ def calibrate(
         start used when the views alone give none (:func:`linear_starts`).
     verdict : bool
         Attach the statistical verdict (:func:`psdcal.calibration.verdict.assess`)
-        as ``result.verdict`` (JSON ``verdict`` and ``checks``); about 2 ms.
+        as ``result.verdict`` (JSON ``verdict`` and ``checks``); it costs about as much as the fit.
         The diagnosis (refits that name the cause of a failed check) is left
         to ``assess(result)`` and the CLI, so that loops over many fits stay fast.
     noise_mm : float, optional
@@ -441,7 +441,7 @@ def calibrate(
         )
     # small dense linear algebra: one BLAS thread is fastest. Without the verdict, a problem of fewer than
     # BLAS_THREADS_MIN_POINTS points on the compiled path makes no BLAS call that OpenBLAS would thread (its work
-    # is in the compiled kernels and 9 x 9 factorisations), and the limit itself costs some 100 us a call.
+    # is in the compiled kernels and 9 x 9 factorisations), and asking threadpoolctl has a cost of its own.
     needed = verdict or _n_points(points_mm) >= BLAS_THREADS_MIN_POINTS or not _compiled_fit(points_mm)
     with _single_threaded_blas(needed):
         try:
@@ -655,7 +655,7 @@ def _calibrate(template_mm, points_mm, *, cost, radial, tangential, psd_radial, 
 
 #: Below this many observations (without the verdict, on the compiled path) :func:`calibrate` does not ask
 #: threadpoolctl for one BLAS thread: no BLAS call of such a problem is large enough for OpenBLAS to thread,
-#: and the limit costs some 100 us a call (a fit of 5 views x 256 points takes some 3 ms).
+#: and asking threadpoolctl has a cost of its own on every call.
 BLAS_THREADS_MIN_POINTS = 5000
 
 
