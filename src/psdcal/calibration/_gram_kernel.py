@@ -27,6 +27,7 @@ from __future__ import annotations
 import numpy as np
 
 from psdcal._jit import njit, njit_sum
+from psdcal.calibration._image_kernel import add_view_block, mirror_blocks
 
 #: A view's run of consecutive observations this long or longer is summed in chunks (shorter: row by row).
 CHUNK_MIN_POINTS = 64
@@ -138,22 +139,7 @@ def gram_block_normal(Jc, r, img, n_views):
             _run_chunked(Jc, r, i, j, m, M, gl, B)
         else:
             _run_rows(Jc, r, i, j, m, M, gl)
-        for a in range(ng):
-            gg[a] += gl[a]
-            for b in range(a + 1):
-                U[a, b] += M[a, b]
-        for a in range(6):
-            gp[v, a] += gl[ng + a]
-            for b in range(ng):
-                W[v, b, a] += M[ng + a, b]
-            for b in range(a + 1):
-                V[v, a, b] += M[ng + a, ng + b]
+        add_view_block(M, gl, v, ng, U, W, V, gg, gp)
         i = j
-    for a in range(ng):
-        for b in range(a):
-            U[b, a] = U[a, b]
-    for v in range(n_views):
-        for a in range(6):
-            for b in range(a):
-                V[v, b, a] = V[v, a, b]
+    mirror_blocks(U, V)
     return U, W, V, gg, gp

@@ -559,6 +559,35 @@ def expand_compact(Jc, img, n_views):
 
 
 @njit
+def add_view_block(M, gl, v, ng, U, W, V, gg, gp):
+    """Add one view's run sums to the blocks: ``M`` (m, m) lower triangle of its ``J^T J`` and ``gl`` (m,) its
+    ``J^T r`` (m = ng + 6) into ``U`` (lower triangle), ``W[v]``, ``V[v]`` (lower triangle), ``gg`` and ``gp[v]``."""
+    for a in range(ng):
+        gg[a] += gl[a]
+        for b in range(a + 1):
+            U[a, b] += M[a, b]
+    for a in range(6):
+        gp[v, a] += gl[ng + a]
+        for b in range(ng):
+            W[v, b, a] += M[ng + a, b]
+        for b in range(a + 1):
+            V[v, a, b] += M[ng + a, ng + b]
+
+
+@njit
+def mirror_blocks(U, V):
+    """Fill the upper triangles of ``U`` (ng, ng) and of each ``V[v]`` (6, 6) from their lower ones, in place."""
+    ng = U.shape[0]
+    for a in range(ng):
+        for b in range(a):
+            U[b, a] = U[a, b]
+    for v in range(V.shape[0]):
+        for a in range(6):
+            for b in range(a):
+                V[v, b, a] = V[v, a, b]
+
+
+@njit
 def block_normal(Jc, r, img, n_views):
     """Normal equations of a compact block Jacobian, kept in blocks.
 
@@ -605,23 +634,8 @@ def block_normal(Jc, r, img, n_views):
                 for b in range(a + 1):
                     M[a, b] += a0 * Jc[2 * i, b] + a1 * Jc[2 * i + 1, b]
             i += 1
-        for a in range(ng):
-            gg[a] += gl[a]
-            for b in range(a + 1):
-                U[a, b] += M[a, b]
-        for a in range(6):
-            gp[v, a] += gl[ng + a]
-            for b in range(ng):
-                W[v, b, a] += M[ng + a, b]
-            for b in range(a + 1):
-                V[v, a, b] += M[ng + a, ng + b]
-    for a in range(ng):
-        for b in range(a):
-            U[b, a] = U[a, b]
-    for v in range(n_views):
-        for a in range(6):
-            for b in range(a):
-                V[v, b, a] = V[v, a, b]
+        add_view_block(M, gl, v, ng, U, W, V, gg, gp)
+    mirror_blocks(U, V)
     return U, W, V, gg, gp
 
 
