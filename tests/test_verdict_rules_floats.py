@@ -123,26 +123,6 @@ def test_tilt_spread_and_side_of_known_poses(fit):
     assert ch.passed is False and ch.statistic == 1.0 and "view(s) 0 see the template from behind" in ch.message
 
 
-NUM = st.one_of(st.none(), st.floats(allow_nan=True), st.floats(-1e3, 1e3).map(np.float64), st.integers(0, 9))
-FLAG = st.one_of(st.none(), st.booleans(), st.booleans().map(np.bool_))
-
-
-@settings(max_examples=200, deadline=None)
-@given(NUM, NUM, NUM, st.floats(0.0, 1.0), FLAG, st.text(max_size=5), st.booleans().map(np.bool_), NUM, NUM, NUM)
-def test_check_to_dict_is_the_fields_dict(stat, thr, p, alpha, passed, msg, severe, dof, eff, infl):
-    """The written-out ``Check.to_dict`` gives the dict of its fields (same keys in the same order, numbers as
-    float, flags as bool) that the generic form gives."""
-    from psdcal._consistency import Check, _fields_dict
-
-    c = Check("x", stat, thr, p, alpha, passed, msg, "advice", severe, dof, eff, infl)
-    got, want = c.to_dict(), _fields_dict(c)
-    assert list(got) == list(want) == list(Check.__dataclass_fields__)
-    for k in want:
-        assert type(got[k]) is type(want[k])
-        assert got[k] == want[k] or (got[k] != got[k] and want[k] != want[k])
-    assert Check.from_dict(got) == Check.from_dict(want)
-
-
 def test_uninflated_covariance_in_the_result_s_order_and_permuted(fit):
     """The verdict's covariance of ``lin.names`` is the result's (over its inflation) in either order."""
     from psdcal.calibration import _verdict_linear as L
@@ -184,31 +164,3 @@ def test_led_offset_is_the_numpy_rms(v):
     q = np.array(v, dtype=float).reshape(-1, 2)
     assert V._rms_points(q) == float(np.sqrt(np.mean(q[:, 0] ** 2 + q[:, 1] ** 2)))
     assert V._rms_points(q[:0]) == 0.0
-
-
-@settings(max_examples=100, deadline=None)
-@given(NUM, NUM, NUM, st.floats(0.0, 1.0), FLAG, st.text(max_size=5), st.booleans(), NUM, NUM, NUM)
-def test_check_init_is_the_generated_dataclass_init(stat, thr, p, alpha, passed, msg, severe, dof, eff, infl):
-    """The written-out ``Check.__init__`` builds what a frozen dataclass's generated one does: the same fields
-    (positional and keyword, defaults), equality, hash, repr, replace, pickling, and no assignment."""
-    import dataclasses
-    import pickle
-
-    from psdcal._consistency import Check
-
-    Ref = dataclasses.make_dataclass("Check", [(f.name, f.type, f) for f in dataclasses.fields(Check)], frozen=True)
-    args = ("x", stat, thr, p, alpha, passed, msg, "advice", severe, dof, eff, infl)
-    for a, kw in ((args, {}), (args[:7], {}), (args[:6], dict(zip(("message", "advice", "severe", "dof",
-                                                                  "effect_sigma", "inflation"), args[6:])))):
-        c, r = Check(*a, **kw), Ref(*a, **kw)
-        assert list(vars(c)) == [f.name for f in dataclasses.fields(Check)]
-        assert all(getattr(c, f.name) is getattr(r, f.name) for f in dataclasses.fields(Check))
-        assert repr(c) == repr(r)
-    c = Check(*args)
-    assert dataclasses.replace(c, message="m").message == "m" and dataclasses.replace(c, message="m").name == "x"
-    d = pickle.loads(pickle.dumps(c))
-    assert repr(d) == repr(c)
-    if not any(isinstance(v, float) and v != v for v in vars(c).values()):  # NaN: equal only to itself
-        assert d == c and hash(d) == hash(c) == hash(Ref(*args))
-    with pytest.raises(dataclasses.FrozenInstanceError):
-        c.name = "y"
