@@ -23,7 +23,7 @@ import numpy as np
 from psdcal._jit import njit
 from psdcal.calibration._gram_kernel import gram_block_normal
 from psdcal.calibration._image_kernel import image_model_into, schur_covariance, schur_solve, template_model
-from psdcal.calibration._lm_rules import next_damping, trial_verdict
+from psdcal.calibration._lm_rules import negligible_decrement, next_damping, trial_verdict
 
 #: status codes of :func:`lm_image` (those of ``levenberg_marquardt``, and 5: its damping overflow, a 2 there)
 MESSAGES = {
@@ -132,7 +132,8 @@ def lm_image(P, img, theta0, separate_fy, gmap, gain_basis, meas, z0, n_views, f
     The algorithm of ``levenberg_marquardt`` (Marquardt scaling by the running
     maximum of ``diag(J^T J)``, Nielsen's damping rule, MINPACK's gtol / xtol
     / ftol tests and the last round-off step) with the poses eliminated by
-    the Schur complement at every step.
+    the Schur complement at every step, and its test of the Gauss-Newton
+    decrement before each trial (:func:`~psdcal.calibration._lm_rules.negligible_decrement`).
 
     Parameters
     ----------
@@ -193,6 +194,8 @@ def lm_image(P, img, theta0, separate_fy, gmap, gain_basis, meas, z0, n_views, f
     sD = np.sqrt(D)
     x_scale = 0.0
     damp_p = np.empty((n_views, 6))
+    zero_g = np.zeros(ng)
+    zero_p = np.zeros((n_views, 6))
     while njev <= max_iterations and nfev < max_nfev:
         if F == 0.0:
             status = 4
@@ -206,6 +209,11 @@ def lm_image(P, img, theta0, separate_fy, gmap, gain_basis, meas, z0, n_views, f
             sx = sD * x
             x_scale = np.sqrt(np.dot(sx, sx))
             fresh = False
+            # the undamped Gauss-Newton step's predicted reduction: at most ftol of the cost, stop here
+            ok0, hg0, hp0 = schur_solve(U, W, V, gg, gp, zero_g, zero_p)
+            if ok0 and negligible_decrement(0.5 * (np.dot(gg, hg0) + np.sum(gp * hp0)), F, ftol):
+                status = 3
+                break
         damp = mu * D
         for v in range(n_views):
             for a in range(6):

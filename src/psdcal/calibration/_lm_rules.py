@@ -4,7 +4,8 @@
 reference) states them; the compiled loops of the image cost
 (:mod:`psdcal.calibration._lm_kernel`) and of the line-straightness step
 (:mod:`psdcal.calibration._straightness_kernel`) take them from here, so that
-the three follow one rule.
+the three follow one rule. Each loop stops before a trial point when
+:func:`negligible_decrement` holds at the current point.
 """
 from __future__ import annotations
 
@@ -30,6 +31,22 @@ def trial_verdict(F, F_new, pred, nu, ftol):
     accept = (rho > 0 or final) and math.isfinite(F_new)
     small = final or ((F - F_new) <= ftol * F and pred <= ftol * F)
     return accept, small, rho
+
+
+@njit_inline
+def negligible_decrement(dec, F, ftol):
+    """Whether the Gauss-Newton model of the cost at the current point promises no reduction above ``ftol``
+    of it: the loop then stops there (status 3) without evaluating another trial point.
+
+    ``dec = g^T A^-1 g / 2`` (``A = J^T J``, ``g = J^T r``, no damping) is the
+    reduction of the undamped Gauss-Newton step as the linear model predicts
+    it: the largest any step can make under that model, whatever the damping
+    (Newton's decrement, with ``J^T J`` for the Hessian). At or below
+    ``ftol * F`` the current point is within ``ftol`` of the model's minimum,
+    what the ``small`` test of :func:`trial_verdict` establishes only after
+    evaluating one more point. A NaN ``dec`` (a singular ``A``) never stops.
+    """
+    return dec <= ftol * F
 
 
 @njit_inline

@@ -723,7 +723,11 @@ def levenberg_marquardt(fun, jac, x0, options: SolverOptions = SolverOptions(), 
     Stops with status 1 when ``max_j |(J^T r)_j| / (|J_j| |r|) <= gtol``
     (MINPACK's gradient test), 2 when the scaled step is below ``xtol``
     times the scaled state, 3 when the actual and predicted relative
-    reductions of the cost are both below ``ftol``, 4 on a zero residual, and
+    reductions of the cost are both below ``ftol`` or, before a trial point
+    is evaluated, when the undamped Gauss-Newton step predicts a relative
+    reduction below ``ftol`` at the current point (``g^T (J^T J)^-1 g / 2 <=
+    ftol F``: the point is within ftol of the linear model's minimum, and
+    the trial would only confirm it), 4 on a zero residual, and
     0 (not converged) when ``max_iterations`` Jacobians have been evaluated.
 
     ``normal(J, r)``, when given, returns ``(J^T J, J^T r)`` (e.g. exploiting
@@ -763,6 +767,12 @@ def levenberg_marquardt(fun, jac, x0, options: SolverOptions = SolverOptions(), 
             sD = np.sqrt(D)
             x_scale = np.sqrt((sD * x) @ (sD * x))
             fresh = False
+            # the undamped Gauss-Newton step's predicted reduction (Newton's decrement with J^T J): at most
+            # ftol of the cost, x is converged and no trial point is evaluated (_lm_rules.negligible_decrement)
+            h0 = sysm.solve(np.zeros_like(D))
+            if h0 is not None and 0.5 * float(g @ h0) <= options.ftol * F:
+                status, message = 3, "relative cost reduction below ftol"
+                break
         h = sysm.solve(mu * D)
         if h is None:  # not positive definite at this damping
             mu *= nu

@@ -31,7 +31,7 @@ import math
 import numpy as np
 
 from psdcal._jit import njit
-from psdcal.calibration._lm_rules import next_damping, trial_verdict
+from psdcal.calibration._lm_rules import negligible_decrement, next_damping, trial_verdict
 
 #: status of :func:`solve_radial` when a line index is outside the template (the caller
 #: then takes the numpy path, which raises numpy's IndexError)
@@ -482,6 +482,16 @@ def solve_radial(pts_mm, members, line_len, c_mm, n_terms, ftol, xtol, gtol, max
                 s += (sD[j] * x[j]) * (sD[j] * x[j])
             x_scale = math.sqrt(s)
             fresh = False
+            # the undamped Gauss-Newton step's predicted reduction: at most ftol of the cost, stop here
+            for j in range(nk):
+                damp[j] = 0.0
+            if _damped_solve(A, damp, g, h):
+                s = 0.0
+                for j in range(nk):
+                    s += g[j] * h[j]
+                if negligible_decrement(0.5 * s, F, ftol):
+                    status = 3
+                    break
         for j in range(nk):
             damp[j] = mu * D[j]
         if not _damped_solve(A, damp, g, h):  # not positive definite at this damping
