@@ -1,7 +1,7 @@
 """The compiled LM loop (image and template costs) against the Python loop it replaces.
 
 :func:`psdcal.calibration._lm_kernel.lm_image` runs the iterations of
-:func:`psdcal.calibration._refine.levenberg_marquardt` (with the compiled
+:func:`psdcal.calibration._lm.levenberg_marquardt` (with the compiled
 image cost) in one call; ``_refine.COMPILED_LOOP = False`` selects the Python
 loop, the reference. Both must reach the same solution, covariance and
 stopping reason on every kind of problem the image cost takes.

@@ -4,7 +4,7 @@
 call (:func:`psdcal.calibration._straightness_kernel.solve_radial`: grouping,
 cost, Jacobian and Levenberg-Marquardt); the reference is the numpy cost
 (``_line_residuals`` of ``undistort``) minimised by
-:func:`psdcal.calibration._refine.levenberg_marquardt`. The compiled solver
+:func:`psdcal.calibration._lm.levenberg_marquardt`. The compiled solver
 must take the reference's steps: the same status, the same numbers of
 residual and Jacobian evaluations, the same k, number of lines, RMS and
 convergence flag to round-off.

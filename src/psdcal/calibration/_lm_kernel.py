@@ -1,6 +1,6 @@
 """The refinement's Levenberg-Marquardt loop in one compiled call (image and template costs).
 
-:func:`psdcal.calibration._refine.levenberg_marquardt`, driven by the compiled
+:func:`psdcal.calibration._lm.levenberg_marquardt`, driven by the compiled
 costs (``Evaluator``), spends a small set's time in Python between kernel
 calls: on 5 views of 14 points an iteration's kernels (residuals and
 Jacobian, block normal equations, Schur step) take about 15 us and the Python

@@ -1,6 +1,6 @@
 """The acceptance and damping rules of Levenberg-Marquardt, for the compiled loops.
 
-:func:`psdcal.calibration._refine.levenberg_marquardt` (the Python loop, the
+:func:`psdcal.calibration._lm.levenberg_marquardt` (the Python loop, the
 reference) states them; the compiled loops of the image cost
 (:mod:`psdcal.calibration._lm_kernel`) and of the line-straightness step
 (:mod:`psdcal.calibration._straightness_kernel`) take them from here, so that

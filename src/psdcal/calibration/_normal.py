@@ -8,7 +8,7 @@ The pose columns of a point are non-zero only for its own view, so ``J^T J`` has
   compiled kernels of :mod:`._image_kernel` and the numpy references here
   (:func:`block_normal_reference`, :func:`schur_solve_reference`, :func:`schur_covariance_reference`).
 
-:func:`psdcal.calibration._refine.levenberg_marquardt` solves either.
+:func:`psdcal.calibration._lm.levenberg_marquardt` solves either.
 """
 from __future__ import annotations
 

@@ -291,7 +291,7 @@ def estimate_radial(points_mm, lines, *, c_mm=(0.0, 0.0), n_terms: int = 2) -> S
     :func:`psdcal.calibration._straightness_kernel.solve_radial`; the numpy
     reference (:func:`_line_residuals` of
     :func:`~psdcal.model.distortion.undistort`, minimised by
-    :func:`psdcal.calibration._refine.levenberg_marquardt`) runs otherwise.
+    :func:`psdcal.calibration._lm.levenberg_marquardt`) runs otherwise.
     """
     pts = np.asarray(points_mm, dtype=float)
     c = np.asarray(c_mm, dtype=float)

@@ -3,7 +3,7 @@
 The same mathematics as the numpy reference in
 :mod:`psdcal.calibration._straightness` (:func:`~psdcal.calibration._straightness._line_residuals`
 of :func:`~psdcal.model.distortion.undistort`, driven by
-:func:`psdcal.calibration._refine.levenberg_marquardt`), written as scalar
+:func:`psdcal.calibration._lm.levenberg_marquardt`), written as scalar
 loops for numba (:mod:`psdcal._jit`), so that a whole estimate is one call:
 
 - every (view, line) pair of valid points is a group, kept when it has >= 3

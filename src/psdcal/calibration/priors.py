@@ -346,7 +346,7 @@ class PriorFit:
 def refine_with_priors(prob, intr0, dist0, gains0, rvecs0, tvecs0, priors, sigma2_start: float, options):
     """Minimise ``|r_data|^2 + s^2 |W theta - b|^2`` (see the module docstring), iterating ``s``.
 
-    A thin wrapper around :func:`psdcal.calibration._refine.levenberg_marquardt`:
+    A thin wrapper around :func:`psdcal.calibration._lm.levenberg_marquardt`:
     the prior rows are appended to the residuals and Jacobian, and their
     information is added to the global block of the normal equations.
 
