@@ -106,6 +106,8 @@ def _compiled(prob, res, gains, order, P, img, d_meas):
                       *gains.tolist()), dtype=float)
     theta[global_map(prob.names)] = z[:ng]
     gain_basis = prob.kernel_constants[2] if prob.spec.fit_gains else _NO_GAINS
+    # the Newton inverse from the fixed-point start, as the Evaluator's first evaluation: a start from the measured
+    # points (fewer iterations) finds another root of a badly wrong fit (a swapped template's: its checks change)
     _, _, y, J = image_model(P, img, theta, prob.spec.aspect, z[ng:].reshape(-1, POSE), np.full(d_meas.shape, np.nan),
                              d_meas, global_map(order), True, NEWTON_TOL_MM, NEWTON_MAX_ITER, gain_basis)
     return J, y

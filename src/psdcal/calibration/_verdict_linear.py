@@ -183,7 +183,15 @@ def _pinv_sym(N) -> np.ndarray:
     """Pseudo-inverse of a symmetric positive semi-definite matrix, scaled for conditioning.
 
     ``np.linalg.pinv(Ns, rcond=1e-12, hermitian=True)`` of the scaled matrix written out (its eigenvalues below
-    1e-12 of the largest in magnitude dropped), without its checks and wrappers (some 50 us a call)."""
+    1e-12 of the largest in magnitude dropped), without its checks and wrappers; with the compiled kernels, in one
+    compiled loop (:func:`psdcal.calibration._verdict_kernel.pinv_sym`: the eigenproblem by Jacobi rotations, equal
+    to rounding, tested)."""
+    if N.shape[0] and _jit.use_compiled(0):
+        from psdcal.calibration._verdict_kernel import pinv_sym
+
+        out = np.empty(N.shape)
+        if pinv_sym(np.ascontiguousarray(N, dtype=float), out):
+            return out
     d = np.sqrt(np.maximum(np.diag(N), 1e-300))
     dd = d[:, None] * d[None, :]
     lam, U = np.linalg.eigh(N / dd)
@@ -479,6 +487,17 @@ def group_shift(lin: Linear, rows) -> np.ndarray:
         gs = lin.gt[rows]
     Nm = lin.gtg - gs.T @ gs
     return -_pinv_sym(Nm) @ (gs.T @ lin.e[rows])
+
+
+def view_shift(lin: Linear, k: int) -> np.ndarray:
+    """:func:`group_shift` of all the rows of view ``k`` (from the per-view Gram matrices without finding the view
+    in a row mask where there are: the same arithmetic)."""
+    b = lin.blocks
+    if b is not None:  # the views' rows in order, nr each
+        nr = b.Q.shape[1]
+        gte = b.Rg.T @ (b.Q[k, :, POSE:].T @ lin.e[k * nr:(k + 1) * nr])
+        return -_pinv_sym(lin.gtg - b.gtg_view[k]) @ gte
+    return group_shift(lin, np.repeat(lin.img == k, 2))
 
 
 def group_f(lin: Linear, groups, n_groups, ssr, dof):
