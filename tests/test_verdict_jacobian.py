@@ -113,8 +113,8 @@ def _pinv_numpy(N, monkeypatch):
 
 @needs_numba
 def test_compiled_pinv_sym_equals_numpys(monkeypatch):
-    """Full rank (conditioned up to 1e12 by the columns' scales), rank deficient (a repeated column: its direction
-    dropped) and 1 x 1; the compiled call is the one taken."""
+    """Full rank (scaled by up to 1e12 by the columns' scales: the scaling removes that), 1 x 1: the compiled call is
+    the one taken; rank deficient (a repeated column) and not finite: numpy's code."""
     from psdcal.calibration import _verdict_kernel as vk
 
     rng = np.random.default_rng(2)
@@ -125,10 +125,17 @@ def test_compiled_pinv_sym_equals_numpys(monkeypatch):
     A = rng.normal(size=(50, 5))
     A[:, 4] = 2 * A[:, 1]
     cases.append(A.T @ A)
+    cond = L.PINV_COMPILED_MAX_COND
     for N in cases:
         ref = _pinv_numpy(N, monkeypatch)
         out = np.empty(N.shape)
-        assert vk.pinv_sym(N, out)
+        if N.shape[0] == 5:  # rank deficient: left to numpy
+            assert not vk.pinv_sym(N, out, cond)
+            with monkeypatch.context() as m:
+                m.setattr(psdcal._jit, "use_compiled", lambda *a, **k: True)
+                np.testing.assert_array_equal(L._pinv_sym(N), ref)
+            continue
+        assert vk.pinv_sym(N, out, cond)
         d = np.sqrt(np.diag(N))
         np.testing.assert_allclose(out * np.outer(d, d), ref * np.outer(d, d), rtol=0, atol=1e-10)
         with monkeypatch.context() as m:
@@ -136,7 +143,7 @@ def test_compiled_pinv_sym_equals_numpys(monkeypatch):
             np.testing.assert_array_equal(L._pinv_sym(N), out)
     bad = cases[1].copy()
     bad[0, 1] = np.nan
-    assert not vk.pinv_sym(bad, np.empty(bad.shape))
+    assert not vk.pinv_sym(bad, np.empty(bad.shape), cond)
 
 
 @pytest.mark.parametrize("min_points", [0, 10 ** 9])

@@ -135,11 +135,13 @@ def _conditioned_eigh(K, max_cond):
 
 
 @njit
-def pinv_sym(N, out):
+def pinv_sym(N, out, max_cond):
     """:func:`psdcal.calibration._verdict_linear._pinv_sym` (its numpy reference) into ``out`` (n, n), the
     eigenproblem by Jacobi rotations: the pseudo-inverse of the symmetric positive semi-definite ``N`` (n >= 1)
     scaled by its diagonal, eigenvalues below 1e-12 of the largest in magnitude dropped. False (``out``
-    meaningless) when N is not finite."""
+    meaningless) when N is not finite or its scaled form is conditioned worse than ``max_cond`` (an eigenvalue
+    at most the largest over it: the two eigenproblems' results then differ by more than rounding, ``eps cond``,
+    and the caller takes the numpy code)."""
     n = N.shape[0]
     d = np.empty(n)
     Ns = np.empty((n, n))
@@ -155,6 +157,9 @@ def pinv_sym(N, out):
     big = 0.0
     for a in range(n):
         big = max(big, abs(lam[a]))
+    for a in range(n):
+        if not lam[a] > big / max_cond:
+            return False
     inv = np.zeros(n)
     for a in range(n):
         if abs(lam[a]) > 1e-12 * big:

@@ -179,18 +179,24 @@ def linearise(result, exclude=None) -> Linear:
                   tuple(free), G, perp_pose, held, pgram, blocks)
 
 
+#: Up to this condition number of the scaled matrix :func:`_pinv_sym` takes the compiled loop (its result and
+#: LAPACK's then differ by ``eps cond``, rounding); beyond it (and with a dropped direction) numpy's code.
+PINV_COMPILED_MAX_COND = 1e6
+
+
 def _pinv_sym(N) -> np.ndarray:
     """Pseudo-inverse of a symmetric positive semi-definite matrix, scaled for conditioning.
 
     ``np.linalg.pinv(Ns, rcond=1e-12, hermitian=True)`` of the scaled matrix written out (its eigenvalues below
     1e-12 of the largest in magnitude dropped), without its checks and wrappers; with the compiled kernels, in one
-    compiled loop (:func:`psdcal.calibration._verdict_kernel.pinv_sym`: the eigenproblem by Jacobi rotations, equal
-    to rounding, tested)."""
+    compiled loop where the scaled matrix is conditioned better than :data:`PINV_COMPILED_MAX_COND`
+    (:func:`psdcal.calibration._verdict_kernel.pinv_sym`: the eigenproblem by Jacobi rotations, equal to rounding,
+    tested)."""
     if N.shape[0] and _jit.use_compiled(0):
         from psdcal.calibration._verdict_kernel import pinv_sym
 
         out = np.empty(N.shape)
-        if pinv_sym(np.ascontiguousarray(N, dtype=float), out):
+        if pinv_sym(np.ascontiguousarray(N, dtype=float), out, PINV_COMPILED_MAX_COND):
             return out
     d = np.sqrt(np.maximum(np.diag(N), 1e-300))
     dd = d[:, None] * d[None, :]
