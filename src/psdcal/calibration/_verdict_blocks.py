@@ -265,26 +265,34 @@ def normal_transforms(K, n_global: int, one_pass_cond: float = CHOLQR_ONE_PASS_C
     return True, T, Rg, gtg_view
 
 
-def normal_bases(X, n_global: int, n_extra: int, row_img, n_img: int):
+def normal_bases(X, n_global: int, n_extra: int, row_img, n_img: int, *, pose_last: bool = False, dense=None):
     """The projector's bases from each view's Gram matrix (:class:`Blocks`), None when the rows are not in the
     dense layout (views in order, as many rows each) or a block fails the one-pass conditioning test
     (:func:`normal_transforms`): the caller then takes the QR path.
 
     ``X`` (m, k) C-contiguous: each row's own view's six pose columns, then the ``n_global`` global columns
     (natural units), then ``n_extra`` more columns whose projected Gram matrix is wanted (the richer model's),
-    then any others (ignored); ``row_img`` (m,) the view of each row.
+    then any others (ignored); with ``pose_last`` the global, extra and other columns come first and the six pose
+    columns last (the order of :func:`psdcal.calibration._verdict_jacobian.rich_jacobian`). ``row_img`` (m,) the
+    view of each row; ``dense`` True when the caller knows the layout dense (not checked again).
     """
     m = row_img.size
     if m == 0 or m % n_img:
         return None
     nr = m // n_img
-    if not (row_img[0] == 0 and bool(np.all(np.diff(row_img) >= 0))
-            and bool(np.all(np.bincount(row_img, minlength=n_img) == nr))):
+    if not dense and not (row_img[0] == 0 and bool(np.all(np.diff(row_img) >= 0))
+                          and bool(np.all(np.bincount(row_img, minlength=n_img) == nr))):
         return None
     s, g = POSE, int(n_global)
     k = s + g + int(n_extra)
-    Xb = X.reshape(n_img, nr, X.shape[1])[:, :, :k]
-    K = np.matmul(np.swapaxes(Xb, 1, 2), Xb)  # (v, k, k) each view's Gram matrix
+    if pose_last:  # each view's Gram matrix of all the columns, reordered (pose, global, extra)
+        kx = X.shape[1]
+        Xb = X.reshape(n_img, nr, kx)
+        order = _pose_first_order(kx, g + int(n_extra))
+        K = np.matmul(np.swapaxes(Xb, 1, 2), Xb)[:, order[:, None], order]
+    else:
+        Xb = X.reshape(n_img, nr, X.shape[1])[:, :, :k]
+        K = np.matmul(np.swapaxes(Xb, 1, 2), Xb)  # (v, k, k) each view's Gram matrix
     if _jit.use_compiled(m // 2):
         from psdcal.calibration import _verdict_kernel as vk
 
@@ -293,8 +301,20 @@ def normal_bases(X, n_global: int, n_extra: int, row_img, n_img: int):
         ok, T, Rg, gtg_view = normal_transforms(K, g, CHOLQR_ONE_PASS_COND)
     if not ok:
         return None
-    Q = np.matmul(Xb[:, :, :s + g], T)  # (v, nr, 6 + g): [Qb_v | Qg_v]
+    if pose_last:  # [Qb_v | Qg_v] = X_v T_v with T's rows at X's columns (zero at the extra and other ones)
+        Tx = np.zeros((n_img, kx, s + g))
+        Tx[:, kx - s:] = T[:, :s]
+        Tx[:, :g] = T[:, s:]
+        Q = np.matmul(Xb, Tx)
+    else:
+        Q = np.matmul(Xb[:, :, :s + g], T)  # (v, nr, 6 + g): [Qb_v | Qg_v]
     return Blocks(K, T, Rg, gtg_view, Q, g)
+
+
+def _pose_first_order(kx: int, n_first: int) -> np.ndarray:
+    """The columns of a pose-last layout (``kx`` columns, the six pose ones last) in the pose-first order: the
+    six pose columns, then the first ``n_first`` (global, extra)."""
+    return np.concatenate([np.arange(kx - POSE, kx), np.arange(n_first)])
 
 
 @dataclass(frozen=True)

@@ -122,6 +122,58 @@ def _eigh_jacobi(K):
 
 
 @njit
+def _conditioned_eigh(K, max_cond):
+    """(ok, eigenvalues ascending, eigenvectors) of the small symmetric ``K`` (:func:`_eigh_jacobi`); ok: every
+    eigenvalue finite and the smallest above the largest over ``max_cond ** 2`` (K, a Gram matrix of unit columns,
+    conditioned better than ``max_cond ** 2``: its columns better than ``max_cond``)."""
+    lam, V = _eigh_jacobi(K)
+    n = lam.size
+    for a in range(n):
+        if not np.isfinite(lam[a]):
+            return False, lam, V
+    return lam[0] > lam[n - 1] / max_cond ** 2, lam, V
+
+
+@njit
+def pinv_sym(N, out, max_cond):
+    """:func:`psdcal.calibration._verdict_linear._pinv_sym` (its numpy reference) into ``out`` (n, n), the
+    eigenproblem by Jacobi rotations: the pseudo-inverse of the symmetric positive semi-definite ``N`` (n >= 1)
+    scaled by its diagonal, eigenvalues below 1e-12 of the largest in magnitude dropped. False (``out``
+    meaningless) when N is not finite or its scaled form is conditioned worse than ``max_cond`` (an eigenvalue
+    at most the largest over it: the two eigenproblems' results then differ by more than rounding, ``eps cond``,
+    and the caller takes the numpy code)."""
+    n = N.shape[0]
+    d = np.empty(n)
+    Ns = np.empty((n, n))
+    for a in range(n):
+        d[a] = np.sqrt(max(N[a, a], 1e-300))
+        for b in range(n):
+            if not np.isfinite(N[a, b]):
+                return False
+    for a in range(n):
+        for b in range(n):
+            Ns[a, b] = N[a, b] / (d[a] * d[b])
+    lam, U = _eigh_jacobi(Ns)
+    big = 0.0
+    for a in range(n):
+        big = max(big, abs(lam[a]))
+    for a in range(n):
+        if not lam[a] > big / max_cond:
+            return False
+    inv = np.zeros(n)
+    for a in range(n):
+        if abs(lam[a]) > 1e-12 * big:
+            inv[a] = 1.0 / lam[a]
+    for a in range(n):
+        for b in range(n):
+            t = 0.0
+            for c in range(n):
+                t += U[a, c] * inv[c] * U[b, c]
+            out[a, b] = t / (d[a] * d[b])
+    return True
+
+
+@njit
 def _orthonormalise(A, r0, nr, unit_columns, max_cond, one_pass_cond, out):
     """The first Cholesky-QR pass of ``_cholqr2`` on the rows ``r0 .. r0 + nr`` of ``A``, written to the same rows
     of ``out``: 0 when the block's columns are conditioned worse than ``max_cond`` (or one has zero norm), 1 when one
@@ -139,11 +191,8 @@ def _orthonormalise(A, r0, nr, unit_columns, max_cond, one_pass_cond, out):
     for a in range(k):
         for b in range(k):
             Kn[a, b] = K[a, b] / (d[a] * d[b])
-    lam, V = _eigh_jacobi(Kn)
-    for a in range(k):
-        if not np.isfinite(lam[a]):
-            return 0
-    if not lam[0] > lam[k - 1] / max_cond ** 2:
+    ok, lam, V = _conditioned_eigh(Kn, max_cond)
+    if not ok:
         return 0
     M = np.empty((k, k))
     for a in range(k):
@@ -325,11 +374,8 @@ def normal_transforms(K, g, one_pass_cond):
         for a in range(s):
             for b in range(s):
                 Kn[a, b] = K[i, a, b] / (d[a] * d[b])
-        lam, V = _eigh_jacobi(Kn)
-        for a in range(s):
-            if not np.isfinite(lam[a]):
-                return False, T, Rg, gtg_view
-        if not lam[0] > lam[s - 1] / one_pass_cond ** 2:
+        ok, lam, V = _conditioned_eigh(Kn, one_pass_cond)
+        if not ok:
             return False, T, Rg, gtg_view
         for a in range(s):  # Mb = V / d / sqrt(lam)
             for b in range(s):
@@ -372,11 +418,8 @@ def normal_transforms(K, g, one_pass_cond):
         dp = np.sqrt(Kp[j, j])
         if not (dp > 0.0 and np.isfinite(dp)):
             return False, T, Rg, gtg_view
-    lg, Vg = _eigh_jacobi(Kp)
-    for j in range(g):
-        if not np.isfinite(lg[j]):
-            return False, T, Rg, gtg_view
-    if not lg[0] > lg[g - 1] / one_pass_cond ** 2:
+    ok, lg, Vg = _conditioned_eigh(Kp, one_pass_cond)
+    if not ok:
         return False, T, Rg, gtg_view
     Mg = np.empty((g, g))
     for j in range(g):

@@ -24,7 +24,7 @@ standard errors. Both come from the Jacobian at the solution:
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from functools import cached_property
 
 import numpy as np
@@ -138,43 +138,22 @@ class Linear:
 
 def linearise(result, exclude=None) -> Linear:
     """The fit of ``result`` linearised at its solution (``exclude`` (n_images, M) bool: observations left out)."""
-    from psdcal.calibration._refine import Evaluator, Problem
+    from psdcal.calibration._verdict_jacobian import rich_jacobian
     from psdcal.calibration.checks import align_to_problem
-    from psdcal.calibration.core import inputs_from_record
 
     res = align_to_problem(result)
     p = res.problem
-    T, obs = inputs_from_record(p)
-    gains = np.asarray(res.gains, float) if res.model.fit_gains else np.ones(4)
     spec = res.model
     opts = p.get("options", {}) if isinstance(p, dict) else {}
     fixed = tuple(n for n in (opts.get("fix") or {}) if n in spec.global_names)
     prior_names = tuple(n for q in (opts.get("priors") or []) for n in q.get("names", []) if n in spec.global_names)
-    # the richer model: the terms this one leaves out (the next radial term, tangential, PSD l1, skew, fy) at 0; its
-    # Jacobian holds this model's columns and theirs (one evaluation for both)
-    rich = replace(spec, radial=min(3, spec.radial + 1), tangential=True, psd_radial=max(spec.psd_radial, 1),
-                   skew=spec.skew or not spec.aspect, aspect=True)
-    extra_names = [n for n in rich.global_names if n not in spec.global_names]
-    prob = Problem(T, obs, rich, cost="image", sensor_mm=tuple(res.sensor_mm))
-    ev = Evaluator(prob, res.intrinsics, res.distortion, gains)
-    # the compact block Jacobian: the global columns, then each row's own view's six pose columns
-    r, Jc = ev.evaluate_compact(prob.pack(res.intrinsics, res.distortion, gains, res.rvecs, res.tvecs_mm))
-    r = np.asarray(r, dtype=float)
-    Jc = np.asarray(Jc, dtype=float)
-    ng_r = prob.n_global
-    free = [n for n in spec.global_names if n not in fixed]
-    g, ne = len(free), len(extra_names)
-    # one gather: each row's view's six pose columns, the free global columns, the left-out terms', the fixed ones
-    # (ndarray.take with an index array: row-major, as normal_bases wants it, and about half the time of the fancy
-    # index, whose copy is column-major)
-    cols = np.array(list(range(ng_r, ng_r + POSE)) + [prob.names.index(n) for n in (*free, *extra_names, *fixed)],
-                    dtype=np.intp)
-    X = Jc.take(cols, axis=1)
-    if not spec.aspect:  # the rich model's f moves x only and fy y: this model's f moves both
-        if "f_mm" in free or "f_mm" in fixed:
-            j = POSE + (free.index("f_mm") if "f_mm" in free else g + ne + fixed.index("f_mm"))
-            X[:, j] += Jc[:, prob.names.index("fy_mm")]
-    img, led, d_meas = ev.img_idx, ev.pt_idx, ev.d_meas
+    # the richer model (the terms this one leaves out at 0): its Jacobian holds this model's columns and theirs, the
+    # free global columns, the left-out terms', the fixed ones, then each row's own view's six pose columns
+    rj = rich_jacobian(res, fixed)
+    r, X, img, led, d_meas, n_img = rj.r, rj.X, rj.img, rj.led, rj.d_meas, rj.n_img
+    free, extra_names = list(rj.free), list(rj.extra)
+    g, ne, nf = len(free), len(extra_names), len(fixed)
+    dense = rj.dense and exclude is None
     if exclude is not None:
         keep_pt = ~np.asarray(exclude, dtype=bool)[img, led]
         rows = np.repeat(keep_pt, 2)
@@ -182,14 +161,15 @@ def linearise(result, exclude=None) -> Linear:
         img, led, d_meas = img[keep_pt], led[keep_pt], d_meas[keep_pt]
     e_raw = -r
     row_img = np.repeat(img, 2)
-    blocks = normal_bases(X, g, ne, row_img, obs.shape[0]) if r.size // 2 > NORMAL_BASES_MIN_POINTS else None
+    blocks = normal_bases(X, g, ne, row_img, n_img, pose_last=True, dense=dense or None) \
+        if r.size // 2 > NORMAL_BASES_MIN_POINTS else None
     if blocks is None and exclude is None:  # the QR path's products on the column-major columns they have always
         X = np.asfortranarray(X)  # had (a fancy index's copy): BLAS sums in the same order, the same numbers
-    Jpose, G, extra, Gh = X[:, :POSE], X[:, POSE:POSE + g], X[:, POSE + g:POSE + g + ne], X[:, POSE + g + ne:]
+    G, extra, Gh, Jpose = X[:, :g], X[:, g:g + ne], X[:, g + ne:g + ne + nf], X[:, g + ne + nf:]
     if blocks is not None:
         perp, h, rank, perp_pose, pgram = blocks.perp, blocks.h, blocks.rank, blocks.perp_pose, blocks.pgram
     else:
-        perp, h, rank, perp_pose, pgram = projector(G, Jpose, row_img, obs.shape[0], gram=True)
+        perp, h, rank, perp_pose, pgram = projector(G, Jpose, row_img, n_img, gram=True)
     e = perp(e_raw[:, None])[:, 0]  # the solver stops within its tolerance of the stationary point
     held = _held(free, fixed, prior_names, G, Gh, perp_pose(G), perp_pose, e_raw, e, rank) if (fixed or prior_names) \
         else None
@@ -199,11 +179,25 @@ def linearise(result, exclude=None) -> Linear:
                   tuple(free), G, perp_pose, held, pgram, blocks)
 
 
+#: Up to this condition number of the scaled matrix :func:`_pinv_sym` takes the compiled loop (its result and
+#: LAPACK's then differ by ``eps cond``, rounding); beyond it (and with a dropped direction) numpy's code.
+PINV_COMPILED_MAX_COND = 1e6
+
+
 def _pinv_sym(N) -> np.ndarray:
     """Pseudo-inverse of a symmetric positive semi-definite matrix, scaled for conditioning.
 
     ``np.linalg.pinv(Ns, rcond=1e-12, hermitian=True)`` of the scaled matrix written out (its eigenvalues below
-    1e-12 of the largest in magnitude dropped), without its checks and wrappers (some 50 us a call)."""
+    1e-12 of the largest in magnitude dropped), without its checks and wrappers; with the compiled kernels, in one
+    compiled loop where the scaled matrix is conditioned better than :data:`PINV_COMPILED_MAX_COND`
+    (:func:`psdcal.calibration._verdict_kernel.pinv_sym`: the eigenproblem by Jacobi rotations, equal to rounding,
+    tested)."""
+    if N.shape[0] and _jit.use_compiled(0):
+        from psdcal.calibration._verdict_kernel import pinv_sym
+
+        out = np.empty(N.shape)
+        if pinv_sym(np.ascontiguousarray(N, dtype=float), out, PINV_COMPILED_MAX_COND):
+            return out
     d = np.sqrt(np.maximum(np.diag(N), 1e-300))
     dd = d[:, None] * d[None, :]
     lam, U = np.linalg.eigh(N / dd)
@@ -499,6 +493,17 @@ def group_shift(lin: Linear, rows) -> np.ndarray:
         gs = lin.gt[rows]
     Nm = lin.gtg - gs.T @ gs
     return -_pinv_sym(Nm) @ (gs.T @ lin.e[rows])
+
+
+def view_shift(lin: Linear, k: int) -> np.ndarray:
+    """:func:`group_shift` of all the rows of view ``k`` (from the per-view Gram matrices without finding the view
+    in a row mask where there are: the same arithmetic)."""
+    b = lin.blocks
+    if b is not None:  # the views' rows in order, nr each
+        nr = b.Q.shape[1]
+        gte = b.Rg.T @ (b.Q[k, :, POSE:].T @ lin.e[k * nr:(k + 1) * nr])
+        return -_pinv_sym(lin.gtg - b.gtg_view[k]) @ gte
+    return group_shift(lin, np.repeat(lin.img == k, 2))
 
 
 def group_f(lin: Linear, groups, n_groups, ssr, dof):

@@ -478,20 +478,20 @@ def with_verdict(res: CalibrationResult, *, noise_mm: float | None = None, point
     stages = dict(res.stages or {})
     old = float(stages.get("covariance_inflation", {}).get("factor", 1.0))
     new = v.inflation
-    if old != new:
-        k = new / old
-        sk = math.sqrt(k)
-        std = {n: (None if s is None else float(s) * sk) for n, s in res.std.items()}
-        if new == 1.0:
-            stages.pop("covariance_inflation", None)
-        else:
-            why = [c.name for c in v.checks if (c.inflation or 1.0) == new]
-            stages["covariance_inflation"] = {
-                "factor": float(new), "checks": why,
-                "rule": "covariance x (1 + effect_sigma^2) of the verdict's largest effect (psdcal.calibration.verdict)"}
-        res = replace(res, covariance=np.asarray(res.covariance, dtype=float) * k, std=std,
-                      pose_std=np.asarray(res.pose_std, dtype=float) * sk, stages=stages)
-    return replace(res, verdict=v.to_dict())
+    if old == new:
+        return replace(res, verdict=v.to_dict())
+    k = new / old
+    sk = math.sqrt(k)
+    std = {n: (None if s is None else float(s) * sk) for n, s in res.std.items()}
+    if new == 1.0:
+        stages.pop("covariance_inflation", None)
+    else:
+        why = [c.name for c in v.checks if (c.inflation or 1.0) == new]
+        stages["covariance_inflation"] = {
+            "factor": float(new), "checks": why,
+            "rule": "covariance x (1 + effect_sigma^2) of the verdict's largest effect (psdcal.calibration.verdict)"}
+    return replace(res, covariance=np.asarray(res.covariance, dtype=float) * k, std=std,
+                   pose_std=np.asarray(res.pose_std, dtype=float) * sk, stages=stages, verdict=v.to_dict())
 
 
 def _calibrate_constrained(template_mm, points_mm, *, fix, priors, gains, fit_gains, solver, verdict=True, noise_mm=None,

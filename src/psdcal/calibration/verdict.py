@@ -79,6 +79,7 @@ from psdcal.calibration._verdict_linear import (
     structure_fields,
     structure_test,
     terms_test,
+    view_shift,
 )
 from psdcal.calibration._verdict_rules import (
     C_FRACTION,
@@ -318,7 +319,7 @@ def _assess(result, *, noise_mm, points_kind, diagnose) -> Verdict:
         vid = result.image_ids[worst]
         eff = None
         if p < ALPHA and cons:
-            eff = effect(cons, group_shift(lin, np.repeat(lin.img == worst, 2)))
+            eff = effect(cons, view_shift(lin, worst))
         ch = _judge(
             "views", float(F[worst]), None, p, None, eff,
             f"view {vid} disagrees with the others (F = {F[worst]:.3g}, p = {p:.2g} after {n_img} views)",
