@@ -5,7 +5,8 @@ command-line table); these tests check the mechanisms behind it: no numba,
 scipy, matplotlib or rich (the table is written without rich when the output
 is not styled), no difflib (click's suggestions for a short option), no
 tempfile, OpenSSL's hashlib or the priors module; one BLAS thread from the
-start unless the user set the count; the same bytes on stdout as rich writes.
+start unless the user set the count (and then threadpoolctl's limit, not
+needed otherwise); the same bytes on stdout as rich writes.
 """
 from __future__ import annotations
 
@@ -21,7 +22,7 @@ import pytest
 DATA = Path(__file__).resolve().parent / "data"
 SETS = [DATA / "zhang1998", DATA / "chessboards" / "opencv_left"]
 NOT_LOADED = ("numba", "scipy", "matplotlib", "rich", "difflib", "tempfile", "_hashlib",
-              "psdcal.calibration.priors", "psdcal.calibration._image_kernel")
+              "psdcal.calibration.priors", "psdcal.calibration._image_kernel", "threadpoolctl")
 
 
 def _fresh(args, env=None, probe="BLAS"):
@@ -50,7 +51,7 @@ def test_a_users_blas_thread_count_is_kept_and_priors_load_when_asked(tmp_path):
     d = SETS[0]
     rc, loaded, blas = _fresh(["calibrate", d / "points.csv", "-t", d / "template.csv", "--fix", "p2=0", "-q"],
                               env={"OPENBLAS_NUM_THREADS": "2"})
-    assert rc == 0 and blas == ["2", "1"] and loaded == ["psdcal.calibration.priors"]
+    assert rc == 0 and blas == ["2", "1"] and loaded == ["psdcal.calibration.priors", "threadpoolctl"]
 
 
 def test_option_errors_are_unchanged(capsys):

@@ -643,11 +643,13 @@ def _single_threaded_blas(needed: bool = True):
     Nested uses (a refinement inside a calibration) cost nothing: only the
     outermost one of a thread asks threadpoolctl (some 6-50 us per call, even
     when the limit is already set). ``needed=False`` (a problem too small for
-    any BLAS call to use threads) skips threadpoolctl for the whole block."""
+    any BLAS call to use threads) skips threadpoolctl for the whole block, and
+    so does a process whose BLAS was started with one thread
+    (:func:`assume_one_blas_thread`)."""
     depth = getattr(_DEPTH, "n", 0)
     _DEPTH.n = depth + 1
     try:
-        if depth or not needed:
+        if depth or not needed or _ONE_BLAS_THREAD:
             yield
         else:
             with _blas_limit():
@@ -657,6 +659,17 @@ def _single_threaded_blas(needed: bool = True):
 
 
 _DEPTH = threading.local()  # .n: how many _single_threaded_blas contexts this thread has open
+#: True once :func:`assume_one_blas_thread` said the BLAS runs on one thread for the whole process.
+_ONE_BLAS_THREAD = False
+
+
+def assume_one_blas_thread() -> None:
+    """Declare that this process's BLAS was started with one thread (its thread-count variables set to 1
+    before numpy was first imported, as a fresh ``psdcal calibrate`` does): :func:`_single_threaded_blas` then
+    does not load threadpoolctl, whose first use (importing it, finding the loaded libraries) costs a
+    one-shot command more than any limit it could set."""
+    global _ONE_BLAS_THREAD
+    _ONE_BLAS_THREAD = True
 
 
 def _blas_limit():

@@ -93,7 +93,7 @@ def calibrate_command(points, template, output, cost, radial, tangential, psd_ra
 
     Example: psdcal calibrate points.csv -t template.csv -o calib.json --psd-radial 1
     """
-    _one_blas_thread()
+    one_thread = _one_blas_thread()
     from psdcal.calibration.core import calibrate, with_verdict
     from psdcal.errors import ConvergenceError, DegenerateViewsError, InputError
     from psdcal.io import read_points, read_template, save_calibration
@@ -118,8 +118,10 @@ def calibrate_command(points, template, output, cost, radial, tangential, psd_ra
     check_bytes(2.0 * n_img * n_pts * (20 + 6 * n_img) * 8 * 3, f"{n_img} views of {n_pts} points", "POINTS")
     if fit_gains and pf.kind != "amplitudes":
         raise InputError("--fit-gains needs raw amplitudes (header image_id,point_id,vx1,vx2,vy1,vy2)", path=points, line=1)
-    from psdcal.calibration._refine import SolverOptions
+    from psdcal.calibration._refine import SolverOptions, assume_one_blas_thread
 
+    if one_thread:
+        assume_one_blas_thread()  # no threadpoolctl: the BLAS started with one thread
     _kernels_for(pf.points_mm, quiet)
     bench_gains = None
     if gains_file is not None:
@@ -312,7 +314,7 @@ def _sha256(data: bytes):
 BLAS_THREAD_VARIABLES = ("OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
 
 
-def _one_blas_thread() -> None:
+def _one_blas_thread() -> bool:
     """Start the BLAS with one thread when numpy is not loaded yet (a fresh ``psdcal calibrate``).
 
     The calibration and its verdict run on one BLAS thread anyway (small dense
@@ -321,14 +323,19 @@ def _one_blas_thread() -> None:
     waiting for work: some 40 ms of CPU in a short command on two cores. A
     value the user set is kept; in a process that already has numpy (a test,
     a notebook) nothing changes.
+
+    Returns True when numpy will start its BLAS with one thread (every one of
+    these variables is 1 before numpy's first import), so that the calibration
+    need not ask threadpoolctl for the limit again.
     """
     import os
     import sys
 
     if "numpy" in sys.modules:
-        return
+        return False
     for var in BLAS_THREAD_VARIABLES:
         os.environ.setdefault(var, "1")
+    return all(os.environ[var].strip() == "1" for var in BLAS_THREAD_VARIABLES)
 
 
 def _echo_constraints(res):
