@@ -403,6 +403,12 @@ def _basis(lin: Linear, B):
     else:
         btb = B.gram() if parts else B.T @ B
         K = lin.gram_perp(B, btb)
+    if _jit.use_compiled(lin.e.size // 2):  # the same steps in one kernel (tested against the code below)
+        from psdcal.calibration import _fields_kernel as fk
+
+        ok, ute, W = fk.field_coords(btb, K, _bte(lin, B))
+        if ok:
+            return ute, W
     scale = np.maximum(np.sqrt(np.maximum(np.diag(btb), 0.0)), 1e-300)
     K = K / np.outer(scale, scale)  # that of B's columns scaled to norm 1
     nb = np.sqrt(np.maximum(np.diag(K), 0.0))
@@ -469,6 +475,12 @@ def field_shift(lin: Linear, B, *, min_visible: float = 0.0) -> tuple[np.ndarray
     # (the visible fraction of each combination) from its Gram matrix M^T K M: no tall factorisation. Bn is B with
     # columns scaled to norm 1: its Gram matrices are B's scaled (one Gram of B serves the F-test and this).
     btb = B.gram() if parts else B.T @ B
+    if _jit.use_compiled(lin.e.size // 2):  # the same steps in one kernel (tested against the code below)
+        from psdcal.calibration import _fields_kernel as fk
+
+        ok, c = fk.visible_fit(btb, lin.gram_perp(B, btb), _bte(lin, B), float(min_visible))
+        if ok:
+            return c, -lin.ninv @ gt_b(c)
     scale = np.maximum(np.sqrt(np.maximum(np.diag(btb), 0.0)), 1e-300)
     ss = np.outer(scale, scale)
     M = _span_basis(btb / ss)
