@@ -180,6 +180,17 @@ class FieldParts:
         out[:, :, 2 * p:] = np.swapaxes(M[:, p:p + 2, :s_] + M[:, p + 2:, s_:], 1, 2)
         return out
 
+    def field(self, c) -> np.ndarray:
+        """(N, 2) the field ``B c`` at the points (x, y), for coefficients ``c`` (k,) of B's columns."""
+        p = self.mono.shape[1]
+        c = np.asarray(c, dtype=float)
+        cm = np.zeros((p + 4, 2))  # the coefficients of the points' parts (see _ext) for the x and y components
+        cm[:p, 0] = c[0:2 * p:2]
+        cm[:p, 1] = c[1:2 * p:2]
+        cm[p:p + 2, 0] = c[2 * p:]
+        cm[p + 2:, 1] = c[2 * p:]
+        return self._ext() @ cm
+
     def gram(self) -> np.ndarray:
         """``B^T B`` (k, k) (computed once: the parts are not changed after construction)."""
         if getattr(self, "_gram", None) is None:
@@ -209,8 +220,10 @@ def field_parts(pts, c_mm, half_mm) -> FieldParts:
     if pts.ndim == 2 and _jit.use_compiled(pts.shape[0]):  # the same products in one loop (tested equal)
         from psdcal.calibration._rules_kernel import field_parts as kernel
 
-        return FieldParts(*kernel(np.ascontiguousarray(pts), np.asarray(c_mm, dtype=float),
-                                  np.broadcast_to(np.asarray(half_mm, dtype=float), (2,)).copy(), FIELD_DEGREE))
+        half = np.asarray(half_mm, dtype=float)
+        if half.shape != (2,):  # a scalar: both axes
+            half = np.broadcast_to(half, (2,)).copy()
+        return FieldParts(*kernel(np.ascontiguousarray(pts), np.asarray(c_mm, dtype=float), half, FIELD_DEGREE))
     u = pts / half_mm
     n = pts.shape[0]
     # the monomials u^i v^j (i + j <= FIELD_DEGREE) from the powers of u and v, in the order i, then j
