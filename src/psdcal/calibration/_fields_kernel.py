@@ -27,6 +27,7 @@ import numpy as np
 
 from psdcal._jit import njit
 from psdcal.calibration._image_kernel import _cholesky
+from psdcal.calibration._rules_kernel import field_parts
 
 #: Relative size of an off-diagonal entry of the tridiagonal matrix below which it counts as zero (the unit
 #: roundoff of double precision times two).
@@ -357,3 +358,20 @@ def visible_fit(btb, K, bte, min_visible):
             t += M[q, j] * w[j]
         c[q] = t / scale[q]
     return True, c
+
+
+@njit
+def field_parts_ext(pts, c, half, degree):
+    """:func:`psdcal.calibration._rules_kernel.field_parts`'s ``(mono (N, p), R (2N, 2))`` and the two side by side,
+    ``ext`` (N, p + 4): each point's monomials, then its rows of R (x r^4, x r^6, y r^4, y r^6)."""
+    mono, R = field_parts(pts, c, half, degree)
+    n, p = mono.shape
+    ext = np.empty((n, p + 4))
+    for i in range(n):
+        for a in range(p):
+            ext[i, a] = mono[i, a]
+        ext[i, p] = R[2 * i, 0]
+        ext[i, p + 1] = R[2 * i, 1]
+        ext[i, p + 2] = R[2 * i + 1, 0]
+        ext[i, p + 3] = R[2 * i + 1, 1]
+    return mono, R, ext

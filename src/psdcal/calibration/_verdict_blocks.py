@@ -123,9 +123,10 @@ class FieldParts:
     (columns 2k, 2k + 1), then the dense columns ``R`` (2N, r). The products the verdict needs (``B^T B``,
     ``Q^T B``) come from the parts, without the (2N, 2p + r) matrix, whose columns are half zeros."""
 
-    def __init__(self, mono, R):
+    def __init__(self, mono, R, ext=None):
         self.mono = mono
         self.R = R
+        self._ext_memo = ext  # (N, p + 4) the parts side by side (see _ext), when the caller has them
         self.shape = (R.shape[0], 2 * mono.shape[1] + R.shape[1])
 
     def dense(self) -> np.ndarray:
@@ -138,7 +139,7 @@ class FieldParts:
     def _ext(self) -> np.ndarray:
         """(N, p + 4) each point's monomials and its rows of ``R`` side by side (x r^4, x r^6, y r^4, y r^6): the
         products below are one matrix product with it each (computed once)."""
-        ext = getattr(self, "_ext_memo", None)
+        ext = self._ext_memo
         if ext is None:
             ext = np.concatenate([self.mono, self.R.reshape(-1, 4)], axis=1)
             self._ext_memo = ext
@@ -155,6 +156,15 @@ class FieldParts:
         out = np.empty((q, self.shape[1]))
         out[:, :2 * p].reshape(q, p, 2)[...] = M[:p].reshape(p, 2, q).transpose(2, 0, 1)
         out[:, 2 * p:] = (M[p:p + 2, :q] + M[p + 2:, q:]).T
+        return out
+
+    def t_dot(self, e) -> np.ndarray:
+        """``B^T e`` (k,) for ``e`` (2N,) in B's row order (:meth:`coords` of one column)."""
+        p = self.mono.shape[1]
+        M = self._ext().T @ np.asarray(e, dtype=float).reshape(-1, 2)  # (p + 4, 2): with the x rows, the y rows
+        out = np.empty(self.shape[1])
+        out[:2 * p] = M[:p].ravel()
+        out[2 * p:] = M[p:p + 2, 0] + M[p + 2:, 1]
         return out
 
     def coords_blocks(self, Qbt) -> np.ndarray:
@@ -218,7 +228,7 @@ def field_parts(pts, c_mm, half_mm) -> FieldParts:
     """:func:`field_basis` in parts (:class:`FieldParts`)."""
     pts = np.asarray(pts, dtype=float)
     if pts.ndim == 2 and _jit.use_compiled(pts.shape[0]):  # the same products in one loop (tested equal)
-        from psdcal.calibration._rules_kernel import field_parts as kernel
+        from psdcal.calibration._fields_kernel import field_parts_ext as kernel
 
         half = np.asarray(half_mm, dtype=float)
         if half.shape != (2,):  # a scalar: both axes

@@ -382,7 +382,7 @@ def _bte(lin: Linear, B) -> np.ndarray:
     memo = getattr(B, "_bte", None)
     if memo is not None and memo[0] is lin:
         return memo[1]
-    bte = B.coords(lin.e[:, None])[0]
+    bte = B.t_dot(lin.e)
     B._bte = (lin, bte)
     return bte
 
