@@ -375,3 +375,42 @@ def field_parts_ext(pts, c, half, degree):
         ext[i, p + 2] = R[2 * i + 1, 0]
         ext[i, p + 3] = R[2 * i + 1, 1]
     return mono, R, ext
+
+
+@njit
+def angle_shifts(A, full, D, f, sd, cov):
+    """:func:`psdcal.calibration._verdict_linear.effect`'s sums: the angles' shifts ``da = A full`` (2K,) less the
+    field ``f`` (K, 2) through ``D`` (K, 2, 2) (no field: ``f`` of zero rows), then (the largest ``|da| / sd`` over
+    the rows with ``sd > 0``, 0 without any; the largest ``|da|``, 0 without rows; the parameters' standard errors
+    ``sqrt(max(diag(cov), 0))``). A NaN shift makes the maxima it enters NaN, as numpy's maximum does."""
+    m, n = A.shape
+    sig = 0.0
+    rad = 0.0
+    nan_sig = False
+    nan_rad = False
+    for r in range(m):
+        t = 0.0
+        for j in range(n):
+            t += A[r, j] * full[j]
+        if f.shape[0]:
+            i = r // 2
+            a = r - 2 * i
+            t = t - (D[i, a, 0] * f[i, 0] + D[i, a, 1] * f[i, 1])
+        x = abs(t)
+        if x != x:
+            nan_rad = True
+            if sd[r] > 0.0:
+                nan_sig = True
+        if x > rad:
+            rad = x
+        if sd[r] > 0.0 and x / sd[r] > sig:
+            sig = x / sd[r]
+    if nan_sig:
+        sig = np.nan
+    if nan_rad:
+        rad = np.nan
+    k = cov.shape[0]
+    sdp = np.empty(k)
+    for i in range(k):
+        sdp[i] = math.sqrt(max(cov[i, i], 0.0))
+    return sig, rad, sdp

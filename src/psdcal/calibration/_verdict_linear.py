@@ -758,11 +758,36 @@ def effect(cons: Consequences, dtheta, *, dextra=None, field_at_grid=None) -> Ef
     """The effect of a parameter shift ``dtheta`` (free parameters), with the extra terms' values ``dextra`` and
     an additive field on the sensor ``field_at_grid`` (K, 2) mm removed from the measured points."""
     n_free = len(dtheta)
-    sdp = np.sqrt(np.maximum(np.diag(cons.cov), 0.0)).tolist()
     full = np.zeros(len(cons.names))
     full[:n_free] = dtheta
     if dextra is not None:
         full[n_free:] = dextra
+    if _jit.use_compiled(cons.sd.size // 2):  # the same sums in one loop (tested against the code below)
+        from psdcal.calibration import _fields_kernel as fk
+
+        f = _NO_FIELD if field_at_grid is None else np.ascontiguousarray(field_at_grid, dtype=float)
+        ang_sig, ang_rad, sdp = fk.angle_shifts(cons.A, full, cons.D, f, cons.sd, cons.cov)
+        sdp = sdp.tolist()
+    else:
+        ang_sig, ang_rad, sdp = _angle_shifts(cons, full, field_at_grid)
+    dth = np.abs(np.asarray(dtheta, dtype=float)).tolist()
+    params = {n: dth[k] / sdp[k] for k, n in enumerate(cons.names[:n_free]) if sdp[k] > 0}
+    key = {k: v for k, v in params.items() if k in KEY_PARAMETERS}
+    what, sig = "the angles", ang_sig
+    if key:
+        kmax = max(key, key=key.get)
+        if key[kmax] > sig:
+            what, sig = kmax, key[kmax]
+    return Effect(float(sig), what, ang_rad, ang_sig, params)
+
+
+_NO_FIELD = np.zeros((0, 2))
+
+
+def _angle_shifts(cons: Consequences, full, field_at_grid):
+    """(the largest angle shift in its standard errors, the largest angle shift (rad), the parameters' standard
+    errors as a list) of the parameter shift ``full`` (all of ``cons.names``) and the field ``field_at_grid``."""
+    sdp = np.sqrt(np.maximum(np.diag(cons.cov), 0.0)).tolist()
     da = cons.A @ full
     if field_at_grid is not None:  # D (K, 2, 2) times the field (K, 2), the sum over its two components written out
         f = np.asarray(field_at_grid, dtype=float)
@@ -776,15 +801,7 @@ def effect(cons: Consequences, dtheta, *, dextra=None, field_at_grid=None) -> Ef
         z = np.abs(da[ok]) / sd[ok] if ok.any() else np.zeros(1)
     ang_sig = float(np.max(z)) if z.size else 0.0
     ang_rad = float(np.max(np.abs(da))) if da.size else 0.0
-    dth = np.abs(np.asarray(dtheta, dtype=float)).tolist()
-    params = {n: dth[k] / sdp[k] for k, n in enumerate(cons.names[:n_free]) if sdp[k] > 0}
-    key = {k: v for k, v in params.items() if k in KEY_PARAMETERS}
-    what, sig = "the angles", ang_sig
-    if key:
-        kmax = max(key, key=key.get)
-        if key[kmax] > sig:
-            what, sig = kmax, key[kmax]
-    return Effect(float(sig), what, ang_rad, ang_sig, params)
+    return ang_sig, ang_rad, sdp
 
 
 def structure_test(result, exclude=None) -> tuple[float, float]:
