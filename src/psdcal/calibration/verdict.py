@@ -64,22 +64,24 @@ import numpy as np
 
 from psdcal import _stats
 from psdcal._consistency import Check
+from psdcal.calibration._verdict_fields import (
+    explained,
+    f_test,
+    field_shift,
+    structure_fields,
+    structure_test,
+    terms_test,
+)
 from psdcal.calibration._verdict_linear import (
     FIELD_DEGREE,
     Linear,
     consequences,
     effect,
-    explained,
-    f_test,
     field_basis,
     field_parts,
-    field_shift,
     group_f,
     group_shift,
     linearise,
-    structure_fields,
-    structure_test,
-    terms_test,
 )
 from psdcal.calibration._verdict_rules import (
     C_FRACTION,
