@@ -53,7 +53,7 @@ def _matrices(rng):
 
 
 def test_eigh_equals_lapack():
-    from psdcal.calibration._fields_kernel import eigh
+    from psdcal.calibration._fields_kernel import _eigh_apply, eigh
 
     for K in _matrices(np.random.default_rng(5)):
         ok, lam, V = eigh(K)
@@ -65,6 +65,10 @@ def test_eigh_equals_lapack():
         np.testing.assert_allclose(lam, ref, rtol=0, atol=1e-14 * n * scale)
         np.testing.assert_allclose(K @ V, V * lam, rtol=0, atol=1e-14 * n * scale)
         np.testing.assert_allclose(V.T @ V, np.eye(n), rtol=0, atol=1e-14 * n)
+        y = np.random.default_rng(n).standard_normal((n, 1))
+        z = y.copy()
+        assert _eigh_apply(K, z)[0]  # a vector's coordinates on the eigenvectors, without them
+        np.testing.assert_allclose(z, V.T @ y, rtol=0, atol=1e-13 * n * np.abs(y).max())
     assert not eigh(np.array([[1.0, np.nan], [np.nan, 1.0]]))[0]
 
 
@@ -89,10 +93,13 @@ def test_field_coords_and_visible_fit_equal_numpys_on_constructed_columns(monkey
         lin = L.Linear(e, lambda X: X - Jq @ (Jq.T @ X), np.zeros(m), np.zeros((m // 2, 2)), np.zeros(m // 2, int),
                        np.zeros(m // 2, int), 4, names=("a", "b", "c", "d"), g=Jq, perp_pose=lambda X: X)
         ute, W = _numpy(monkeypatch, lambda: VF._basis(lin, B))
-        ok, ute_c, W_c = fk.field_coords(btb, K, bte)
+        ok, ute_c, W_c = fk.field_coords(btb, K, bte, True)
         assert ok and ute_c.size == ute.size
         assert ute_c @ ute_c == pytest.approx(ute @ ute, rel=1e-10, abs=1e-12 * (e @ e))
         np.testing.assert_allclose(W_c @ ute_c, W @ ute, rtol=0, atol=1e-10 * np.abs(W @ ute).max())
+        ok, ute_v, _ = fk.field_coords(btb, K, bte, False)  # the coordinates without the eigenvectors
+        assert ok and ute_v.size == ute.size
+        np.testing.assert_allclose(np.abs(ute_v), np.abs(ute_c), rtol=0, atol=1e-10 * np.abs(ute_c).max())
         for vis in (0.05, 0.3, 0.9):
             c0, dth0 = _numpy(monkeypatch, lambda: VF.field_shift(lin, B, min_visible=vis))
             c, dth = VF.field_shift(lin, B, min_visible=vis)

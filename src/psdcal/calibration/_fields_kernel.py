@@ -1,8 +1,8 @@
 """The verdict's field tests compiled: the small symmetric eigenproblems of the F-test and of the restricted refit.
 
-:func:`psdcal.calibration._verdict_linear._basis` (the residuals' coordinates on
+:func:`psdcal.calibration._verdict_fields._basis` (the residuals' coordinates on
 the fields the parameters do not absorb, the nested F-test's explained sum of
-squares) and :func:`psdcal.calibration._verdict_linear.field_shift` (the
+squares) and :func:`psdcal.calibration._verdict_fields.field_shift` (the
 linearised refit with the fields whose visible part is large enough) end in a
 few operations on (k, k) matrices, k the number of fields (22 for the
 structure check, a handful for the terms the model leaves out): scalings, an
@@ -57,22 +57,24 @@ def _negligible(d, e, i):
 
 
 @njit
-def eigh(K):
-    """(ok, eigenvalues ascending (n,), eigenvectors as columns (n, n)) of the symmetric ``K`` (its lower triangle
-    read, as ``np.linalg.eigh`` does); ok False on non-finite input or no convergence."""
+def _eigh_apply(K, Zt):
+    """(ok, eigenvalues ascending (n,)) of the symmetric ``K`` (its lower triangle read, as ``np.linalg.eigh``
+    does), and ``Zt`` (n, r) replaced by ``V^T Zt`` (V the eigenvectors as columns, in the eigenvalues' order):
+    the identity gives ``V^T``, a column a vector's coordinates on the eigenvectors. ok False on non-finite input
+    or no convergence."""
     n = K.shape[0]
     A = np.empty((n, n))
     for i in range(n):
         for j in range(i + 1):
             x = K[i, j]
             if not math.isfinite(x):
-                return False, np.zeros(n), np.zeros((n, n))
+                return False, np.zeros(n)
             A[i, j] = x
             A[j, i] = x
-    Zt = np.eye(n)  # the eigenvectors' transpose (rows), accumulated
+    nc = Zt.shape[1]
     u = np.zeros(n)
-    p = np.zeros(n)
-    # Householder reflections H = I - u u^T (|u|^2 = 2) zero column k below its subdiagonal: A <- H A H, Z <- Z H
+    p = np.zeros(max(n, nc))
+    # Householder reflections H = I - u u^T (|u|^2 = 2) zero column k below its subdiagonal: A <- H A H, Zt <- H Zt
     for k in range(n - 2):
         sigma = 0.0
         for i in range(k + 2, n):
@@ -107,15 +109,15 @@ def eigh(K):
         for i in range(k + 2, n):
             A[i, k] = 0.0
             A[k, i] = 0.0
-        for r in range(n):  # Zt <- H Zt (Zt = Z^T: its rows are updated, contiguous)
+        for r in range(nc):  # Zt <- H Zt (its rows updated: contiguous)
             p[r] = 0.0
         for j in range(k + 1, n):
             uj = u[j]
-            for r in range(n):
+            for r in range(nc):
                 p[r] += uj * Zt[j, r]
         for j in range(k + 1, n):
             uj = u[j]
-            for r in range(n):
+            for r in range(nc):
                 Zt[j, r] -= uj * p[r]
     # the tridiagonal matrix: diagonal d, subdiagonal e
     d = np.empty(n)
@@ -125,7 +127,7 @@ def eigh(K):
         if i + 1 < n:
             e[i] = A[i + 1, i]
     # implicit symmetric QR steps with Wilkinson's shift on the unreduced trailing block [lo, hi]: Givens rotations G
-    # chase the bulge down (T <- G^T T G, Z <- Z G)
+    # chase the bulge down (T <- G^T T G, Zt <- G^T Zt)
     hi = n - 1
     steps = 0
     while hi > 0:
@@ -140,7 +142,7 @@ def eigh(K):
             e[lo - 1] = 0.0
         steps += 1
         if steps > 30 * n:
-            return False, np.zeros(n), np.zeros((n, n))
+            return False, np.zeros(n)
         b = e[hi - 1]
         dd = 0.5 * (d[hi - 1] - d[hi])
         r = math.hypot(dd, b)
@@ -164,7 +166,7 @@ def eigh(K):
                 z = -s * e[k + 1]  # the new bulge at (k, k + 2)
                 e[k + 1] = c * e[k + 1]
                 x = e[k]
-            for j in range(n):
+            for j in range(nc):  # Zt <- G^T Zt
                 t1 = Zt[k, j]
                 t2 = Zt[k + 1, j]
                 Zt[k, j] = c * t1 - s * t2
@@ -176,17 +178,26 @@ def eigh(K):
             t = lam[j - 1]
             lam[j - 1] = lam[j]
             lam[j] = t
-            for r in range(n):
+            for r in range(nc):
                 t = Zt[j - 1, r]
                 Zt[j - 1, r] = Zt[j, r]
                 Zt[j, r] = t
             j -= 1
-    return True, lam, Zt.T
+    return True, lam
+
+
+@njit
+def eigh(K):
+    """(ok, eigenvalues ascending (n,), eigenvectors as columns (n, n)) of the symmetric ``K`` (its lower triangle
+    read, as ``np.linalg.eigh`` does); ok False on non-finite input or no convergence."""
+    Zt = np.eye(K.shape[0])
+    ok, lam = _eigh_apply(K, Zt)
+    return ok, lam, Zt.T
 
 
 @njit
 def _eig_desc(K):
-    """:func:`psdcal.calibration._verdict_linear._sym_eig_desc`: (ok, eigenvalues descending and clipped at 0,
+    """:func:`psdcal.calibration._verdict_fields._sym_eig_desc`: (ok, eigenvalues descending and clipped at 0,
     eigenvectors)."""
     ok, lam, V = eigh(K)
     n = lam.shape[0]
@@ -218,11 +229,12 @@ def _finite(x):
 
 
 @njit
-def field_coords(btb, K, bte):
-    """:func:`psdcal.calibration._verdict_linear._basis` from B's Gram matrix ``btb`` (k, k), that of ``(I - P) B``
-    ``K`` (k, k) and ``B^T e`` ``bte`` (k,): (ok, ``ute`` (r,), ``W`` (k, r)) with the same steps (the columns
-    scaled to norm 1, those the parameters absorb to 1e-4 left out, the directions whose singular value is below
-    1e-2 of the largest dropped)."""
+def field_coords(btb, K, bte, weights):
+    """:func:`psdcal.calibration._verdict_fields._basis` from B's Gram matrix ``btb`` (k, k), that of ``(I - P) B``
+    ``K`` (k, k) and ``B^T e`` ``bte`` (k,): (ok, ``ute`` (r,), ``W`` (k, r), (k, 0) without ``weights``) with the
+    same steps (the columns scaled to norm 1, those the parameters absorb to 1e-4 left out, the directions whose
+    singular value is below 1e-2 of the largest dropped). Without ``weights`` the eigenvectors are not formed: the
+    rotations are applied to ``bte`` alone."""
     k = btb.shape[0]
     if not (_finite(btb) and _finite(K) and _finite(bte)):
         return False, np.zeros(0), np.zeros((k, 0))
@@ -239,7 +251,19 @@ def field_coords(btb, K, bte):
     for a in range(nu):
         for b in range(nu):
             Ku[a, b] = K[idx[a], idx[b]] / (scale[idx[a]] * scale[idx[b]])
-    ok, lam, V = _eig_desc(Ku)
+    y = np.empty((nu, 1))
+    for a in range(nu):
+        y[a, 0] = bte[idx[a]] / scale[idx[a]]
+    if weights:
+        ok, lam, V = _eig_desc(Ku)
+    else:  # the coordinates V^T y only, eigenvalues ascending, then in _eig_desc's order
+        ok, lam_a = _eigh_apply(Ku, y)
+        lam = np.empty(nu)
+        z = np.empty(nu)
+        for j in range(nu):
+            lam[j] = max(lam_a[nu - 1 - j], 0.0)
+            z[j] = y[nu - 1 - j, 0]
+        V = np.zeros((nu, 0))
     if not ok:
         return False, np.zeros(0), np.zeros((k, 0))
     s0 = math.sqrt(lam[0])
@@ -247,12 +271,15 @@ def field_coords(btb, K, bte):
     while r < nu and math.sqrt(lam[r]) > 1e-2 * s0:
         r += 1
     ute = np.empty(r)
-    W = np.zeros((k, r))
+    W = np.zeros((k, r if weights else 0))
     for j in range(r):
         s = math.sqrt(lam[j])
+        if not weights:
+            ute[j] = z[j] / s
+            continue
         t = 0.0
         for a in range(nu):
-            t += V[a, j] * (bte[idx[a]] / scale[idx[a]])
+            t += V[a, j] * y[a, 0]
         ute[j] = t / s
         for a in range(nu):
             W[idx[a], j] = (V[a, j] / s) / scale[idx[a]]
@@ -261,7 +288,7 @@ def field_coords(btb, K, bte):
 
 @njit
 def _span_basis(Kn):
-    """:func:`psdcal.calibration._verdict_linear._span_basis`: (ok, M (k, r))."""
+    """:func:`psdcal.calibration._verdict_fields._span_basis`: (ok, M (k, r))."""
     k = Kn.shape[0]
     L = np.zeros((k, k))
     if _cholesky(Kn, L):
@@ -298,7 +325,7 @@ def _span_basis(Kn):
 
 @njit
 def visible_fit(btb, K, bte, min_visible):
-    """The coefficients ``c`` (k,) of :func:`psdcal.calibration._verdict_linear.field_shift`'s refit restricted to
+    """The coefficients ``c`` (k,) of :func:`psdcal.calibration._verdict_fields.field_shift`'s refit restricted to
     the combinations of B's columns whose visible fraction exceeds ``min_visible``, from ``btb``, ``K``, ``bte``
     as in :func:`field_coords`: (ok, c), the same steps as the numpy code."""
     k = btb.shape[0]

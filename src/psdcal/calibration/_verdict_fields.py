@@ -62,7 +62,7 @@ def _bte(lin: Linear, B) -> np.ndarray:
     return bte
 
 
-def _basis(lin: Linear, B):
+def _basis(lin: Linear, B, weights: bool = True):
     """The residuals' coordinates ``ute`` on an orthonormal basis U of span((I - P) B) (the fields the parameters do
     not absorb), and the map from them to coefficients of B's columns: ``c = W ute``.
 
@@ -70,7 +70,7 @@ def _basis(lin: Linear, B):
     directions with a singular value below 1e-2 of the largest dropped), found
     from the Gram matrix ``V S^2 V^T`` (:meth:`Linear.gram_perp`): ``U^T e =
     S^-1 V^T B^T e`` as ``e`` is itself projected off the Jacobian. U is never
-    formed (small eigenproblems instead of a tall SVD).
+    formed (small eigenproblems instead of a tall SVD). Without ``weights``, W is None (the test needs ute only).
     """
     parts = isinstance(B, FieldParts)
     if B is lin.extra:
@@ -81,21 +81,23 @@ def _basis(lin: Linear, B):
     if _jit.use_compiled(lin.e.size // 2):  # the same steps in one kernel (tested against the code below)
         from psdcal.calibration import _fields_kernel as fk
 
-        ok, ute, W = fk.field_coords(btb, K, _bte(lin, B))
+        ok, ute, W = fk.field_coords(btb, K, _bte(lin, B), weights)
         if ok:
-            return ute, W
+            return ute, (W if weights else None)
     scale = np.maximum(np.sqrt(np.maximum(np.diag(btb), 0.0)), 1e-300)
     K = K / np.outer(scale, scale)  # that of B's columns scaled to norm 1
     nb = np.sqrt(np.maximum(np.diag(K), 0.0))
     use = nb > 1e-4  # fields the model's parameters absorb (to 1e-4) test nothing
     if not use.any():
-        return np.zeros(0), np.zeros((B.shape[1], 0))
+        return np.zeros(0), (np.zeros((B.shape[1], 0)) if weights else None)
     lam, V = _sym_eig_desc(K[np.ix_(use, use)])
     s = np.sqrt(lam)
     keep = s > 1e-2 * s[0]
     s, V = s[keep], V[:, keep]
     bte = _bte(lin, B)
     ute = (V.T @ (bte[use] / scale[use])) / s
+    if not weights:
+        return ute, None
     W = np.zeros((B.shape[1], s.size))
     W[use] = (V / s) / scale[use, None]
     return ute, W
@@ -103,7 +105,7 @@ def _basis(lin: Linear, B):
 
 def explained(lin: Linear, B) -> tuple[float, int]:
     """Sum of squares of the residuals along span(B) minus the Jacobian's span, and its dimension."""
-    ute, _ = _basis(lin, B)
+    ute, _ = _basis(lin, B, weights=False)
     if ute.size == 0:
         return 0.0, 0
     return float(ute @ ute), int(ute.size)
