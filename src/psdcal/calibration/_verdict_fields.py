@@ -19,6 +19,8 @@ reference.
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from psdcal import _jit, _stats
@@ -185,13 +187,15 @@ def terms_test(lin: Linear):
         return None
     # each term alone too (one degree of freedom: more power for a single missing term); Bonferroni over all tests
     btb, K = lin.extra_gram
-    norms = np.maximum(np.sqrt(np.maximum(np.diag(btb), 0.0)), 1e-300)
-    nb = np.sqrt(np.maximum(np.diag(K), 0.0)) / norms  # norms of the projected unit columns
-    bte = lin.extra_te / norms  # = ((I - P) Bn)^T e for the unit columns Bn: e is itself projected
+    # per column (Python floats: a handful of terms), the norm, the norm of the projected unit column, and
+    # ((I - P) Bn)^T e for the unit column Bn (e is itself projected)
+    diag_b, diag_k, te = np.diag(btb).tolist(), np.diag(K).tolist(), lin.extra_te.tolist()
     cand = []  # (F, name) of each testable term alone
     for k, name in enumerate(lin.extra_names):
-        if nb[k] > 1e-4:  # as in explained(): a column the model absorbs tests nothing
-            ek = float((bte[k] / nb[k]) ** 2)
+        norm = max(math.sqrt(max(diag_b[k], 0.0)), 1e-300)
+        nb = math.sqrt(max(diag_k[k], 0.0)) / norm
+        if nb > 1e-4:  # as in explained(): a column the model absorbs tests nothing
+            ek = ((te[k] / norm) / nb) ** 2
             cand.append((ek / max((ssr - ek) / (dof - 1), 1e-300), name))
     # the p-value of one degree of freedom falls as F grows: the smallest (all that the decision and the message
     # use) is the largest F's, unless another F ties it or it underflows to 0 (then the tuples' order decides)
