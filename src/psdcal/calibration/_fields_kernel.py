@@ -7,8 +7,8 @@ linearised refit with the fields whose visible part is large enough) end in a
 few operations on (k, k) matrices, k the number of fields (22 for the
 structure check, a handful for the terms the model leaves out): scalings, an
 eigenproblem or two, a Cholesky factor and its inverse. In numpy each of
-those is a call of some tens of microseconds, most of it overhead. The
-kernels below do the same steps in loops (the numpy functions are the
+those is a call whose overhead, not its arithmetic, dominates at these
+sizes. The kernels below do the same steps in loops (the numpy functions are the
 reference; the tests compare the two): the eigenproblems by a Householder
 reduction to tridiagonal form and implicit QR steps with Wilkinson's shift
 (:func:`eigh`), which for these sizes costs a fraction of the cyclic Jacobi
@@ -18,6 +18,11 @@ differ by a rotation within their eigenspace, which none of the results
 depends on (they are sums over the kept directions). A kernel returns
 ``ok = False`` (the caller then runs the numpy code) on non-finite input or
 when the QR iteration does not converge.
+
+:func:`angle_shifts` is the arithmetic of :func:`psdcal.calibration._verdict_linear.effect`
+(its reference :func:`psdcal.calibration._verdict_linear._angle_shifts`) and
+:func:`field_parts_ext` the fields' parts with the side-by-side array their
+products use (:class:`psdcal.calibration._verdict_blocks.FieldParts`).
 """
 from __future__ import annotations
 
