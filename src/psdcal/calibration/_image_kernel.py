@@ -183,6 +183,63 @@ def _fixed_point_start(x0, x1, coef, cx, cy):
 
 
 @njit
+def _newton_sweeps(X0, X1, TOL, D0, D1, coef, cx, cy, max_iter, CONV):
+    """:func:`_newton` of every point at once, from the starts ``D0``, ``D1`` (N,) (overwritten by the results; ``CONV``
+    (N,) bool the converged flags): one Newton iteration of every point still iterating per sweep, the same
+    operations in the same order as :func:`_newton` point by point (so the same bits), but a short loop over the
+    points whose independent iterations the processor overlaps."""
+    N = X0.shape[0]
+    PREV = np.full(N, math.inf)
+    ST0 = np.zeros(N)
+    ST1 = np.zeros(N)
+    ERR = np.full(N, math.inf)
+    DET = np.zeros(N)
+    act = np.arange(N)
+    nact = N
+    for it in range(max_iter + 1):
+        m = 0
+        for q in range(nact):
+            i = act[q]
+            d0, d1, prev = D0[i], D1[i], PREV[i]
+            x0, x1, tol = X0[i], X1[i], TOL[i]
+            a0, a1, J00, J01, J10, J11 = _undistort_point(d0, d1, coef, cx, cy)
+            r0, r1 = a0 - x0, a1 - x1
+            e = math.sqrt(r0 * r0 + r1 * r1)
+            if not (e < prev) and prev < math.inf:
+                st0 = ST0[i] * 0.5
+                st1 = ST1[i] * 0.5
+                ST0[i], ST1[i] = st0, st1
+                D0[i], D1[i] = d0 + st0, d1 + st1
+                if max(abs(st0), abs(st1)) <= 1e-16:
+                    PREV[i] = math.inf
+                act[m] = i
+                m += 1
+                continue
+            ERR[i] = e
+            DET[i] = J00 * J11 - J01 * J10
+            if e <= tol or not math.isfinite(e) or it == max_iter:
+                continue
+            det = DET[i]
+            st0 = (J11 * r0 - J01 * r1) / det
+            st1 = (-J10 * r0 + J00 * r1) / det
+            ST0[i], ST1[i] = st0, st1
+            PREV[i] = e
+            D0[i], D1[i] = d0 - st0, d1 - st1
+            smax = max(abs(st0), abs(st1))
+            if smax <= 0.3 * math.sqrt(tol):
+                ERR[i] = smax * smax
+                continue
+            act[m] = i
+            m += 1
+        nact = m
+        if nact == 0:
+            break
+    for i in range(N):
+        err = ERR[i]
+        CONV[i] = math.isfinite(err) and err <= 10 * TOL[i] and DET[i] > 0 and _monotone(D0[i], D1[i], coef, cx, cy)
+
+
+@njit
 def image_model(P, img, theta, separate_fy, poses, warm, meas, gmap, want_jac, tol_mm, max_iter, gain_basis):
     """Modelled measured points of all observations, and their Jacobian.
 
@@ -250,6 +307,13 @@ def image_model_into(P, img, theta, separate_fy, poses, warm, meas, gmap, want_j
         if gmap[k] == 10 or gmap[k] == 11:
             psd_free = True
     D = np.zeros((2, 16))
+    PRJ = np.empty((N, 3))  # xn, yn, pcz of each point
+    X0 = np.empty(N)
+    X1 = np.empty(N)
+    TOL = np.empty(N)
+    D0 = np.empty(N)
+    D1 = np.empty(N)
+    CONV = np.empty(N, dtype=np.bool_)
     for i in range(N):
         v = img[i]
         X, Y = P[i, 0], P[i, 1]
@@ -259,22 +323,43 @@ def image_model_into(P, img, theta, separate_fy, poses, warm, meas, gmap, want_j
         xn, yn = pcx / pcz, pcy / pcz
         x0 = f * xn + sk * yn + cx  # Eq 4
         x1 = fy * yn + cy
-        tol = tol_mm * max(1.0, math.sqrt(x0 * x0 + x1 * x1))
-        conv = False
-        d0 = d1 = math.nan
-        for attempt in range(3):
-            if attempt == 0:
-                if math.isfinite(warm[i, 0]) and math.isfinite(warm[i, 1]):
-                    s0, s1 = warm[i, 0], warm[i, 1]
+        PRJ[i, 0], PRJ[i, 1], PRJ[i, 2] = xn, yn, pcz
+        X0[i], X1[i] = x0, x1
+        TOL[i] = tol_mm * max(1.0, math.sqrt(x0 * x0 + x1 * x1))
+        if math.isfinite(warm[i, 0]) and math.isfinite(warm[i, 1]):
+            D0[i], D1[i] = warm[i, 0], warm[i, 1]
+        else:
+            D0[i], D1[i] = _fixed_point_start(x0, x1, coef, cx, cy)
+    _newton_sweeps(X0, X1, TOL, D0, D1, coef, cx, cy, max_iter, CONV)
+    for i in range(N):
+        if not CONV[i]:  # the other starts, point by point
+            x0, x1, tol = X0[i], X1[i], TOL[i]
+            for attempt in range(1, 3):
+                if attempt == 1:
+                    s0, s1 = meas[i, 0], meas[i, 1]
                 else:
                     s0, s1 = _fixed_point_start(x0, x1, coef, cx, cy)
-            elif attempt == 1:
-                s0, s1 = meas[i, 0], meas[i, 1]
-            else:
-                s0, s1 = _fixed_point_start(x0, x1, coef, cx, cy)
-            d0, d1, conv = _newton(x0, x1, s0, s1, coef, cx, cy, tol, max_iter)
-            if conv:
-                break
+                d0, d1, conv = _newton(x0, x1, s0, s1, coef, cx, cy, tol, max_iter)
+                if conv:
+                    break
+            D0[i], D1[i], CONV[i] = d0, d1, conv
+    T = np.empty((N if want_jac else 0, 12))
+    for i in range(T.shape[0]):
+        # -- undistortion Jacobians at d (as distortion.undistort(..., jacobians=True))
+        _, _, h2, ex, ey, r2, G00, G01, G10, G11, U00, U01, U11 = _model_terms(D0[i], D1[i], coef, cx, cy)
+        A00 = (1 + G00) * U00 + G01 * U01  # dx/dd = (I + G) dU/dd
+        A01 = (1 + G00) * U01 + G01 * U11
+        A10 = G10 * U00 + (1 + G11) * U01
+        A11 = G10 * U01 + (1 + G11) * U11
+        det = A00 * A11 - A01 * A10
+        T[i, 0], T[i, 1], T[i, 2], T[i, 3] = A11 / det, -A01 / det, -A10 / det, A00 / det  # dd/dx
+        T[i, 4], T[i, 5], T[i, 6], T[i, 7] = G00, G01, G10, G11
+        T[i, 8], T[i, 9], T[i, 10], T[i, 11] = h2, ex, ey, r2
+    for i in range(N):
+        v = img[i]
+        X, Y = P[i, 0], P[i, 1]
+        xn, yn, pcz = PRJ[i, 0], PRJ[i, 1], PRJ[i, 2]
+        d0, d1, conv = D0[i], D1[i], CONV[i]
         d[i, 0], d[i, 1] = d0, d1
         ok[i] = conv
         if gains_on:  # readout through unequal gains: a homography of the spot position
@@ -284,14 +369,9 @@ def image_model_into(P, img, theta, separate_fy, poses, warm, meas, gmap, want_j
             y[i, 0], y[i, 1] = h0 / h2g, h1 / h2g
         if not want_jac:
             continue
-        # -- undistortion Jacobians at d (as distortion.undistort(..., jacobians=True))
-        _, _, h2, ex, ey, r2, G00, G01, G10, G11, U00, U01, U11 = _model_terms(d0, d1, coef, cx, cy)
-        A00 = (1 + G00) * U00 + G01 * U01  # dx/dd = (I + G) dU/dd
-        A01 = (1 + G00) * U01 + G01 * U11
-        A10 = G10 * U00 + (1 + G11) * U01
-        A11 = G10 * U01 + (1 + G11) * U11
-        det = A00 * A11 - A01 * A10
-        I00, I01, I10, I11 = A11 / det, -A01 / det, -A10 / det, A00 / det  # dd/dx
+        I00, I01, I10, I11 = T[i, 0], T[i, 1], T[i, 2], T[i, 3]
+        G00, G01, G10, G11 = T[i, 4], T[i, 5], T[i, 6], T[i, 7]
+        h2, ex, ey, r2 = T[i, 8], T[i, 9], T[i, 10], T[i, 11]
         # dd/dtheta for the global parameters: D[:, j] = inv @ dx/dtheta_j (with sign)
         # intrinsics through x (Eq 4)
         if separate_fy:
