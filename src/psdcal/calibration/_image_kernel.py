@@ -1,4 +1,4 @@
-"""Compiled image-plane cost: residuals and Jacobian in one pass over the points.
+"""Compiled image-plane cost: residuals and Jacobian in a few short passes over the points.
 
 The same mathematics as the numpy reference in :mod:`psdcal.calibration._refine`
 (``Evaluator._image``), :mod:`psdcal.model.distortion` (``undistort``, ``distort``,
@@ -289,6 +289,11 @@ def image_model_into(P, img, theta, separate_fy, poses, warm, meas, gmap, want_j
     ``d`` (N, 2), ``ok`` (N,) bool, ``y`` (N, 2) (``d`` itself without gains) and, with ``want_jac``,
     ``J`` (2N, n_global + 6) are overwritten entirely (the values of :func:`image_model`, bit for bit).
     The derivatives of the PSD terms l1, l2 (Eq 7-10) are computed only when ``gmap`` asks for one of them.
+
+    The points go through short loops in turn, each of which the processor runs several points at a time
+    (one long loop body per point would leave each point's chain of dependent operations waiting): the
+    projections and first starts, the Newton inverses from those starts (:func:`_newton_sweeps`), the other
+    starts of the points whose inverse failed, the undistortion Jacobians at ``d``, then the rows.
     """
     N = P.shape[0]
     ng = gmap.shape[0]
