@@ -31,7 +31,7 @@ import math
 import numpy as np
 
 from psdcal._jit import njit
-from psdcal.calibration._image_kernel import _cholesky
+from psdcal.calibration._schur_kernel import _cholesky
 from psdcal.calibration._rules_kernel import field_parts
 
 #: Relative size of an off-diagonal entry of the tridiagonal matrix below which it counts as zero (the unit
