@@ -2,7 +2,7 @@
 
 ``gram_block_normal`` sums a view's run of at least ``CHUNK_MIN_POINTS``
 observations in SIMD chunks (rounding-level differences from a sequential
-sum) and shorter runs row by row (the bits of ``_image_kernel.block_normal``).
+sum) and shorter runs row by row (the bits of :func:`_row_by_row`, every run row by row).
 """
 from __future__ import annotations
 
@@ -24,6 +24,28 @@ def _jacobian(n_views, points, ng, seed=0, order="runs"):
     Jc = rng.standard_normal((2 * N, ng + 6)) * np.logspace(-3, 3, ng + 6)  # columns of very different scales
     r = rng.standard_normal(2 * N) * 1e-3
     return Jc, r, img
+
+
+def _row_by_row(Jc, r, img, n_views):
+    """The blocks with every run of a view summed row by row (``_run_rows``), long runs too: the kernel's
+    sums without chunks."""
+    from psdcal.calibration._gram_kernel import _run_rows, add_view_block, mirror_blocks
+
+    m = Jc.shape[1]
+    ng = m - 6
+    U, W, V = np.zeros((ng, ng)), np.zeros((n_views, ng, 6)), np.zeros((n_views, 6, 6))
+    gg, gp = np.zeros(ng), np.zeros((n_views, 6))
+    i = 0
+    while i < img.size:
+        j = i
+        while j < img.size and img[j] == img[i]:
+            j += 1
+        M, gl = np.zeros((m, m)), np.zeros(m)
+        _run_rows(Jc, r, i, j, m, M, gl)
+        add_view_block(M, gl, img[i], ng, U, W, V, gg, gp)
+        i = j
+    mirror_blocks(U, V)
+    return U, W, V, gg, gp
 
 
 def _assert_blocks_close(got, ref, rtol):
@@ -50,14 +72,18 @@ def test_chunked_sums_are_the_reference(points, ng):
     np.testing.assert_allclose(U, Jc[:, :ng_].T @ Jc[:, :ng_], rtol=1e-12, atol=1e-12 * np.max(np.abs(U)))
 
 
-def test_short_runs_are_block_normal_bit_for_bit():
+def test_short_runs_are_the_row_by_row_sums_bit_for_bit():
     from psdcal.calibration._gram_kernel import gram_block_normal
-    from psdcal.calibration._image_kernel import block_normal
 
     for points, order in ((14, "runs"), (63, "runs"), (256, "shuffled")):  # shuffled: runs of one or a few points
         Jc, r, img = _jacobian(6, points, 7, seed=points, order=order)
-        for a, b in zip(gram_block_normal(Jc, r, img, 6), block_normal(Jc, r, img, 6)):
+        got = gram_block_normal(Jc, r, img, 6)
+        for a, b in zip(got, _row_by_row(Jc, r, img, 6)):
             np.testing.assert_array_equal(a, b)
+        _assert_blocks_close(got, block_normal_reference(Jc, r, img, 6), 1e-13)
+    # long runs are not summed row by row (else the test above compares nothing of the chunked path)
+    Jc, r, img = _jacobian(2, 256, 7, seed=1)
+    assert any(np.any(a != b) for a, b in zip(gram_block_normal(Jc, r, img, 2), _row_by_row(Jc, r, img, 2)))
 
 
 def test_mixed_runs_and_views_in_any_order():
@@ -81,9 +107,8 @@ def test_non_finite_entries_propagate():
 
 
 def test_the_refinement_uses_it_and_agrees_with_the_row_by_row_sums(monkeypatch):
-    """A fit of 256-point views with the chunked sums is the fit with block_normal's, to rounding."""
+    """A fit of 256-point views with the chunked sums is the fit with the row-by-row sums, to rounding."""
     from psdcal.calibration import _lm_kernel
-    from psdcal.calibration._image_kernel import block_normal
     from psdcal.calibration._refine import Problem, refine
     from psdcal.model.params import ModelSpec
     from psdcal.study.simulate import simulate_set
@@ -106,7 +131,7 @@ def test_the_refinement_uses_it_and_agrees_with_the_row_by_row_sums(monkeypatch)
     def init(self, *args, **kw):
         orig(self, *args, **kw)
         if self._blocks is not None:
-            self._blocks = block_normal
+            self._blocks = _row_by_row
             ev_blocks.append(True)
 
     monkeypatch.setattr(rf.Evaluator, "__init__", init)

@@ -186,3 +186,30 @@ def test_image_model_into_overwrites_its_arrays_with_image_model_s_values(k):
     for c, g in enumerate(fast._gmap):
         np.testing.assert_array_equal(J[:, c], Jf[:, g], err_msg=GLOBAL_ORDER[g])
     np.testing.assert_array_equal(J[:, -6:], Jf[:, -6:])
+
+
+@pytest.mark.parametrize("max_iter", [50, 3])
+def test_newton_sweeps_are_the_point_by_point_newton_bit_for_bit(max_iter):
+    """The sweeps (one iteration of every point per sweep) give each point exactly what ``_newton`` gives it:
+    converged points, points that backtrack (strong distortion, far starts), that run out of iterations, that
+    fail (starts on the wrong branch, a NaN target)."""
+    from psdcal.calibration._image_kernel import _newton, _newton_sweeps
+
+    rng = np.random.default_rng(7)
+    n = 400
+    coef = np.array([-0.03, 0.004, -1e-4, 2e-4, -3e-4, 0.001, 0.0])
+    cx, cy = 0.05, -0.03
+    X0 = rng.uniform(-3.0, 3.0, n)
+    X1 = rng.uniform(-2.5, 2.5, n)
+    X0[5] = np.nan
+    TOL = 1e-13 * np.maximum(1.0, np.hypot(X0, X1))
+    S0 = X0 + rng.normal(0.0, 0.5, n)  # starts near and far: a few backtrack, fail or take many steps
+    S1 = X1 + rng.normal(0.0, 0.5, n)
+    S0[:20] *= 4.0
+    D0, D1, conv = S0.copy(), S1.copy(), np.empty(n, dtype=bool)
+    _newton_sweeps(X0, X1, TOL, D0, D1, coef, cx, cy, max_iter, conv)
+    ref = np.array([_newton(X0[i], X1[i], S0[i], S1[i], coef, cx, cy, TOL[i], max_iter) for i in range(n)])
+    np.testing.assert_array_equal(D0, ref[:, 0])
+    np.testing.assert_array_equal(D1, ref[:, 1])
+    np.testing.assert_array_equal(conv, ref[:, 2].astype(bool))
+    assert 0 < conv.sum() < n  # both kinds of outcome were exercised

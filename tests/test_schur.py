@@ -78,11 +78,12 @@ def test_schur_step_and_covariance_match_dense_solves(compiled):
 
 
 def test_kernels_equal_their_numpy_references():
-    from psdcal.calibration._image_kernel import block_normal, schur_covariance, schur_solve
+    from psdcal.calibration._gram_kernel import gram_block_normal
+    from psdcal.calibration._schur_kernel import schur_covariance, schur_solve
 
     prob, ev, z = _system(seed=8)
     r, Jc = ev.evaluate_compact(z)
-    blocks = block_normal(Jc, r, ev.img_idx, prob.n_images)
+    blocks = gram_block_normal(Jc, r, ev.img_idx, prob.n_images)
     ref = block_normal_reference(Jc, r, ev.img_idx, prob.n_images)
     for a, b in zip(blocks, ref):
         np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-12 * np.abs(b).max())
@@ -101,7 +102,7 @@ def test_kernels_equal_their_numpy_references():
 
 
 def test_not_positive_definite_is_reported():
-    from psdcal.calibration._image_kernel import schur_solve
+    from psdcal.calibration._schur_kernel import schur_solve
 
     U = np.eye(2)
     W = np.zeros((1, 2, 6))
@@ -142,11 +143,11 @@ def test_refinement_with_block_solver_equals_dense_reference():
 
 def test_block_normal_kernel_with_views_in_any_order():
     """The kernel sums runs of one view; observations of a view need not be contiguous."""
-    from psdcal.calibration._image_kernel import block_normal
+    from psdcal.calibration._gram_kernel import gram_block_normal
 
     rng = np.random.default_rng(3)
     img = rng.integers(0, 4, size=60)  # views interleaved, one view (say) never seen
     Jc = rng.normal(size=(120, 11))
     r = rng.normal(size=120)
-    for a, b in zip(block_normal(Jc, r, img, 5), block_normal_reference(Jc, r, img, 5)):
+    for a, b in zip(gram_block_normal(Jc, r, img, 5), block_normal_reference(Jc, r, img, 5)):
         np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-12 * np.abs(b).max())

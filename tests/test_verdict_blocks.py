@@ -16,6 +16,7 @@ import pytest
 
 from psdcal import _stats
 from psdcal.calibration import _verdict_blocks as VB
+from psdcal.calibration import _verdict_fields as VF
 from psdcal.calibration import _verdict_linear as L
 from psdcal.calibration.core import calibrate
 from psdcal.study.simulate import simulate_set
@@ -52,7 +53,7 @@ def test_gram_projector_equals_the_qr_one(fit, monkeypatch):
     assert lin.n == ref.n
     _close(lin.h, ref.h)
     _close(lin.e, ref.e)
-    fp = L.structure_fields(lin, fit, parts=True)
+    fp = VF.structure_fields(lin, fit, parts=True)
     B = fp.dense()
     R = np.random.default_rng(3).normal(size=(B.shape[0], 3))
     for M in (B, R, np.ascontiguousarray(lin.extra)):
@@ -60,7 +61,7 @@ def test_gram_projector_equals_the_qr_one(fit, monkeypatch):
         _close(lin.perp_pose(M), ref.perp_pose(M))
         _close(lin.gram_perp(M), ref.gram_perp(M))
         _close(lin.gt_t(M), ref.gt.T @ M)
-    _close(lin.gram_perp(fp), ref.gram_perp(L.structure_fields(ref, fit, parts=True)))
+    _close(lin.gram_perp(fp), ref.gram_perp(VF.structure_fields(ref, fit, parts=True)))
     _close(lin.gt_t(fp), ref.gt.T @ B)
     # the left-out terms' Gram matrices and Gt^T E from the per-view Gram matrices alone
     _close(lin.extra_gram[0], ref.extra_gram[0])
@@ -76,8 +77,8 @@ def test_gram_projector_equals_the_qr_one(fit, monkeypatch):
         _close(lin.blocks.gtg_view[v], gv.T @ gv)
     for rows in (np.repeat(lin.img == 2, 2), np.repeat(lin.led == 5, 2)):
         _close(L.group_shift(lin, rows), L.group_shift(ref, rows), 1e-8)
-    for fn in (lambda x: L.field_shift(x, L.structure_fields(x, fit, parts=True), min_visible=0.3),
-               lambda x: L.field_shift(x, x.extra)):
+    for fn in (lambda x: VF.field_shift(x, VF.structure_fields(x, fit, parts=True), min_visible=0.3),
+               lambda x: VF.field_shift(x, x.extra)):
         for a, b in zip(fn(lin), fn(ref), strict=True):
             _close(a, b, 1e-8)
 
@@ -193,11 +194,11 @@ def test_terms_test_computes_only_the_p_value_it_needs(fit, monkeypatch):
     calls = []
     real = _stats.f_sf
     monkeypatch.setattr(_stats, "f_sf", lambda *a: calls.append(a) or real(*a))
-    got = L.terms_test(lin)
+    got = VF.terms_test(lin)
     assert sum(1 for a in calls if a[1] == 1) == 1
     monkeypatch.setattr(_stats, "f_sf", real)
     # the reference: every term's test, the smallest p-value (then F, then name) against the joint test's
-    F, p, p_dim, _ = L.f_test(lin, lin.extra)
+    F, p, p_dim, _ = VF.f_test(lin, lin.extra)
     btb, K = lin.extra_gram
     norms = np.sqrt(np.diag(btb))
     nb = np.sqrt(np.maximum(np.diag(K), 0.0)) / norms
@@ -244,7 +245,7 @@ def test_span_basis_is_orthonormal_on_the_span_by_cholesky_or_eigenproblem():
     B = rng.normal(size=(200, 6)) @ np.triu(rng.normal(size=(6, 6))) + 0.0
     for Bc, r in ((B, 6), (np.concatenate([B, B[:, :1]], axis=1), 6)):
         Bn = Bc / np.linalg.norm(Bc, axis=0)
-        M = L._span_basis(Bn.T @ Bn)
+        M = VF._span_basis(Bn.T @ Bn)
         assert M.shape == (Bc.shape[1], r)
         Q = Bn @ M
         np.testing.assert_allclose(Q.T @ Q, np.eye(r), atol=1e-9)

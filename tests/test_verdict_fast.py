@@ -16,6 +16,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from psdcal.calibration import _verdict_diagnosis as D
+from psdcal.calibration import _verdict_fields as VF
 from psdcal.calibration import _verdict_linear as L
 from psdcal.calibration.core import calibrate
 from psdcal.study.faults import random_case
@@ -41,27 +42,27 @@ def _reference_explained(lin, B):
 
 def test_gram_of_projected_columns_equals_the_projected_columns_gram(fit):
     lin = L.linearise(fit)
-    B = L.structure_fields(lin, fit)
+    B = VF.structure_fields(lin, fit)
     Bp = lin.perp(B)
     np.testing.assert_allclose(lin.gram_perp(B), Bp.T @ Bp, rtol=0, atol=1e-9 * np.abs(B.T @ B).max())
 
 
 def test_explained_and_f_test_equal_the_tall_svd_reference(fit):
     lin = L.linearise(fit)
-    for B in (L.structure_fields(lin, fit), lin.extra):
+    for B in (VF.structure_fields(lin, fit), lin.extra):
         ref, dim = _reference_explained(lin, B)
-        got, gdim = L.explained(lin, B)
+        got, gdim = VF.explained(lin, B)
         assert gdim == dim
         assert got == pytest.approx(ref, rel=1e-8)
-    _, p, _, _ = L.f_test(lin, L.structure_fields(lin, fit))
+    _, p, _, _ = VF.f_test(lin, VF.structure_fields(lin, fit))
     assert p < 1e-3  # the missing k2 shows: the effect branch below is exercised
 
 
 def test_field_shift_equals_the_qr_svd_reference(fit):
     lin = L.linearise(fit)
-    B = L.structure_fields(lin, fit)
+    B = VF.structure_fields(lin, fit)
     for vis in (0.0, 0.3):
-        c, dth = L.field_shift(lin, B, min_visible=vis)
+        c, dth = VF.field_shift(lin, B, min_visible=vis)
         # reference: the dense computation (QR of B, SVD of its projection), as the verdict did before
         scale = np.linalg.norm(B, axis=0)
         Qb, Rb = np.linalg.qr(B / scale)
@@ -85,7 +86,7 @@ def test_field_shift_equals_the_qr_svd_reference(fit):
 
 def test_cholesky_qr_projector_equals_the_householder_one(fit, monkeypatch):
     lin = L.linearise(fit)
-    B = L.structure_fields(lin, fit)
+    B = VF.structure_fields(lin, fit)
     monkeypatch.setattr(L, "_cholqr2", lambda A, unit_columns=True: None)  # the Householder path
     monkeypatch.setattr(L, "_compiled_bases", lambda *a: None)  # (the compiled Cholesky QR too)
     ref = L.linearise(fit)
@@ -186,9 +187,9 @@ def test_median_without_numpy_ma_is_numpys():
 
 def test_field_parts_products_equal_the_dense_fields(fit):
     lin = L.linearise(fit)
-    fp = L.structure_fields(lin, fit, parts=True)
+    fp = VF.structure_fields(lin, fit, parts=True)
     B = fp.dense()
-    np.testing.assert_array_equal(B, L.structure_fields(lin, fit))
+    np.testing.assert_array_equal(B, VF.structure_fields(lin, fit))
     rng = np.random.default_rng(3)
     Q = rng.normal(size=(B.shape[0], 5))
     np.testing.assert_allclose(fp.coords(Q), Q.T @ B, rtol=1e-12, atol=1e-12)
@@ -198,7 +199,7 @@ def test_field_parts_products_equal_the_dense_fields(fit):
     ref = np.matmul(Qbt, B.reshape(n_img, -1, B.shape[1])).reshape(-1, B.shape[1])
     np.testing.assert_allclose(fp.coords_blocks(Qbt), ref, rtol=1e-12, atol=1e-12)
     np.testing.assert_allclose(lin.gram_perp(fp), lin.gram_perp(B), rtol=0, atol=1e-9 * np.abs(B.T @ B).max())
-    assert L.explained(lin, fp) == pytest.approx(L.explained(lin, B), rel=1e-10)
+    assert VF.explained(lin, fp) == pytest.approx(VF.explained(lin, B), rel=1e-10)
 
 
 def _angles_written_out(intr, dist, d):
@@ -273,7 +274,7 @@ def test_compiled_projector_equals_the_numpy_one(fit, case, monkeypatch):
     assert used, "the dense layout takes the compiled projector"
     ref = _numpy_linear(fit, monkeypatch)
     assert lin.n == ref.n
-    fp = L.structure_fields(lin, fit, parts=True)
+    fp = VF.structure_fields(lin, fit, parts=True)
     B = fp.dense()
     rng = np.random.default_rng(5)
     R = rng.normal(size=(B.shape[0], 4))
@@ -287,7 +288,7 @@ def test_compiled_projector_equals_the_numpy_one(fit, case, monkeypatch):
         close(lin.perp(M), ref.perp(M))
         close(lin.perp_pose(M), ref.perp_pose(M))
         close(lin.gram_perp(M), ref.gram_perp(M))
-    close(lin.gram_perp(fp), ref.gram_perp(L.structure_fields(ref, fit, parts=True)))
+    close(lin.gram_perp(fp), ref.gram_perp(VF.structure_fields(ref, fit, parts=True)))
     close(lin.gt, ref.gt)
     close(lin.ninv, ref.ninv, 1e-8)
     monkeypatch.setattr(L, "_compiled_bases", real)

@@ -135,7 +135,8 @@ def test_the_verdicts_effects_are_what_refits_give(name, change, term):
     """The verdict's consequences come from the Jacobian (no refit): the shift of f and C when a view is left out,
     and when a left-out term is added, agree with real refits to a tenth of a standard error (the oracle here is
     the full nonlinear refit with the view dropped / the term freed)."""
-    from psdcal.calibration._verdict_linear import field_shift, group_shift, linearise
+    from psdcal.calibration._verdict_fields import field_shift
+    from psdcal.calibration._verdict_linear import group_shift, linearise
     from psdcal.calibration.core import _calibrate_record
 
     res = calibrate(*_inputs(name), verdict=False)

@@ -1,12 +1,14 @@
 """Block normal equations of a compact Jacobian, the long runs of a view summed in SIMD-friendly chunks.
 
-:func:`gram_block_normal` returns what
-:func:`psdcal.calibration._image_kernel.block_normal` returns (the blocks ``U``,
-``W_v``, ``V_v`` of ``J^T J`` and the parts ``gg``, ``gp`` of ``J^T r``; the
-numpy reference is :func:`psdcal.calibration._normal.block_normal_reference`),
-and sums the same products. Only the order of the additions differs where a
-view's run of consecutive observations has at least :data:`CHUNK_MIN_POINTS`
-points (a chessboard, Zhang's 256 corners):
+:func:`gram_block_normal` returns the blocks ``U``, ``W_v``, ``V_v`` of ``J^T J`` and the
+parts ``gg``, ``gp`` of ``J^T r`` of a compact block Jacobian (the numpy reference is
+:func:`psdcal.calibration._normal.block_normal_reference`). Each run of consecutive
+observations of one view is summed into one local ``(m, m)`` block, then added to ``U``,
+``W_v``, ``V_v`` (:func:`add_view_block`): the inner loop touches a small array that stays in
+cache instead of the view's blocks in the big arrays. A run shorter than
+:data:`CHUNK_MIN_POINTS` (the 14-point templates) is summed row by row, the two rows of an
+observation at once (:func:`_run_rows`); a longer one (a chessboard, Zhang's 256 corners) in
+chunks:
 
 - the rows of the run are copied, :data:`CHUNK_POINTS` points at a time, into
   a column-major buffer (one row of the buffer per column of ``J``, the
@@ -18,16 +20,13 @@ points (a chessboard, Zhang's 256 corners):
   fewer instructions than the row-by-row loop).
 
 The chunked sums differ from the row-by-row ones at rounding level (relative
-1e-16 of the sums of squares); shorter runs (the 14-point templates) take the
-row-by-row loop of ``block_normal`` itself and give its bits exactly.
-tests/test_gram_kernel.py compares both with the numpy reference.
+1e-16 of the sums of squares). tests/test_gram_kernel.py compares both with the numpy reference.
 """
 from __future__ import annotations
 
 import numpy as np
 
 from psdcal._jit import njit, njit_sum
-from psdcal.calibration._image_kernel import add_view_block, mirror_blocks
 
 #: A view's run of consecutive observations this long or longer is summed in chunks (shorter: row by row).
 CHUNK_MIN_POINTS = 64
@@ -71,8 +70,37 @@ def _chunk_gram(B, L, m, M, gl):
 
 
 @njit
+def add_view_block(M, gl, v, ng, U, W, V, gg, gp):
+    """Add one view's run sums to the blocks: ``M`` (m, m) lower triangle of its ``J^T J`` and ``gl`` (m,) its
+    ``J^T r`` (m = ng + 6) into ``U`` (lower triangle), ``W[v]``, ``V[v]`` (lower triangle), ``gg`` and ``gp[v]``."""
+    for a in range(ng):
+        gg[a] += gl[a]
+        for b in range(a + 1):
+            U[a, b] += M[a, b]
+    for a in range(6):
+        gp[v, a] += gl[ng + a]
+        for b in range(ng):
+            W[v, b, a] += M[ng + a, b]
+        for b in range(a + 1):
+            V[v, a, b] += M[ng + a, ng + b]
+
+
+@njit
+def mirror_blocks(U, V):
+    """Fill the upper triangles of ``U`` (ng, ng) and of each ``V[v]`` (6, 6) from their lower ones, in place."""
+    ng = U.shape[0]
+    for a in range(ng):
+        for b in range(a):
+            U[b, a] = U[a, b]
+    for v in range(V.shape[0]):
+        for a in range(6):
+            for b in range(a):
+                V[v, b, a] = V[v, a, b]
+
+
+@njit
 def _run_rows(Jc, r, i0, i1, m, M, gl):
-    """The sums of observations ``i0 .. i1 - 1`` row by row (``block_normal``'s loop, the same order)."""
+    """The sums of observations ``i0 .. i1 - 1`` row by row, the two rows of an observation at once."""
     for i in range(i0, i1):
         r0 = r[2 * i]
         r1 = r[2 * i + 1]
@@ -102,7 +130,7 @@ def _run_chunked(Jc, r, i0, i1, m, M, gl, B):
 
 @njit
 def gram_block_normal(Jc, r, img, n_views):
-    """Normal equations of a compact block Jacobian, kept in blocks (as ``_image_kernel.block_normal``).
+    """Normal equations of a compact block Jacobian, kept in blocks.
 
     Parameters
     ----------
@@ -113,8 +141,10 @@ def gram_block_normal(Jc, r, img, n_views):
     -------
     U : (ng, ng), W : (n_views, ng, 6), V : (n_views, 6, 6), gg : (ng,), gp : (n_views, 6)
         The blocks of ``J^T J`` and ``J^T r``; runs of :data:`CHUNK_MIN_POINTS` or more observations of
-        one view summed in chunks (rounding-level differences), shorter ones row by row (the same bits
-        as ``block_normal``).
+        one view summed in chunks (rounding-level differences from the row-by-row sums), shorter ones
+        row by row.
+
+    Cost O(N (ng + 6)^2): each observation touches its own view's blocks only.
     """
     m = Jc.shape[1]
     ng = m - 6

@@ -1,4 +1,4 @@
-"""Compiled image-plane cost: residuals and Jacobian in one pass over the points.
+"""Compiled image-plane cost: residuals and Jacobian in a few short passes over the points.
 
 The same mathematics as the numpy reference in :mod:`psdcal.calibration._refine`
 (``Evaluator._image``), :mod:`psdcal.model.distortion` (``undistort``, ``distort``,
@@ -23,14 +23,8 @@ row's own view; in the dense Jacobian these six sit at ``n_global + 6 v`` and
 all other pose entries of the row are zero (:func:`expand_compact`).
 
 The normal equations of such a Jacobian are kept in blocks
-(:func:`block_normal`): the global block ``U`` (n_global^2), one 6 x 6 block
-``V_v`` per view and the coupling ``W_v`` (n_global x 6); the LM step and the
-covariance eliminate the poses view by view through the Schur complement
-``S = U - sum_v W_v V_v^-1 W_v^T`` (the reduced camera system, Triggs et al.,
-*Bundle adjustment - a modern synthesis*, 2000, Section 6.1), so their cost is
-linear in the number of views. The numpy reference of these steps is
-:mod:`psdcal.calibration._normal` (``block_normal_reference``,
-``schur_solve_reference``, ``schur_covariance_reference``).
+(:func:`psdcal.calibration._gram_kernel.gram_block_normal`) and solved through the Schur
+complement of the pose blocks (:mod:`psdcal.calibration._schur_kernel`).
 """
 from __future__ import annotations
 
@@ -189,6 +183,63 @@ def _fixed_point_start(x0, x1, coef, cx, cy):
 
 
 @njit
+def _newton_sweeps(X0, X1, TOL, D0, D1, coef, cx, cy, max_iter, CONV):
+    """:func:`_newton` of every point at once, from the starts ``D0``, ``D1`` (N,) (overwritten by the results; ``CONV``
+    (N,) bool the converged flags): one Newton iteration of every point still iterating per sweep, the same
+    operations in the same order as :func:`_newton` point by point (so the same bits), but a short loop over the
+    points whose independent iterations the processor overlaps."""
+    N = X0.shape[0]
+    PREV = np.full(N, math.inf)
+    ST0 = np.zeros(N)
+    ST1 = np.zeros(N)
+    ERR = np.full(N, math.inf)
+    DET = np.zeros(N)
+    act = np.arange(N)
+    nact = N
+    for it in range(max_iter + 1):
+        m = 0
+        for q in range(nact):
+            i = act[q]
+            d0, d1, prev = D0[i], D1[i], PREV[i]
+            x0, x1, tol = X0[i], X1[i], TOL[i]
+            a0, a1, J00, J01, J10, J11 = _undistort_point(d0, d1, coef, cx, cy)
+            r0, r1 = a0 - x0, a1 - x1
+            e = math.sqrt(r0 * r0 + r1 * r1)
+            if not (e < prev) and prev < math.inf:
+                st0 = ST0[i] * 0.5
+                st1 = ST1[i] * 0.5
+                ST0[i], ST1[i] = st0, st1
+                D0[i], D1[i] = d0 + st0, d1 + st1
+                if max(abs(st0), abs(st1)) <= 1e-16:
+                    PREV[i] = math.inf
+                act[m] = i
+                m += 1
+                continue
+            ERR[i] = e
+            DET[i] = J00 * J11 - J01 * J10
+            if e <= tol or not math.isfinite(e) or it == max_iter:
+                continue
+            det = DET[i]
+            st0 = (J11 * r0 - J01 * r1) / det
+            st1 = (-J10 * r0 + J00 * r1) / det
+            ST0[i], ST1[i] = st0, st1
+            PREV[i] = e
+            D0[i], D1[i] = d0 - st0, d1 - st1
+            smax = max(abs(st0), abs(st1))
+            if smax <= 0.3 * math.sqrt(tol):
+                ERR[i] = smax * smax
+                continue
+            act[m] = i
+            m += 1
+        nact = m
+        if nact == 0:
+            break
+    for i in range(N):
+        err = ERR[i]
+        CONV[i] = math.isfinite(err) and err <= 10 * TOL[i] and DET[i] > 0 and _monotone(D0[i], D1[i], coef, cx, cy)
+
+
+@njit
 def image_model(P, img, theta, separate_fy, poses, warm, meas, gmap, want_jac, tol_mm, max_iter, gain_basis):
     """Modelled measured points of all observations, and their Jacobian.
 
@@ -238,6 +289,11 @@ def image_model_into(P, img, theta, separate_fy, poses, warm, meas, gmap, want_j
     ``d`` (N, 2), ``ok`` (N,) bool, ``y`` (N, 2) (``d`` itself without gains) and, with ``want_jac``,
     ``J`` (2N, n_global + 6) are overwritten entirely (the values of :func:`image_model`, bit for bit).
     The derivatives of the PSD terms l1, l2 (Eq 7-10) are computed only when ``gmap`` asks for one of them.
+
+    The points go through short loops in turn, each of which the processor runs several points at a time
+    (one long loop body per point would leave each point's chain of dependent operations waiting): the
+    projections and first starts, the Newton inverses from those starts (:func:`_newton_sweeps`), the other
+    starts of the points whose inverse failed, the undistortion Jacobians at ``d``, then the rows.
     """
     N = P.shape[0]
     ng = gmap.shape[0]
@@ -256,6 +312,13 @@ def image_model_into(P, img, theta, separate_fy, poses, warm, meas, gmap, want_j
         if gmap[k] == 10 or gmap[k] == 11:
             psd_free = True
     D = np.zeros((2, 16))
+    PRJ = np.empty((N, 3))  # xn, yn, pcz of each point
+    X0 = np.empty(N)
+    X1 = np.empty(N)
+    TOL = np.empty(N)
+    D0 = np.empty(N)
+    D1 = np.empty(N)
+    CONV = np.empty(N, dtype=np.bool_)
     for i in range(N):
         v = img[i]
         X, Y = P[i, 0], P[i, 1]
@@ -265,22 +328,43 @@ def image_model_into(P, img, theta, separate_fy, poses, warm, meas, gmap, want_j
         xn, yn = pcx / pcz, pcy / pcz
         x0 = f * xn + sk * yn + cx  # Eq 4
         x1 = fy * yn + cy
-        tol = tol_mm * max(1.0, math.sqrt(x0 * x0 + x1 * x1))
-        conv = False
-        d0 = d1 = math.nan
-        for attempt in range(3):
-            if attempt == 0:
-                if math.isfinite(warm[i, 0]) and math.isfinite(warm[i, 1]):
-                    s0, s1 = warm[i, 0], warm[i, 1]
+        PRJ[i, 0], PRJ[i, 1], PRJ[i, 2] = xn, yn, pcz
+        X0[i], X1[i] = x0, x1
+        TOL[i] = tol_mm * max(1.0, math.sqrt(x0 * x0 + x1 * x1))
+        if math.isfinite(warm[i, 0]) and math.isfinite(warm[i, 1]):
+            D0[i], D1[i] = warm[i, 0], warm[i, 1]
+        else:
+            D0[i], D1[i] = _fixed_point_start(x0, x1, coef, cx, cy)
+    _newton_sweeps(X0, X1, TOL, D0, D1, coef, cx, cy, max_iter, CONV)
+    for i in range(N):
+        if not CONV[i]:  # the other starts, point by point
+            x0, x1, tol = X0[i], X1[i], TOL[i]
+            for attempt in range(1, 3):
+                if attempt == 1:
+                    s0, s1 = meas[i, 0], meas[i, 1]
                 else:
                     s0, s1 = _fixed_point_start(x0, x1, coef, cx, cy)
-            elif attempt == 1:
-                s0, s1 = meas[i, 0], meas[i, 1]
-            else:
-                s0, s1 = _fixed_point_start(x0, x1, coef, cx, cy)
-            d0, d1, conv = _newton(x0, x1, s0, s1, coef, cx, cy, tol, max_iter)
-            if conv:
-                break
+                d0, d1, conv = _newton(x0, x1, s0, s1, coef, cx, cy, tol, max_iter)
+                if conv:
+                    break
+            D0[i], D1[i], CONV[i] = d0, d1, conv
+    T = np.empty((N if want_jac else 0, 12))
+    for i in range(T.shape[0]):
+        # -- undistortion Jacobians at d (as distortion.undistort(..., jacobians=True))
+        _, _, h2, ex, ey, r2, G00, G01, G10, G11, U00, U01, U11 = _model_terms(D0[i], D1[i], coef, cx, cy)
+        A00 = (1 + G00) * U00 + G01 * U01  # dx/dd = (I + G) dU/dd
+        A01 = (1 + G00) * U01 + G01 * U11
+        A10 = G10 * U00 + (1 + G11) * U01
+        A11 = G10 * U01 + (1 + G11) * U11
+        det = A00 * A11 - A01 * A10
+        T[i, 0], T[i, 1], T[i, 2], T[i, 3] = A11 / det, -A01 / det, -A10 / det, A00 / det  # dd/dx
+        T[i, 4], T[i, 5], T[i, 6], T[i, 7] = G00, G01, G10, G11
+        T[i, 8], T[i, 9], T[i, 10], T[i, 11] = h2, ex, ey, r2
+    for i in range(N):
+        v = img[i]
+        X, Y = P[i, 0], P[i, 1]
+        xn, yn, pcz = PRJ[i, 0], PRJ[i, 1], PRJ[i, 2]
+        d0, d1, conv = D0[i], D1[i], CONV[i]
         d[i, 0], d[i, 1] = d0, d1
         ok[i] = conv
         if gains_on:  # readout through unequal gains: a homography of the spot position
@@ -290,14 +374,9 @@ def image_model_into(P, img, theta, separate_fy, poses, warm, meas, gmap, want_j
             y[i, 0], y[i, 1] = h0 / h2g, h1 / h2g
         if not want_jac:
             continue
-        # -- undistortion Jacobians at d (as distortion.undistort(..., jacobians=True))
-        _, _, h2, ex, ey, r2, G00, G01, G10, G11, U00, U01, U11 = _model_terms(d0, d1, coef, cx, cy)
-        A00 = (1 + G00) * U00 + G01 * U01  # dx/dd = (I + G) dU/dd
-        A01 = (1 + G00) * U01 + G01 * U11
-        A10 = G10 * U00 + (1 + G11) * U01
-        A11 = G10 * U01 + (1 + G11) * U11
-        det = A00 * A11 - A01 * A10
-        I00, I01, I10, I11 = A11 / det, -A01 / det, -A10 / det, A00 / det  # dd/dx
+        I00, I01, I10, I11 = T[i, 0], T[i, 1], T[i, 2], T[i, 3]
+        G00, G01, G10, G11 = T[i, 4], T[i, 5], T[i, 6], T[i, 7]
+        h2, ex, ey, r2 = T[i, 8], T[i, 9], T[i, 10], T[i, 11]
         # dd/dtheta for the global parameters: D[:, j] = inv @ dx/dtheta_j (with sign)
         # intrinsics through x (Eq 4)
         if separate_fy:
@@ -556,270 +635,6 @@ def expand_compact(Jc, img, n_views):
     cols = ng + 6 * np.repeat(img, 2)[:, None] + np.arange(6)[None, :]
     J[rows[:, None], cols] = Jc[:, ng:]
     return J
-
-
-@njit
-def add_view_block(M, gl, v, ng, U, W, V, gg, gp):
-    """Add one view's run sums to the blocks: ``M`` (m, m) lower triangle of its ``J^T J`` and ``gl`` (m,) its
-    ``J^T r`` (m = ng + 6) into ``U`` (lower triangle), ``W[v]``, ``V[v]`` (lower triangle), ``gg`` and ``gp[v]``."""
-    for a in range(ng):
-        gg[a] += gl[a]
-        for b in range(a + 1):
-            U[a, b] += M[a, b]
-    for a in range(6):
-        gp[v, a] += gl[ng + a]
-        for b in range(ng):
-            W[v, b, a] += M[ng + a, b]
-        for b in range(a + 1):
-            V[v, a, b] += M[ng + a, ng + b]
-
-
-@njit
-def mirror_blocks(U, V):
-    """Fill the upper triangles of ``U`` (ng, ng) and of each ``V[v]`` (6, 6) from their lower ones, in place."""
-    ng = U.shape[0]
-    for a in range(ng):
-        for b in range(a):
-            U[b, a] = U[a, b]
-    for v in range(V.shape[0]):
-        for a in range(6):
-            for b in range(a):
-                V[v, b, a] = V[v, a, b]
-
-
-@njit
-def block_normal(Jc, r, img, n_views):
-    """Normal equations of a compact block Jacobian, kept in blocks.
-
-    Parameters
-    ----------
-    Jc : (2N, ng + 6) compact Jacobian (:func:`image_model`), r : (2N,) residuals,
-    img : (N,) int view of each observation, n_views : int
-
-    Returns
-    -------
-    U : (ng, ng) global block of ``J^T J``
-    W : (n_views, ng, 6) global-pose coupling blocks
-    V : (n_views, 6, 6) pose blocks
-    gg : (ng,) global part of ``J^T r``
-    gp : (n_views, 6) pose part of ``J^T r``
-
-    Cost O(N (ng + 6)^2): each observation touches its own view's blocks only.
-    """
-    m = Jc.shape[1]
-    ng = m - 6
-    U = np.zeros((ng, ng))
-    W = np.zeros((n_views, ng, 6))
-    V = np.zeros((n_views, 6, 6))
-    gg = np.zeros(ng)
-    gp = np.zeros((n_views, 6))
-    # Each run of consecutive observations of one view is summed into one local (m, m) block (the two
-    # rows of an observation at once), then added to U, W_v, V_v: the inner loop touches a small
-    # array that stays in cache instead of the view's blocks in the big arrays.
-    M = np.zeros((m, m))
-    gl = np.zeros(m)
-    N = img.shape[0]
-    i = 0
-    while i < N:
-        v = img[i]
-        M[:, :] = 0.0
-        gl[:] = 0.0
-        while i < N and img[i] == v:
-            r0 = r[2 * i]
-            r1 = r[2 * i + 1]
-            for a in range(m):
-                a0 = Jc[2 * i, a]
-                a1 = Jc[2 * i + 1, a]
-                gl[a] += a0 * r0 + a1 * r1
-                for b in range(a + 1):
-                    M[a, b] += a0 * Jc[2 * i, b] + a1 * Jc[2 * i + 1, b]
-            i += 1
-        add_view_block(M, gl, v, ng, U, W, V, gg, gp)
-    mirror_blocks(U, V)
-    return U, W, V, gg, gp
-
-
-@njit
-def _cholesky(A, L):
-    """Lower Cholesky factor of the symmetric ``A`` into ``L``; False when A is not positive definite."""
-    n = A.shape[0]
-    for j in range(n):
-        s = A[j, j]
-        for k in range(j):
-            s -= L[j, k] * L[j, k]
-        if not (s > 0.0):
-            return False
-        d = math.sqrt(s)
-        L[j, j] = d
-        for i in range(j + 1, n):
-            t = A[i, j]
-            for k in range(j):
-                t -= L[i, k] * L[j, k]
-            L[i, j] = t / d
-        for i in range(j):
-            L[i, j] = 0.0
-    return True
-
-
-@njit
-def _cho_solve(L, b):
-    """Solve ``L L^T x = b`` in place (b (n,))."""
-    n = L.shape[0]
-    for i in range(n):
-        t = b[i]
-        for k in range(i):
-            t -= L[i, k] * b[k]
-        b[i] = t / L[i, i]
-    for i in range(n - 1, -1, -1):
-        t = b[i]
-        for k in range(i + 1, n):
-            t -= L[k, i] * b[k]
-        b[i] = t / L[i, i]
-
-
-@njit
-def _reduce(U, W, V, damp_g, damp_p):
-    """Schur complement of the (damped) pose blocks.
-
-    Returns ``(ok, S, Y, Lv)``: ``S = U + diag(damp_g) - sum_v W_v Vd_v^-1 W_v^T``
-    (ng, ng), ``Y[v] = Vd_v^-1 W_v^T`` (n, 6, ng) and the Cholesky factors
-    ``Lv`` (n, 6, 6) of ``Vd_v = V_v + diag(damp_p[v])``; ok is False when a
-    pose block is not positive definite.
-    """
-    n = V.shape[0]
-    ng = U.shape[0]
-    S = U.copy()
-    for a in range(ng):
-        S[a, a] += damp_g[a]
-    Y = np.empty((n, 6, ng))
-    Lv = np.zeros((n, 6, 6))
-    Vd = np.empty((6, 6))
-    col = np.empty(6)
-    for v in range(n):
-        for a in range(6):
-            for b in range(6):
-                Vd[a, b] = V[v, a, b]
-            Vd[a, a] += damp_p[v, a]
-        if not _cholesky(Vd, Lv[v]):
-            return False, S, Y, Lv
-        for c in range(ng):
-            for a in range(6):
-                col[a] = W[v, c, a]
-            _cho_solve(Lv[v], col)
-            for a in range(6):
-                Y[v, a, c] = col[a]
-        for a in range(ng):
-            for b in range(a + 1):
-                acc = 0.0
-                for k in range(6):
-                    acc += W[v, a, k] * Y[v, k, b]
-                S[a, b] -= acc
-    for a in range(ng):
-        for b in range(a):
-            S[b, a] = S[a, b]
-    return True, S, Y, Lv
-
-
-@njit
-def schur_solve(U, W, V, gg, gp, damp_g, damp_p):
-    """Solve ``(A + diag(damp)) h = g`` of block normal equations by eliminating the poses.
-
-    ``A = [[U, W_1 .. W_n], [W^T, diag(V_1 .. V_n)]]``, ``g = (gg, gp)``,
-    ``damp = (damp_g, damp_p)``. The global part solves the reduced system
-    ``S hg = gg - sum_v W_v Vd_v^-1 gp_v``, then each view
-    ``hp_v = Vd_v^-1 (gp_v - W_v^T hg)``: O(n ng^2) work, no matrix of the
-    size of A.
-
-    Returns
-    -------
-    ok : bool, False when a block or S is not positive definite
-    hg : (ng,), hp : (n, 6)
-    """
-    n = V.shape[0]
-    ng = U.shape[0]
-    hg = np.zeros(ng)
-    hp = np.zeros((n, 6))
-    ok, S, Y, Lv = _reduce(U, W, V, damp_g, damp_p)
-    if not ok:
-        return False, hg, hp
-    b = gg.copy()
-    col = np.empty(6)
-    for v in range(n):
-        for a in range(6):
-            col[a] = gp[v, a]
-        _cho_solve(Lv[v], col)
-        for c in range(ng):
-            acc = 0.0
-            for a in range(6):
-                acc += W[v, c, a] * col[a]
-            b[c] -= acc
-    Ls = np.zeros((ng, ng))
-    if not _cholesky(S, Ls):
-        return False, hg, hp
-    _cho_solve(Ls, b)
-    for c in range(ng):
-        hg[c] = b[c]
-    for v in range(n):
-        for a in range(6):
-            acc = gp[v, a]
-            for c in range(ng):
-                acc -= W[v, c, a] * hg[c]
-            col[a] = acc
-        _cho_solve(Lv[v], col)
-        for a in range(6):
-            hp[v, a] = col[a]
-    return True, hg, hp
-
-
-@njit
-def schur_covariance(U, W, V):
-    """Blocks of ``A^-1`` for block normal equations (no damping), without forming A.
-
-    Returns
-    -------
-    ok : bool (False when A is not positive definite)
-    Cg : (ng, ng) ``S^-1``, the global block (the covariance of the intrinsics up to sigma^2)
-    Cp : (n, 6, 6) ``V_v^-1 + Y_v S^-1 Y_v^T`` (``Y_v = V_v^-1 W_v^T``), the pose blocks
-    Cx : (n, ng, 6) ``-S^-1 Y_v^T``, the global-pose blocks
-    """
-    n = V.shape[0]
-    ng = U.shape[0]
-    Cg = np.zeros((ng, ng))
-    Cp = np.zeros((n, 6, 6))
-    Cx = np.zeros((n, ng, 6))
-    ok, S, Y, Lv = _reduce(U, W, V, np.zeros(ng), np.zeros((n, 6)))
-    if not ok:
-        return False, Cg, Cp, Cx
-    Ls = np.zeros((ng, ng))
-    if not _cholesky(S, Ls):
-        return False, Cg, Cp, Cx
-    e = np.empty(ng)
-    for c in range(ng):
-        for a in range(ng):
-            e[a] = 0.0
-        e[c] = 1.0
-        _cho_solve(Ls, e)
-        for a in range(ng):
-            Cg[a, c] = e[a]
-    col = np.empty(6)
-    for v in range(n):
-        for a in range(6):  # Cx = -Cg Y^T
-            for c in range(ng):
-                acc = 0.0
-                for k in range(ng):
-                    acc += Cg[c, k] * Y[v, a, k]
-                Cx[v, c, a] = -acc
-        for b in range(6):  # V^-1 column b
-            for a in range(6):
-                col[a] = 0.0
-            col[b] = 1.0
-            _cho_solve(Lv[v], col)
-            for a in range(6):
-                acc = 0.0
-                for c in range(ng):
-                    acc -= Y[v, a, c] * Cx[v, c, b]
-                Cp[v, a, b] = col[a] + acc
-    return True, Cg, Cp, Cx
 
 
 @njit

@@ -8,8 +8,8 @@ around them as much again. :func:`lm_image` runs the same iterations inside
 numba: the same kernels
 (:func:`~psdcal.calibration._image_kernel.image_model`, into arrays reused from one evaluation to the next, or
 :func:`~psdcal.calibration._image_kernel.template_model`,
-:func:`~psdcal.calibration._gram_kernel.gram_block_normal` (``block_normal`` with long runs in chunks),
-:func:`~psdcal.calibration._image_kernel.schur_solve`), the same damping and
+:func:`~psdcal.calibration._gram_kernel.gram_block_normal`,
+:func:`~psdcal.calibration._schur_kernel.schur_solve`), the same damping and
 stopping rules in the same order, the Newton inverse of each trial point
 warm-started from the last accepted point, as the Python loop does.
 
@@ -22,8 +22,9 @@ import numpy as np
 
 from psdcal._jit import njit
 from psdcal.calibration._gram_kernel import gram_block_normal
-from psdcal.calibration._image_kernel import image_model_into, schur_covariance, schur_solve, template_model
+from psdcal.calibration._image_kernel import image_model_into, template_model
 from psdcal.calibration._lm_rules import negligible_decrement, next_damping, trial_verdict
+from psdcal.calibration._schur_kernel import schur_covariance, schur_solve
 
 #: status codes of :func:`lm_image` (those of ``levenberg_marquardt``, and 5: its damping overflow, a 2 there)
 MESSAGES = {

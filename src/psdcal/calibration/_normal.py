@@ -5,7 +5,7 @@ The pose columns of a point are non-zero only for its own view, so ``J^T J`` has
 
 - :class:`DenseNormal`: ``J^T J`` and ``J^T r`` as they are (few views);
 - :class:`BlockNormal`: ``(U, W, V)`` solved through the Schur complement of the pose blocks, with the
-  compiled kernels of :mod:`._image_kernel` and the numpy references here
+  compiled kernels of :mod:`._gram_kernel` and :mod:`._schur_kernel` and the numpy references here
   (:func:`block_normal_reference`, :func:`schur_solve_reference`, :func:`schur_covariance_reference`).
 
 :func:`psdcal.calibration._lm.levenberg_marquardt` solves either.
@@ -24,7 +24,7 @@ def compact_from_dense(J, img, ng):
 
 
 def block_normal_reference(Jc, r, img, n_views):
-    """Numpy reference of :func:`psdcal.calibration._image_kernel.block_normal`:
+    """Numpy reference of :func:`psdcal.calibration._gram_kernel.gram_block_normal`:
     ``(U, W, V, gg, gp)`` of a compact Jacobian."""
     ng = Jc.shape[1] - 6
     Jg = Jc[:, :ng]
@@ -45,7 +45,7 @@ def block_normal_reference(Jc, r, img, n_views):
 
 
 def schur_solve_reference(U, W, V, gg, gp, damp_g, damp_p):
-    """Numpy reference of :func:`psdcal.calibration._image_kernel.schur_solve` (batched LAPACK)."""
+    """Numpy reference of :func:`psdcal.calibration._schur_kernel.schur_solve` (batched LAPACK)."""
     n = V.shape[0]
     ng = U.shape[0]
     Vd = V + np.einsum("na,ab->nab", damp_p, np.eye(6))
@@ -64,7 +64,7 @@ def schur_solve_reference(U, W, V, gg, gp, damp_g, damp_p):
 
 
 def schur_covariance_reference(U, W, V):
-    """Numpy reference of :func:`psdcal.calibration._image_kernel.schur_covariance`."""
+    """Numpy reference of :func:`psdcal.calibration._schur_kernel.schur_covariance`."""
     n = V.shape[0]
     ng = U.shape[0]
     try:
@@ -151,7 +151,7 @@ class BlockNormal:
         ng = self.n_global
         dg, dp = damp[:ng], damp[ng:].reshape(-1, 6)
         if self.compiled:
-            from psdcal.calibration._image_kernel import schur_solve
+            from psdcal.calibration._schur_kernel import schur_solve
 
             ok, hg, hp = schur_solve(self.U, self.W, self.V, self.gg, self.gp, dg, dp)
         else:
@@ -167,7 +167,7 @@ class BlockNormal:
         the pseudo-inverse of the dense A (rare; memory quadratic in views).
         """
         if self.compiled:
-            from psdcal.calibration._image_kernel import schur_covariance
+            from psdcal.calibration._schur_kernel import schur_covariance
 
             ok, Cg, Cp, Cx = schur_covariance(self.U, self.W, self.V)
         else:

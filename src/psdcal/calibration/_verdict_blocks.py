@@ -123,9 +123,10 @@ class FieldParts:
     (columns 2k, 2k + 1), then the dense columns ``R`` (2N, r). The products the verdict needs (``B^T B``,
     ``Q^T B``) come from the parts, without the (2N, 2p + r) matrix, whose columns are half zeros."""
 
-    def __init__(self, mono, R):
+    def __init__(self, mono, R, ext=None):
         self.mono = mono
         self.R = R
+        self._ext_memo = ext  # (N, p + 4) the parts side by side (see _ext), when the caller has them
         self.shape = (R.shape[0], 2 * mono.shape[1] + R.shape[1])
 
     def dense(self) -> np.ndarray:
@@ -135,17 +136,35 @@ class FieldParts:
         out[:, 1, 1::2] = self.mono  # y-fields
         return np.concatenate([out.reshape(2 * n, 2 * p), self.R], axis=1)
 
+    def _ext(self) -> np.ndarray:
+        """(N, p + 4) each point's monomials and its rows of ``R`` side by side (x r^4, x r^6, y r^4, y r^6): the
+        products below are one matrix product with it each (computed once)."""
+        ext = self._ext_memo
+        if ext is None:
+            ext = np.concatenate([self.mono, self.R.reshape(-1, 4)], axis=1)
+            self._ext_memo = ext
+        return ext
+
     def coords(self, Q) -> np.ndarray:
         """``Q^T B`` (q, k) for ``Q`` (2N, q), rows in B's order."""
         Q = np.ascontiguousarray(Q, dtype=float)
         n, p = self.mono.shape
         q = Q.shape[1]
-        # one product for both axes: Q's rows (x_i, y_i) side by side, (N, 2q); M[k, a q + j] = sum_i mono[i, k]
-        # Q[2 i + a, j], reordered to [j, 2 k + a]
-        M = self.mono.T @ Q.reshape(n, 2 * q)
+        # one product for all columns: Q's rows (x_i, y_i) side by side, (N, 2q); M[k, a q + j] = sum_i ext[i, k]
+        # Q[2 i + a, j]; the monomials' reordered to [j, 2 k + a], R's the sum of its x and y rows' parts
+        M = self._ext().T @ Q.reshape(n, 2 * q)
         out = np.empty((q, self.shape[1]))
-        out[:, :2 * p].reshape(q, p, 2)[...] = M.reshape(p, 2, q).transpose(2, 0, 1)
-        np.matmul(Q.T, self.R, out=out[:, 2 * p:])
+        out[:, :2 * p].reshape(q, p, 2)[...] = M[:p].reshape(p, 2, q).transpose(2, 0, 1)
+        out[:, 2 * p:] = (M[p:p + 2, :q] + M[p + 2:, q:]).T
+        return out
+
+    def t_dot(self, e) -> np.ndarray:
+        """``B^T e`` (k,) for ``e`` (2N,) in B's row order (:meth:`coords` of one column)."""
+        p = self.mono.shape[1]
+        M = self._ext().T @ np.asarray(e, dtype=float).reshape(-1, 2)  # (p + 4, 2): with the x rows, the y rows
+        out = np.empty(self.shape[1])
+        out[:2 * p] = M[:p].ravel()
+        out[2 * p:] = M[p:p + 2, 0] + M[p + 2:, 1]
         return out
 
     def coords_blocks(self, Qbt) -> np.ndarray:
@@ -160,14 +179,27 @@ class FieldParts:
 
     def coords_views(self, Q) -> np.ndarray:
         """``Q_v^T B_v`` of each view (v, s, k) for ``Q`` (v, rows, s) whose rows are B's, view by view (every view
-        as many): as :meth:`coords`, one product of each view's monomials with its rows (x_i, y_i) side by side."""
+        as many): as :meth:`coords`, one product of each view's points' parts with its rows (x_i, y_i) side by
+        side."""
         v, nr, s_ = Q.shape
         p = self.mono.shape[1]
+        ext = self._ext()
         out = np.empty((v, s_, self.shape[1]))
-        M = np.matmul(np.swapaxes(self.mono.reshape(v, nr // 2, p), 1, 2), Q.reshape(v, nr // 2, 2 * s_))
-        out[:, :, :2 * p].reshape(v, s_, p, 2)[...] = M.reshape(v, p, 2, s_).transpose(0, 3, 1, 2)
-        np.matmul(np.swapaxes(Q, 1, 2), self.R.reshape(v, nr, -1), out=out[:, :, 2 * p:])
+        M = np.matmul(np.swapaxes(ext.reshape(v, nr // 2, p + 4), 1, 2), Q.reshape(v, nr // 2, 2 * s_))
+        out[:, :, :2 * p].reshape(v, s_, p, 2)[...] = M[:, :p].reshape(v, p, 2, s_).transpose(0, 3, 1, 2)
+        out[:, :, 2 * p:] = np.swapaxes(M[:, p:p + 2, :s_] + M[:, p + 2:, s_:], 1, 2)
         return out
+
+    def field(self, c) -> np.ndarray:
+        """(N, 2) the field ``B c`` at the points (x, y), for coefficients ``c`` (k,) of B's columns."""
+        p = self.mono.shape[1]
+        c = np.asarray(c, dtype=float)
+        cm = np.zeros((p + 4, 2))  # the coefficients of the points' parts (see _ext) for the x and y components
+        cm[:p, 0] = c[0:2 * p:2]
+        cm[:p, 1] = c[1:2 * p:2]
+        cm[p:p + 2, 0] = c[2 * p:]
+        cm[p + 2:, 1] = c[2 * p:]
+        return self._ext() @ cm
 
     def gram(self) -> np.ndarray:
         """``B^T B`` (k, k) (computed once: the parts are not changed after construction)."""
@@ -179,13 +211,16 @@ class FieldParts:
 
     def _gram_of_parts(self) -> np.ndarray:
         p = self.mono.shape[1]
+        ext = self._ext()
+        E = ext.T @ ext  # (p + 4, p + 4): the monomials' products, theirs with R's x and y rows, R's rows'
         G = np.zeros((self.shape[1],) * 2)
-        mm = self.mono.T @ self.mono
+        mm = E[:p, :p]
         G[0:2 * p:2, 0:2 * p:2] = mm
         G[1:2 * p:2, 1:2 * p:2] = mm
-        cr = self.coords(self.R)
-        G[2 * p:, :] = cr
-        G[:, 2 * p:] = cr.T
+        G[0:2 * p:2, 2 * p:] = E[:p, p:p + 2]
+        G[1:2 * p:2, 2 * p:] = E[:p, p + 2:]
+        G[2 * p:, :2 * p] = G[:2 * p, 2 * p:].T
+        G[2 * p:, 2 * p:] = E[p:p + 2, p:p + 2] + E[p + 2:, p + 2:]
         return G
 
 
@@ -193,10 +228,12 @@ def field_parts(pts, c_mm, half_mm) -> FieldParts:
     """:func:`field_basis` in parts (:class:`FieldParts`)."""
     pts = np.asarray(pts, dtype=float)
     if pts.ndim == 2 and _jit.use_compiled(pts.shape[0]):  # the same products in one loop (tested equal)
-        from psdcal.calibration._rules_kernel import field_parts as kernel
+        from psdcal.calibration._fields_kernel import field_parts_ext as kernel
 
-        return FieldParts(*kernel(np.ascontiguousarray(pts), np.asarray(c_mm, dtype=float),
-                                  np.broadcast_to(np.asarray(half_mm, dtype=float), (2,)).copy(), FIELD_DEGREE))
+        half = np.asarray(half_mm, dtype=float)
+        if half.shape != (2,):  # a scalar: both axes
+            half = np.broadcast_to(half, (2,)).copy()
+        return FieldParts(*kernel(np.ascontiguousarray(pts), np.asarray(c_mm, dtype=float), half, FIELD_DEGREE))
     u = pts / half_mm
     n = pts.shape[0]
     # the monomials u^i v^j (i + j <= FIELD_DEGREE) from the powers of u and v, in the order i, then j

@@ -12,7 +12,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from psdcal.calibration._verdict_linear import explained as _explained
+from psdcal.calibration._verdict_fields import explained as _explained
 from psdcal.calibration._verdict_rules import F_RANGE_MM
 
 

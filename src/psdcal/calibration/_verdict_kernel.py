@@ -31,7 +31,7 @@ from __future__ import annotations
 import numpy as np
 
 from psdcal._jit import njit
-from psdcal.calibration._image_kernel import _cholesky
+from psdcal.calibration._schur_kernel import _cholesky
 
 
 @njit

@@ -14,7 +14,7 @@ standard errors. Both come from the Jacobian at the solution:
   pose columns projected out, natural units: f in mm, k1 in mm^-2, ...) and
   ``Ninv = (Gt^T Gt)^-1``, so that the covariance of the global parameters is
   ``s^2 Ninv`` with ``s^2 = e^T e / dof``;
-- :func:`field_shift`: the linearised refit with extra columns ``B`` (a
+- :func:`~psdcal.calibration._verdict_fields.field_shift`: the linearised refit with extra columns ``B`` (a
   systematic field, the left-out terms): coefficients ``c`` from the
   residuals, and the shift ``-Ninv Gt^T B c`` of the global parameters;
 - :func:`group_shift`: the linearised refit without a group of rows (a view,
@@ -345,139 +345,6 @@ NORMAL_BASES_MIN_POINTS = 300
 COMPILED_PROJECTOR_MAX_POINTS = 500
 
 
-def _sym_eig_desc(K):
-    """Eigenvalues (descending, clipped at 0) and eigenvectors (columns) of the symmetric matrix ``K``."""
-    lam, V = np.linalg.eigh(K)
-    return np.maximum(lam[::-1], 0.0), V[:, ::-1]
-
-
-def _span_basis(Kn) -> np.ndarray:
-    """M (k, r) such that ``Bn M`` is an orthonormal basis of span(Bn), from ``Kn = Bn^T Bn`` (unit columns): the
-    directions of an eigenvalue below 1e-12 of the largest dropped. ``L^-T`` of the Cholesky factor ``L`` where no
-    direction is (the smallest eigenvalue is at least ``1 / ||L^-1||_F^2``, the largest at most the trace), else from
-    the eigenproblem."""
-    try:
-        Li = np.linalg.inv(np.linalg.cholesky(Kn))
-    except np.linalg.LinAlgError:
-        Li = None
-    if Li is not None and np.all(np.isfinite(Li)) and 1.0 / float(np.sum(Li * Li)) > 1e-12 * float(np.trace(Kn)):
-        return Li.T
-    lam0, V0 = _sym_eig_desc(Kn)
-    keep = lam0 > 1e-12 * max(float(lam0[0]), 1e-300)
-    return V0[:, keep] / np.sqrt(lam0[keep])
-
-
-def _bte(lin: Linear, B) -> np.ndarray:
-    """(k,) ``B^T e`` (memoised on :class:`FieldParts`: the F-test and the shift share it)."""
-    if B is lin.extra:
-        return lin.extra_te
-    if not isinstance(B, FieldParts):
-        return B.T @ lin.e
-    memo = getattr(B, "_bte", None)
-    if memo is not None and memo[0] is lin:
-        return memo[1]
-    bte = B.coords(lin.e[:, None])[0]
-    B._bte = (lin, bte)
-    return bte
-
-
-def _basis(lin: Linear, B):
-    """The residuals' coordinates ``ute`` on an orthonormal basis U of span((I - P) B) (the fields the parameters do
-    not absorb), and the map from them to coefficients of B's columns: ``c = W ute``.
-
-    U is that of the singular value decomposition ``(I - P) B = U S V^T`` (the
-    directions with a singular value below 1e-2 of the largest dropped), found
-    from the Gram matrix ``V S^2 V^T`` (:meth:`Linear.gram_perp`): ``U^T e =
-    S^-1 V^T B^T e`` as ``e`` is itself projected off the Jacobian. U is never
-    formed (small eigenproblems instead of a tall SVD).
-    """
-    parts = isinstance(B, FieldParts)
-    if B is lin.extra:
-        btb, K = lin.extra_gram
-    else:
-        btb = B.gram() if parts else B.T @ B
-        K = lin.gram_perp(B, btb)
-    scale = np.maximum(np.sqrt(np.maximum(np.diag(btb), 0.0)), 1e-300)
-    K = K / np.outer(scale, scale)  # that of B's columns scaled to norm 1
-    nb = np.sqrt(np.maximum(np.diag(K), 0.0))
-    use = nb > 1e-4  # fields the model's parameters absorb (to 1e-4) test nothing
-    if not use.any():
-        return np.zeros(0), np.zeros((B.shape[1], 0))
-    lam, V = _sym_eig_desc(K[np.ix_(use, use)])
-    s = np.sqrt(lam)
-    keep = s > 1e-2 * s[0]
-    s, V = s[keep], V[:, keep]
-    bte = _bte(lin, B)
-    ute = (V.T @ (bte[use] / scale[use])) / s
-    W = np.zeros((B.shape[1], s.size))
-    W[use] = (V / s) / scale[use, None]
-    return ute, W
-
-
-def explained(lin: Linear, B) -> tuple[float, int]:
-    """Sum of squares of the residuals along span(B) minus the Jacobian's span, and its dimension."""
-    ute, _ = _basis(lin, B)
-    if ute.size == 0:
-        return 0.0, 0
-    return float(ute @ ute), int(ute.size)
-
-
-def f_test(lin: Linear, B) -> tuple[float, float, int, float]:
-    """(F, p, dim, explained sum of squares) of the nested test of the fields ``B`` (m, k) on the residuals;
-    (nan, 1, 0, 0) when none is testable."""
-    expl, p_dim = explained(lin, B)
-    dof = lin.dof
-    if p_dim == 0 or dof - p_dim <= 0:
-        return float("nan"), 1.0, 0, 0.0
-    ssr = float(lin.e @ lin.e)
-    F = (expl / p_dim) / max((ssr - expl) / (dof - p_dim), 1e-300)
-    return float(F), float(_stats.f_sf(F, p_dim, dof - p_dim)), int(p_dim), float(expl)
-
-
-def field_shift(lin: Linear, B, *, min_visible: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
-    """The linearised refit with the extra columns ``B`` (m, k): (their coefficients c (k,), the shift of the
-    global parameters (ng,)), both in natural units (B's columns are d(model)/d(coefficient)).
-
-    ``min_visible`` > 0 keeps only the combinations of B's columns whose part
-    off the Jacobian's span is at least that fraction of their norm: a field
-    the parameters absorb almost wholly is seen only through its small visible
-    part, and extrapolating that part to the whole field multiplies the noise
-    (a generic field has no model linking the two parts; a model term has).
-    """
-    parts = isinstance(B, FieldParts)
-    if not parts:
-        B = np.asarray(B, dtype=float)
-    if lin.g is None or B.shape[1] == 0:
-        return np.zeros(B.shape[1]), np.zeros(len(lin.names))
-
-    def gt_b(c):  # Gt^T B c (the fields' parts give Gt^T B without the dense fields)
-        return lin.gt_t(B) @ c
-
-    if min_visible <= 0:
-        ute, W = _basis(lin, B)
-        if ute.size == 0:
-            return np.zeros(B.shape[1]), np.zeros(len(lin.names))
-        c = W @ ute
-        return c, -lin.ninv @ gt_b(c)
-    # an orthonormal basis Qb = Bn M of span(B) (from B's Gram matrix), then the singular values s of (I - P) Qb
-    # (the visible fraction of each combination) from its Gram matrix M^T K M: no tall factorisation. Bn is B with
-    # columns scaled to norm 1: its Gram matrices are B's scaled (one Gram of B serves the F-test and this).
-    btb = B.gram() if parts else B.T @ B
-    scale = np.maximum(np.sqrt(np.maximum(np.diag(btb), 0.0)), 1e-300)
-    ss = np.outer(scale, scale)
-    M = _span_basis(btb / ss)
-    lam, V = _sym_eig_desc(M.T @ (lin.gram_perp(B, btb) / ss) @ M)
-    s = np.sqrt(np.minimum(lam, 1.0))
-    use = s > min_visible
-    if not use.any():
-        return np.zeros(B.shape[1]), np.zeros(len(lin.names))
-    bte = _bte(lin, B) / scale  # Bn^T e
-    ute = (V[:, use].T @ (M.T @ bte)) / s[use]  # the residuals on (I - P) Qb's left singular vectors
-    a = M @ (V[:, use] @ (ute / s[use]))  # coefficients on Bn
-    c = a / scale
-    return c, -lin.ninv @ gt_b(c)
-
-
 def group_shift(lin: Linear, rows) -> np.ndarray:
     """The linearised shift of the global parameters (ng,) when the residual rows ``rows`` (bool (m,)) are left out."""
     b = lin.blocks
@@ -531,39 +398,6 @@ def group_f(lin: Linear, groups, n_groups, ssr, dof):
     pv = np.full(n_groups, np.nan)
     pv[worst] = _stats.f_sf(F[worst], d_g[worst], d_r[worst]) if usable[worst] else 1.0
     return F, pv
-
-
-def terms_test(lin: Linear):
-    """(F, p, dim, most significant term) of the nested-model test of the left-out terms, None without any."""
-    if lin.extra is None or lin.extra.shape[1] == 0:
-        return None
-    dof = lin.dof
-    ssr = float(lin.e @ lin.e)
-    F, p, p_dim, _ = f_test(lin, lin.extra)
-    if p_dim == 0:
-        return None
-    # each term alone too (one degree of freedom: more power for a single missing term); Bonferroni over all tests
-    btb, K = lin.extra_gram
-    norms = np.maximum(np.sqrt(np.maximum(np.diag(btb), 0.0)), 1e-300)
-    nb = np.sqrt(np.maximum(np.diag(K), 0.0)) / norms  # norms of the projected unit columns
-    bte = lin.extra_te / norms  # = ((I - P) Bn)^T e for the unit columns Bn: e is itself projected
-    cand = []  # (F, name) of each testable term alone
-    for k, name in enumerate(lin.extra_names):
-        if nb[k] > 1e-4:  # as in explained(): a column the model absorbs tests nothing
-            ek = float((bte[k] / nb[k]) ** 2)
-            cand.append((ek / max((ssr - ek) / (dof - 1), 1e-300), name))
-    # the p-value of one degree of freedom falls as F grows: the smallest (all that the decision and the message
-    # use) is the largest F's, unless another F ties it or it underflows to 0 (then the tuples' order decides)
-    top = max((F for F, _ in cand), default=0.0)
-    single = [(float(_stats.f_sf(F, 1, dof - 1)), F, name) for F, name in cand if F == top]
-    if len(single) > 1 or (single and single[0][0] == 0.0):
-        single = [(float(_stats.f_sf(F, 1, dof - 1)), F, name) for F, name in cand]
-    n_tests = 1 + len(cand)
-    if single and min(single)[0] < p:
-        pk, Fk, _ = min(single)
-        return float(Fk), float(min(1.0, n_tests * pk)), 1, min(single)[2]
-    best = min(single)[2] if single else lin.extra_names[0]
-    return float(F), float(min(1.0, n_tests * p)), p_dim, best
 
 
 # -- consequences -------------------------------------------------------------------------
@@ -751,11 +585,36 @@ def effect(cons: Consequences, dtheta, *, dextra=None, field_at_grid=None) -> Ef
     """The effect of a parameter shift ``dtheta`` (free parameters), with the extra terms' values ``dextra`` and
     an additive field on the sensor ``field_at_grid`` (K, 2) mm removed from the measured points."""
     n_free = len(dtheta)
-    sdp = np.sqrt(np.maximum(np.diag(cons.cov), 0.0)).tolist()
     full = np.zeros(len(cons.names))
     full[:n_free] = dtheta
     if dextra is not None:
         full[n_free:] = dextra
+    if _jit.use_compiled(cons.sd.size // 2):  # the same sums in one loop (tested against the code below)
+        from psdcal.calibration import _fields_kernel as fk
+
+        f = _NO_FIELD if field_at_grid is None else np.ascontiguousarray(field_at_grid, dtype=float)
+        ang_sig, ang_rad, sdp = fk.angle_shifts(cons.A, full, cons.D, f, cons.sd, cons.cov)
+        sdp = sdp.tolist()
+    else:
+        ang_sig, ang_rad, sdp = _angle_shifts(cons, full, field_at_grid)
+    dth = np.abs(np.asarray(dtheta, dtype=float)).tolist()
+    params = {n: dth[k] / sdp[k] for k, n in enumerate(cons.names[:n_free]) if sdp[k] > 0}
+    key = {k: v for k, v in params.items() if k in KEY_PARAMETERS}
+    what, sig = "the angles", ang_sig
+    if key:
+        kmax = max(key, key=key.get)
+        if key[kmax] > sig:
+            what, sig = kmax, key[kmax]
+    return Effect(float(sig), what, ang_rad, ang_sig, params)
+
+
+_NO_FIELD = np.zeros((0, 2))
+
+
+def _angle_shifts(cons: Consequences, full, field_at_grid):
+    """(the largest angle shift in its standard errors, the largest angle shift (rad), the parameters' standard
+    errors as a list) of the parameter shift ``full`` (all of ``cons.names``) and the field ``field_at_grid``."""
+    sdp = np.sqrt(np.maximum(np.diag(cons.cov), 0.0)).tolist()
     da = cons.A @ full
     if field_at_grid is not None:  # D (K, 2, 2) times the field (K, 2), the sum over its two components written out
         f = np.asarray(field_at_grid, dtype=float)
@@ -769,26 +628,4 @@ def effect(cons: Consequences, dtheta, *, dextra=None, field_at_grid=None) -> Ef
         z = np.abs(da[ok]) / sd[ok] if ok.any() else np.zeros(1)
     ang_sig = float(np.max(z)) if z.size else 0.0
     ang_rad = float(np.max(np.abs(da))) if da.size else 0.0
-    dth = np.abs(np.asarray(dtheta, dtype=float)).tolist()
-    params = {n: dth[k] / sdp[k] for k, n in enumerate(cons.names[:n_free]) if sdp[k] > 0}
-    key = {k: v for k, v in params.items() if k in KEY_PARAMETERS}
-    what, sig = "the angles", ang_sig
-    if key:
-        kmax = max(key, key=key.get)
-        if key[kmax] > sig:
-            what, sig = kmax, key[kmax]
-    return Effect(float(sig), what, ang_rad, ang_sig, params)
-
-
-def structure_test(result, exclude=None) -> tuple[float, float]:
-    """(F, p-value) of the verdict's structure check on ``result``'s residuals, ``exclude`` (n_images, M)
-    observations left out (the same function the verdict calls: :func:`structure_fields`)."""
-    lin = linearise(result, exclude)
-    F, p, _, _ = f_test(lin, structure_fields(lin, result))
-    return F, p
-
-
-def structure_fields(lin: Linear, result, *, parts: bool = False):
-    """The structure check's fields (m, p) at the modelled points (``parts``: as :class:`FieldParts`)."""
-    fp = field_parts(lin.pts, result.intrinsics.c, np.asarray(result.sensor_mm, float) / 2)
-    return fp if parts else fp.dense()
+    return ang_sig, ang_rad, sdp

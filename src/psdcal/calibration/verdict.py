@@ -64,21 +64,24 @@ import numpy as np
 
 from psdcal import _stats
 from psdcal._consistency import Check
+from psdcal.calibration._verdict_fields import (
+    explained,
+    f_test,
+    field_shift,
+    structure_fields,
+    structure_test,
+    terms_test,
+)
 from psdcal.calibration._verdict_linear import (
     FIELD_DEGREE,
     Linear,
     consequences,
     effect,
-    explained,
-    f_test,
     field_basis,
-    field_shift,
+    field_parts,
     group_f,
     group_shift,
     linearise,
-    structure_fields,
-    structure_test,
-    terms_test,
     view_shift,
 )
 from psdcal.calibration._verdict_rules import (
@@ -461,8 +464,8 @@ def _structure_check(result, lin: Linear, ssr: float, dof: int, cons, n_pts, alp
     eff = size = None
     if p < alpha and cons:
         c, dth = field_shift(lin, B, min_visible=FIELD_VISIBLE)
-        gb = field_basis(cons.grid, result.intrinsics.c, np.asarray(result.sensor_mm, float) / 2)
-        eff = effect(cons, dth, field_at_grid=(gb @ c).reshape(-1, 2))
+        at_grid = field_parts(cons.grid, result.intrinsics.c, np.asarray(result.sensor_mm, float) / 2).field(c)
+        eff = effect(cons, dth, field_at_grid=at_grid)
         size = f"unmodelled {_um(math.sqrt(expl / max(n_pts, 1)))} RMS of {_um(math.sqrt(ssr / max(n_pts, 1)))}"
     ch = _judge("structure", F, thr, p, float(p_dim), eff, found, size,
                 "a systematic misfit over the sensor: see the advice of the other checks", lead="removing it ",
