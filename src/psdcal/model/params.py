@@ -70,7 +70,7 @@ class Distortion:
 
     @classmethod
     def from_array(cls, a) -> "Distortion":
-        return cls(**{n: float(v) for n, v in zip(DISTORTION_NAMES, np.asarray(a, dtype=float))})
+        return cls(**dict(zip(DISTORTION_NAMES, np.asarray(a, dtype=float).tolist())))  # (tolist: plain floats in one call)
 
     def to_dict(self) -> dict:
         """``{name: value}`` in the order of :data:`DISTORTION_NAMES` (as ``dataclasses.asdict``, without its deep copies)."""
