@@ -66,7 +66,7 @@ class Distortion:
 
     def as_array(self) -> np.ndarray:
         """Coefficients in the order of :data:`DISTORTION_NAMES`, shape (7,)."""
-        return np.array([getattr(self, n) for n in DISTORTION_NAMES], dtype=float)
+        return np.array((self.k1, self.k2, self.k3, self.p1, self.p2, self.l1, self.l2), dtype=float)  # (no getattr loop)
 
     @classmethod
     def from_array(cls, a) -> "Distortion":
