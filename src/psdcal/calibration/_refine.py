@@ -129,23 +129,33 @@ class Problem:
         return z
 
     def unpack(self, z, base_intr: Intrinsics, base_dist: Distortion, base_gains):
-        vals = dict(zip(self.names, z[: self.n_global].tolist()))
+        zg = z[: self.n_global].tolist()  # (positions from _unpack_slots: no dict of the names per call)
+        i_f, i_cx, i_cy, i_skew, i_fy = self._unpack_slots[0]
         intr = Intrinsics(
-            f_mm=float(vals.get("f_mm", base_intr.f_mm)),
-            cx_mm=float(vals.get("cx_mm", base_intr.cx_mm)),
-            cy_mm=float(vals.get("cy_mm", base_intr.cy_mm)),
-            skew=float(vals.get("skew", base_intr.skew if self.spec.skew else 0.0)),
-            fy_mm=float(vals["fy_mm"]) if "fy_mm" in vals else (base_intr.fy_mm if self.spec.aspect else None),
+            f_mm=float(zg[i_f] if i_f >= 0 else base_intr.f_mm),
+            cx_mm=float(zg[i_cx] if i_cx >= 0 else base_intr.cx_mm),
+            cy_mm=float(zg[i_cy] if i_cy >= 0 else base_intr.cy_mm),
+            skew=float(zg[i_skew] if i_skew >= 0 else (base_intr.skew if self.spec.skew else 0.0)),
+            fy_mm=float(zg[i_fy]) if i_fy >= 0 else (base_intr.fy_mm if self.spec.aspect else None),
         )
         coef = base_dist.as_array()  # a new array
         gains = np.array(base_gains, dtype=float)  # a copy
-        for i, n in self._free_slots:
+        for i, k in self._unpack_slots[1]:
             if i < 0:
-                gains[-i] = vals[n]
+                gains[-i] = zg[k]
             else:
-                coef[i] = vals[n]
+                coef[i] = zg[k]
         poses = z[self.n_global :].reshape(self.n_images, 6)
         return intr, coef, gains, poses[:, :3], poses[:, 3:]
+
+    @cached_attribute
+    def _unpack_slots(self) -> tuple:
+        """Where :meth:`unpack` finds each free parameter in the state vector: the positions of ``f_mm``,
+        ``cx_mm``, ``cy_mm``, ``skew``, ``fy_mm`` (-1: not free) and ``(i, position)`` of each of
+        :attr:`_free_slots`."""
+        pos = {n: k for k, n in enumerate(self.names)}
+        return (tuple(pos.get(n, -1) for n in ("f_mm", "cx_mm", "cy_mm", "skew", "fy_mm")),
+                tuple((i, pos[n]) for i, n in self._free_slots))
 
     @cached_attribute
     def _free_slots(self) -> tuple:

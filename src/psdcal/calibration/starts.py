@@ -80,7 +80,7 @@ def _check_inputs(template_mm, points_mm, image_ids, min_images):
         raise InputError(f"template_mm must have shape (M, 2), got {T.shape}")
     if X.ndim != 3 or X.shape[2] != 2 or X.shape[1] != T.shape[0]:
         raise InputError(f"points_mm must have shape (n_images, {T.shape[0]}, 2), got {X.shape}")
-    if not np.all(np.isfinite(T)):
+    if not np.isfinite(T).all():
         raise InputError("template_mm contains NaN or infinite values")
     # a point is missing only when both coordinates are NaN (nothing to look at when all are finite)
     if not np.isfinite(X).all():

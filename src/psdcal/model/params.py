@@ -66,11 +66,11 @@ class Distortion:
 
     def as_array(self) -> np.ndarray:
         """Coefficients in the order of :data:`DISTORTION_NAMES`, shape (7,)."""
-        return np.array([getattr(self, n) for n in DISTORTION_NAMES], dtype=float)
+        return np.array((self.k1, self.k2, self.k3, self.p1, self.p2, self.l1, self.l2), dtype=float)  # (no getattr loop)
 
     @classmethod
     def from_array(cls, a) -> "Distortion":
-        return cls(**{n: float(v) for n, v in zip(DISTORTION_NAMES, np.asarray(a, dtype=float))})
+        return cls(**dict(zip(DISTORTION_NAMES, np.asarray(a, dtype=float).tolist())))  # (tolist: plain floats in one call)
 
     def to_dict(self) -> dict:
         """``{name: value}`` in the order of :data:`DISTORTION_NAMES` (as ``dataclasses.asdict``, without its deep copies)."""
