@@ -250,3 +250,20 @@ def test_span_basis_is_orthonormal_on_the_span_by_cholesky_or_eigenproblem():
         Q = Bn @ M
         np.testing.assert_allclose(Q.T @ Q, np.eye(r), atol=1e-9)
         np.testing.assert_allclose(Q @ (Q.T @ Bn), Bn, atol=1e-9)
+
+
+def test_field_coordinates_memo_belongs_to_its_blocks(fit, monkeypatch):
+    """The coordinates of a FieldParts (and their split) are memoised for one Blocks: another Blocks (here the
+    bases negated) computes its own."""
+    import dataclasses
+
+    lin, _ = _pair(fit, monkeypatch)
+    fp = VF.structure_fields(lin, fit, parts=True)
+    b1 = lin.blocks
+    g1, k1 = b1.gt_t(fp), b1.pgram(fp)
+    b2 = dataclasses.replace(b1, Q=-b1.Q)
+    np.testing.assert_array_equal(b2.gt_t(fp), -g1)
+    np.testing.assert_array_equal(b2.pgram(fp), k1)  # quadratic in the coordinates
+    np.testing.assert_array_equal(b1.gt_t(fp), g1)  # the first one's again (the memo now holds the second's)
+    np.testing.assert_array_equal(b1.h, b2.h)
+    _close(b1.h, np.einsum("vri,vri->vr", b1.Q, b1.Q).reshape(-1), 1e-15)

@@ -382,7 +382,7 @@ class Blocks:
     def h(self) -> np.ndarray:
         """(m,) the leverages: the squared rows of the bases."""
         Q = self.Q
-        return np.einsum("vri,vri->vr", Q, Q).reshape(-1)
+        return ((Q * Q) @ np.ones(Q.shape[2])).reshape(-1)  # (einsum's loop is slower on these shapes)
 
     @cached_property
     def qg(self) -> np.ndarray:
@@ -405,6 +405,18 @@ class Blocks:
             return c
         v, nr = self.Q.shape[:2]
         return np.matmul(np.swapaxes(self.Q, 1, 2), B.reshape(v, nr, B.shape[1]))
+
+    def _split_coords(self, B):
+        """:meth:`_split` of B's :meth:`coords` (memoised on a :class:`FieldParts`, whose projected Gram matrix and
+        ``Gt^T B`` both need them)."""
+        if isinstance(B, FieldParts):
+            memo = getattr(B, "_block_split", None)
+            if memo is not None and memo[0] is self:
+                return memo[1]
+            sp = self._split(self.coords(B))
+            B._block_split = (self, sp)
+            return sp
+        return self._split(self.coords(B))
 
     def _split(self, c):
         """Coordinates ``c`` (v, 6 + g, k) -> (the pose ones (v * 6, k), the global ones (g, k))."""
@@ -431,14 +443,14 @@ class Blocks:
         """``((I - P) B)^T (I - P) B`` from ``B^T B`` (``btb`` when given) and B's coordinates on the bases."""
         if not isinstance(B, FieldParts):
             B = np.asarray(B, dtype=float)
-        cb, cg = self._split(self.coords(B))
+        cb, cg = self._split_coords(B)
         if btb is None:
             btb = B.gram() if isinstance(B, FieldParts) else B.T @ B
         return btb - cb.T @ cb - cg.T @ cg
 
     def gt_t(self, B) -> np.ndarray:
         """(g, k) ``Gt^T B`` (= ``Rg^T Qg^T B``)."""
-        return self.Rg.T @ self._split(self.coords(B))[1]
+        return self.Rg.T @ self._split_coords(B)[1]
 
     @cached_property
     def extra(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
