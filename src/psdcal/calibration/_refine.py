@@ -700,43 +700,26 @@ _CONTROLLER = None
 
 
 #: The normal equations at the solution of the last few fits made on the Python loop, by the identity of their
-#: result's problem record (which :func:`dataclasses.replace` passes on), with the solution they were formed at:
-#: ``id(record) -> (record, parameters, BlockNormal)``.
+#: result's problem record (which :func:`dataclasses.replace` passes on): ``id(record) -> (record, BlockNormal)``.
 _SYSTEMS: dict = {}
 _SYSTEMS_LOCK = threading.Lock()
 
 
-def _solution_key(result) -> tuple:
-    """The parameters of a CalibrationResult that its normal equations depend on (intrinsics, distortion, gains,
-    poses), as a comparable tuple: a result copied with other parameters (``dataclasses.replace``) differs."""
-    return (result.intrinsics, result.distortion, np.asarray(result.gains, dtype=float).tobytes(),
-            np.asarray(result.rvecs, dtype=float).tobytes(), np.asarray(result.tvecs_mm, dtype=float).tobytes())
-
-
-def remember_solution_system(result, system: BlockNormal) -> None:
-    """Keep ``system`` as the normal equations at the solution of the fit ``result`` (a CalibrationResult)."""
-    record = result.problem
+def remember_solution_system(record: dict, system: BlockNormal) -> None:
+    """Keep ``system`` as the normal equations at the solution of the fit whose problem record is ``record``."""
     with _SYSTEMS_LOCK:
         _SYSTEMS.pop(id(record), None)
-        _SYSTEMS[id(record)] = (record, _solution_key(result), system)
+        _SYSTEMS[id(record)] = (record, system)
         while len(_SYSTEMS) > 4:
             _SYSTEMS.pop(next(iter(_SYSTEMS)))
 
 
-def solution_system(result) -> BlockNormal | None:
-    """The normal equations (what ``Evaluator.block_system`` forms) at the solution of ``result``, a fit of this
-    process (:func:`remember_solution_system`) with the same problem record and the same parameters; None
-    otherwise."""
-    record = result.problem
+def solution_system(record: dict) -> BlockNormal | None:
+    """The normal equations (what ``Evaluator.block_system`` forms) at the solution of a fit of this process
+    whose problem record is ``record`` (:func:`remember_solution_system`); None when there is none."""
     with _SYSTEMS_LOCK:
         hit = _SYSTEMS.get(id(record))
-    if hit is None or hit[0] is not record:
-        return None
-    try:
-        same = hit[1] == _solution_key(result)
-    except (AttributeError, TypeError, ValueError):
-        return None
-    return hit[2] if same else None
+    return hit[1] if hit is not None and hit[0] is record else None
 
 
 class _Solved:

@@ -259,7 +259,7 @@ def undetermined_parameters(result) -> list[str]:
     from psdcal.calibration.core import inputs_from_record
 
     names = tuple(result.param_names)
-    bs = solution_system(result)  # a fit of this process: its solver's last normal equations, formed at the solution
+    bs = solution_system(result.problem)  # a fit of this process: its solver's last normal equations, formed at the solution
     if bs is None or bs.U.shape[0] != len(names) or bs.V.shape[0] != len(result.rvecs):
         try:
             T, X = inputs_from_record(result.problem)

@@ -638,7 +638,7 @@ def _calibrate(template_mm, points_mm, *, cost, radial, tangential, psd_radial, 
     if known_gains is not None:
         result = replace(result, gains=known_gains)
     elif ref.system is not None:
-        remember_solution_system(result, ref.system)
+        remember_solution_system(result.problem, ref.system)
     if not ref.converged:
         raise ConvergenceError(
             f"the {cost}-cost refinement did not converge in {ref.iterations} iterations ({ref.message}); "
