@@ -255,7 +255,6 @@ def test_undetermined_parameters_reuse_the_fits_normal_equations(monkeypatch):
     what a fresh evaluation there forms (to round-off), with the same answer, parallel views included."""
     from psdcal import _jit
     from psdcal.calibration import core
-    from psdcal.calibration import _refine
     from psdcal.calibration._refine import Evaluator, Problem
     from psdcal.calibration.checks import undetermined_parameters
     from psdcal.study.simulate import LENSES, default_template, measured_points, simulate_set
@@ -269,7 +268,7 @@ def test_undetermined_parameters_reuse_the_fits_normal_equations(monkeypatch):
     s = simulate_set("lens1", n_images=6, noise_mm=0.002, seed=4)
     for (tmpl, pts), expect in (((P, measured_points(P, intr, dist, R, T)), True), ((s.template_mm, s.points_mm), False)):
         res = core.calibrate(tmpl, pts, verdict=False)
-        bs = _refine.solution_system(res.problem)
+        bs = core.solution_system(res)
         assert bs is not None
         X = core.inputs_from_record(res.problem)[1]
         prob = Problem(tmpl, X, res.model, cost=res.cost, sensor_mm=tuple(res.sensor_mm))
@@ -280,5 +279,5 @@ def test_undetermined_parameters_reuse_the_fits_normal_equations(monkeypatch):
             assert np.max(np.abs(a - b)) <= 1e-10 * np.max(np.abs(b))
         names = undetermined_parameters(res)
         assert ("f_mm" in names) is expect
-        monkeypatch.setattr(_refine, "_SYSTEMS", {})  # the evaluation from the result alone: the same names
-        assert _refine.solution_system(res.problem) is None and undetermined_parameters(res) == names
+        monkeypatch.setattr(core, "_SYSTEMS", {})  # the evaluation from the result alone: the same names
+        assert core.solution_system(res) is None and undetermined_parameters(res) == names

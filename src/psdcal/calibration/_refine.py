@@ -699,29 +699,6 @@ def _blas_limit():
 _CONTROLLER = None
 
 
-#: The normal equations at the solution of the last few fits made on the Python loop, by the identity of their
-#: result's problem record (which :func:`dataclasses.replace` passes on): ``id(record) -> (record, BlockNormal)``.
-_SYSTEMS: dict = {}
-_SYSTEMS_LOCK = threading.Lock()
-
-
-def remember_solution_system(record: dict, system: BlockNormal) -> None:
-    """Keep ``system`` as the normal equations at the solution of the fit whose problem record is ``record``."""
-    with _SYSTEMS_LOCK:
-        _SYSTEMS.pop(id(record), None)
-        _SYSTEMS[id(record)] = (record, system)
-        while len(_SYSTEMS) > 4:
-            _SYSTEMS.pop(next(iter(_SYSTEMS)))
-
-
-def solution_system(record: dict) -> BlockNormal | None:
-    """The normal equations (what ``Evaluator.block_system`` forms) at the solution of a fit of this process
-    whose problem record is ``record`` (:func:`remember_solution_system`); None when there is none."""
-    with _SYSTEMS_LOCK:
-        hit = _SYSTEMS.get(id(record))
-    return hit[1] if hit is not None and hit[0] is record else None
-
-
 class _Solved:
     """The normal equations at a compiled LM's solution, represented by their inverse's blocks (computed with
     them in the same call): what :func:`_finish` asks of a :class:`BlockNormal`."""

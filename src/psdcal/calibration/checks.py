@@ -255,11 +255,11 @@ def undetermined_parameters(result) -> list[str]:
     ----------
     result : CalibrationResult with its problem record (``[]`` without one)
     """
-    from psdcal.calibration._refine import Evaluator, Problem, solution_system
-    from psdcal.calibration.core import inputs_from_record
+    from psdcal.calibration._refine import Evaluator, Problem
+    from psdcal.calibration.core import inputs_from_record, solution_system
 
     names = tuple(result.param_names)
-    bs = solution_system(result.problem)  # a fit of this process: its solver's last normal equations, formed at the solution
+    bs = solution_system(result)  # a fit of this process: its solver's last normal equations, formed at the solution
     if bs is None or bs.U.shape[0] != len(names) or bs.V.shape[0] != len(result.rvecs):
         try:
             T, X = inputs_from_record(result.problem)
