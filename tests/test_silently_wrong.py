@@ -248,36 +248,3 @@ def test_undetermined_parameters_from_the_reduced_information():
     for lens, n, seed in (("lens1", 3, 0), ("lens1", 12, 1), ("lens2", 3, 2), ("lens2", 40, 3)):
         s = simulate_set(lens, n_images=n, noise_mm=0.002, seed=seed)
         assert undetermined_parameters(calibrate(s.template_mm, s.points_mm, verdict=False)) == []
-
-
-def test_undetermined_parameters_reuse_the_fits_normal_equations(monkeypatch):
-    """On the Python loop (a small one-shot fit), the check reads the solver's normal equations at the solution:
-    what a fresh evaluation there forms (to round-off), with the same answer, parallel views included."""
-    from psdcal import _jit
-    from psdcal.calibration import core
-    from psdcal.calibration._refine import Evaluator, Problem
-    from psdcal.calibration.checks import undetermined_parameters
-    from psdcal.study.simulate import LENSES, default_template, measured_points, simulate_set
-
-    monkeypatch.setattr(_jit, "_MODE", "auto")  # the numpy path for these small problems, as `psdcal calibrate`
-    P = default_template()
-    intr, dist = LENSES["lens2"]
-    rng = np.random.default_rng(0)
-    R = np.array([[0, 0, rng.uniform(-1, 1)] for _ in range(8)])
-    T = np.array([[rng.uniform(-20, 20), rng.uniform(-20, 20), rng.uniform(400, 600)] for _ in range(8)])
-    s = simulate_set("lens1", n_images=6, noise_mm=0.002, seed=4)
-    for (tmpl, pts), expect in (((P, measured_points(P, intr, dist, R, T)), True), ((s.template_mm, s.points_mm), False)):
-        res = core.calibrate(tmpl, pts, verdict=False)
-        bs = core.solution_system(res)
-        assert bs is not None
-        X = core.inputs_from_record(res.problem)[1]
-        prob = Problem(tmpl, X, res.model, cost=res.cost, sensor_mm=tuple(res.sensor_mm))
-        ev = Evaluator(prob, res.intrinsics, res.distortion, res.gains)
-        r, Jc = ev.evaluate_compact(prob.pack(res.intrinsics, res.distortion, res.gains, res.rvecs, res.tvecs_mm))
-        fresh = ev.block_system(Jc, r)
-        for a, b in ((bs.U, fresh.U), (bs.W, fresh.W), (bs.V, fresh.V)):
-            assert np.max(np.abs(a - b)) <= 1e-10 * np.max(np.abs(b))
-        names = undetermined_parameters(res)
-        assert ("f_mm" in names) is expect
-        monkeypatch.setattr(core, "_SYSTEMS", {})  # the evaluation from the result alone: the same names
-        assert core.solution_system(res) is None and undetermined_parameters(res) == names

@@ -568,7 +568,6 @@ class RefineResult:
     img_idx: np.ndarray  # (N,) view of each valid observation
     residuals: np.ndarray
     model_mm: np.ndarray | None = None  # (N, 2) modelled points of the valid observations (image cost)
-    system: BlockNormal | None = None  # the normal equations at the solution, where the Python loop formed them
 
     @property
     def covariance(self) -> np.ndarray:
@@ -730,5 +729,4 @@ def _finish(prob, ev, sol, r, Jc, m, n, options, system=None):
         img_idx=ev.img_idx,
         residuals=r,
         model_mm=ev.model_points(sol.x) if prob.cost == "image" else None,
-        system=sysm if isinstance(sysm, BlockNormal) else None,
     )

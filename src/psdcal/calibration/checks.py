@@ -256,27 +256,25 @@ def undetermined_parameters(result) -> list[str]:
     result : CalibrationResult with its problem record (``[]`` without one)
     """
     from psdcal.calibration._refine import Evaluator, Problem
-    from psdcal.calibration.core import inputs_from_record, solution_system
+    from psdcal.calibration.core import inputs_from_record
 
+    try:
+        T, X = inputs_from_record(result.problem)
+    except (KeyError, TypeError, ValueError):
+        return []
+    spec = result.model
     names = tuple(result.param_names)
-    bs = solution_system(result)  # a fit of this process: its solver's last normal equations, formed at the solution
-    if bs is None or bs.U.shape[0] != len(names) or bs.V.shape[0] != len(result.rvecs):
-        try:
-            T, X = inputs_from_record(result.problem)
-        except (KeyError, TypeError, ValueError):
+    fixed = tuple(n for n in spec.global_names if n not in names)
+    try:
+        prob = Problem(T, X, spec, cost=result.cost, sensor_mm=tuple(result.sensor_mm), fixed=fixed)
+        if prob.names != names or X.shape[0] != len(result.rvecs):
             return []
-        spec = result.model
-        fixed = tuple(n for n in spec.global_names if n not in names)
-        try:
-            prob = Problem(T, X, spec, cost=result.cost, sensor_mm=tuple(result.sensor_mm), fixed=fixed)
-            if prob.names != names or X.shape[0] != len(result.rvecs):
-                return []
-            ev = Evaluator(prob, result.intrinsics, result.distortion, result.gains)
-            z = prob.pack(result.intrinsics, result.distortion, result.gains, result.rvecs, result.tvecs_mm)
-            r, Jc = ev.evaluate_compact(z)
-            bs = ev.block_system(Jc, r)
-        except (ValueError, np.linalg.LinAlgError, FloatingPointError):
-            return []
+        ev = Evaluator(prob, result.intrinsics, result.distortion, result.gains)
+        z = prob.pack(result.intrinsics, result.distortion, result.gains, result.rvecs, result.tvecs_mm)
+        r, Jc = ev.evaluate_compact(z)
+        bs = ev.block_system(Jc, r)
+    except (ValueError, np.linalg.LinAlgError, FloatingPointError):
+        return []
     U, W, V = bs.U, bs.W, bs.V
     S = U - np.einsum("vij,vkj->ik", W @ np.linalg.pinv(V), W)  # sum over the views of W_v V_v^+ W_v^T
     d = np.sqrt(np.maximum(np.diag(U), 0.0))

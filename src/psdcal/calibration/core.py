@@ -637,8 +637,6 @@ def _calibrate(template_mm, points_mm, *, cost, radial, tangential, psd_radial, 
         result = replace(result, problem={**result.problem, "options": {**result.problem["options"], "f_guess_mm": float(f_guess_mm)}})
     if known_gains is not None:
         result = replace(result, gains=known_gains)
-    elif ref.system is not None:
-        _remember_system(result, ref.system)
     if not ref.converged:
         raise ConvergenceError(
             f"the {cost}-cost refinement did not converge in {ref.iterations} iterations ({ref.message}); "
@@ -791,29 +789,6 @@ def _remember(res: CalibrationResult, error: Exception | None = None) -> None:
         _RECENT[id(p)] = (p, res if error is None else error)
         while len(_RECENT) > _RECENT_SIZE:
             _RECENT.pop(next(iter(_RECENT)))
-
-
-#: The normal equations at the solution of the last few fits :func:`_calibrate` made on the Python loop, by the
-#: identity of their result's problem record: ``id(problem) -> (problem, BlockNormal)`` (:func:`solution_system`).
-_SYSTEMS: dict = {}
-
-
-def _remember_system(res: CalibrationResult, system) -> None:
-    p = res.problem
-    with _RECENT_LOCK:
-        _SYSTEMS.pop(id(p), None)
-        _SYSTEMS[id(p)] = (p, system)
-        while len(_SYSTEMS) > _RECENT_SIZE:
-            _SYSTEMS.pop(next(iter(_SYSTEMS)))
-
-
-def solution_system(res: CalibrationResult):
-    """The refinement's normal equations at ``res``'s solution (a :class:`psdcal.calibration._normal.BlockNormal`,
-    what ``Evaluator.block_system`` forms there) when ``res`` (or a :func:`dataclasses.replace` of it keeping its
-    problem record) is a fit of this process whose solver formed them; None otherwise."""
-    with _RECENT_LOCK:
-        hit = _SYSTEMS.get(id(res.problem))
-    return hit[1] if hit is not None and hit[0] is res.problem else None
 
 
 def _calibrate_record(calib, *, verdict: bool = False, template_mm=None, drop_image=None, reuse: bool = False,
