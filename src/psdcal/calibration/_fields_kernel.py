@@ -32,6 +32,7 @@ import numpy as np
 
 from psdcal._jit import njit
 from psdcal.calibration._schur_kernel import _cholesky
+from psdcal.calibration._verdict_kernel import sort_eigenpairs
 from psdcal.calibration._rules_kernel import field_parts
 
 #: Relative size of an off-diagonal entry of the tridiagonal matrix below which it counts as zero (the unit
@@ -177,17 +178,7 @@ def _eigh_apply(K, Zt):
                 Zt[k, j] = c * t1 - s * t2
                 Zt[k + 1, j] = s * t1 + c * t2
     lam = d
-    for i in range(1, n):  # insertion sort, ascending, with the eigenvectors
-        j = i
-        while j > 0 and lam[j - 1] > lam[j]:
-            t = lam[j - 1]
-            lam[j - 1] = lam[j]
-            lam[j] = t
-            for r in range(nc):
-                t = Zt[j - 1, r]
-                Zt[j - 1, r] = Zt[j, r]
-                Zt[j, r] = t
-            j -= 1
+    sort_eigenpairs(lam, Zt.T)  # ascending, with the eigenvectors (the rows of Zt)
     return True, lam
 
 

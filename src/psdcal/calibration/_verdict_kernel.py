@@ -107,18 +107,25 @@ def _eigh_jacobi(K):
     lam = np.empty(n)
     for i in range(n):
         lam[i] = A[i, i]
-    for i in range(1, n):  # insertion sort, ascending, with the eigenvectors
+    sort_eigenpairs(lam, V)
+    return lam, V
+
+
+@njit
+def sort_eigenpairs(lam, V):
+    """In place: the eigenvalues ``lam`` (n,) in ascending order, the columns of ``V`` (m, n) (the eigenvectors)
+    with them (an insertion sort: exact swaps, equal values keep their order)."""
+    for i in range(1, lam.shape[0]):
         j = i
         while j > 0 and lam[j - 1] > lam[j]:
             t = lam[j - 1]
             lam[j - 1] = lam[j]
             lam[j] = t
-            for r in range(n):
+            for r in range(V.shape[0]):
                 t = V[r, j - 1]
                 V[r, j - 1] = V[r, j]
                 V[r, j] = t
             j -= 1
-    return lam, V
 
 
 @njit
