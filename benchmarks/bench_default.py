@@ -16,7 +16,9 @@ the synthetic sets with psdcal's default model (one f, C, k1, k2, p1, p2) and
 OpenCV's ``CALIB_FIX_ASPECT_RATIO | CALIB_FIX_K3`` (the same parameters), the
 points in pixels at a 10 um pitch. Time: process CPU time
 (``time.process_time``), one thread (BLAS and OpenCV), the median of
-``--repeats`` calls after a warm-up (benchmarks/_timing.py's rule). The ratio
+``--repeats`` calls after a warm-up (benchmarks/_timing.py's rule), the three
+calls of a set timed in turns (``interleaved_cpu_seconds``: a machine whose
+speed drifts during the run slows all three alike). The ratio
 is psdcal's time over OpenCV's (the issue 22 target: <= 0.5 with the verdict).
 
 A second table (skipped with ``--no-cli``) runs ``psdcal calibrate`` on each
@@ -49,7 +51,7 @@ import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _table import print_table  # noqa: E402
-from _timing import median_cpu_seconds as cpu_seconds  # noqa: E402
+from _timing import interleaved_cpu_seconds  # noqa: E402
 from _zhang import ZHANG, load_zhang  # noqa: E402
 from bench_scaling import _opencv_inputs, grid_template  # noqa: E402
 
@@ -125,9 +127,8 @@ def main(argv=None) -> int:
     cv2.setNumThreads(1)
     lines = []
     for name, with_v, fit, ocv in cases(cv2):
-        t_v = cpu_seconds(with_v, a.repeats)
-        t_f = cpu_seconds(fit, a.repeats)
-        t_o = cpu_seconds(ocv, a.repeats)
+        # in turns (fit + verdict, fit, OpenCV, then again): a drift of the machine's speed hits the three alike
+        t_v, t_f, t_o = interleaved_cpu_seconds((with_v, fit, ocv), a.repeats)
         lines.append([name, f"{t_f * 1e3:.2f}", f"{t_v * 1e3:.2f}", f"{t_o * 1e3:.2f}", f"{t_f / t_o:.2f}x",
                       f"{t_v / t_o:.2f}x"])
     print_table(["set", "fit (ms)", "fit + verdict (ms)", "OpenCV (ms)", "fit / OpenCV", "fit + verdict / OpenCV"],
