@@ -129,6 +129,16 @@ class FieldParts:
         self._ext_memo = ext  # (N, p + 4) the parts side by side (see _ext), when the caller has them
         self.shape = (R.shape[0], 2 * mono.shape[1] + R.shape[1])
 
+    def memo(self, key: str, owner, make):
+        """``make()``, computed once per ``owner`` (by identity: the linearisation or the projector that the value
+        belongs to) and kept on these fields under ``key``: the checks that test the same fields share it."""
+        hit = self.__dict__.get("_memo_" + key)
+        if hit is not None and hit[0] is owner:
+            return hit[1]
+        value = make()
+        self.__dict__["_memo_" + key] = (owner, value)
+        return value
+
     def dense(self) -> np.ndarray:
         n, p = self.mono.shape
         out = np.zeros((n, 2, 2 * p))
@@ -397,12 +407,7 @@ class Blocks:
         """(v, 6 + g, k) each view's ``[Qb_v | Qg_v]^T B_v`` of B (m, k) or :class:`FieldParts` (memoised on the
         latter)."""
         if isinstance(B, FieldParts):
-            memo = getattr(B, "_block_coords", None)
-            if memo is not None and memo[0] is self:
-                return memo[1]
-            c = B.coords_views(self.Q)
-            B._block_coords = (self, c)
-            return c
+            return B.memo("block_coords", self, lambda: B.coords_views(self.Q))
         v, nr = self.Q.shape[:2]
         return np.matmul(np.swapaxes(self.Q, 1, 2), B.reshape(v, nr, B.shape[1]))
 
@@ -410,12 +415,7 @@ class Blocks:
         """:meth:`_split` of B's :meth:`coords` (memoised on a :class:`FieldParts`, whose projected Gram matrix and
         ``Gt^T B`` both need them)."""
         if isinstance(B, FieldParts):
-            memo = getattr(B, "_block_split", None)
-            if memo is not None and memo[0] is self:
-                return memo[1]
-            sp = self._split(self.coords(B))
-            B._block_split = (self, sp)
-            return sp
+            return B.memo("block_split", self, lambda: self._split(self.coords(B)))
         return self._split(self.coords(B))
 
     def _split(self, c):

@@ -56,12 +56,7 @@ def _bte(lin: Linear, B) -> np.ndarray:
         return lin.extra_te
     if not isinstance(B, FieldParts):
         return B.T @ lin.e
-    memo = getattr(B, "_bte", None)
-    if memo is not None and memo[0] is lin:
-        return memo[1]
-    bte = B.t_dot(lin.e)
-    B._bte = (lin, bte)
-    return bte
+    return B.memo("bte", lin, lambda: B.t_dot(lin.e))
 
 
 def _basis(lin: Linear, B, weights: bool = True):

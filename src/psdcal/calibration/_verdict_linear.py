@@ -51,6 +51,12 @@ ANGLE_GRID = 7
 KEY_PARAMETERS = ("f_mm", "fy_mm", "cx_mm", "cy_mm")
 
 
+def _read_only(a: np.ndarray) -> np.ndarray:
+    """``a``, marked read-only (a value memoised for several checks must not be changed by one of them)."""
+    a.flags.writeable = False
+    return a
+
+
 @dataclass(frozen=True)
 class Linear:
     """The fit linearised at its solution (see the module docstring)."""
@@ -76,14 +82,9 @@ class Linear:
         span."""
         if self.pgram is not None:
             if isinstance(B, FieldParts):  # the fields' projected Gram matrix, once per linearisation (F-test, shift)
-                memo = getattr(B, "_pgram", None)
-                if memo is not None and memo[0] is self and (btb is None or btb is B.gram()):
-                    return memo[1]
-                K = self.pgram(B, btb)
                 if btb is None or btb is B.gram():
-                    K.flags.writeable = False
-                    B._pgram = (self, K)
-                return K
+                    return B.memo("pgram", self, lambda: _read_only(self.pgram(B, btb)))
+                return self.pgram(B, btb)
             return self.pgram(np.asarray(B, dtype=float), btb)
         Bp = self.perp(B.dense() if isinstance(B, FieldParts) else np.asarray(B, dtype=float))
         return Bp.T @ Bp
