@@ -216,6 +216,15 @@ def _compiled_costs() -> tuple:
     return ik.image_model, ik.normal_equations, ik.template_model, _gram_kernel.gram_block_normal
 
 
+def kernel_theta(intr: Intrinsics, dist: Distortion, gains, skew: bool) -> np.ndarray:
+    """(16,) the compiled image cost's global parameters in the order of
+    :data:`~psdcal.calibration._image_kernel.GLOBAL_ORDER`: f, cx, cy (mm), skew (0 unless the model has it),
+    fy (mm), k1, k2, k3, p1, p2, l1, l2 and the four channel gains ``gains`` (4,)."""
+    return np.array((intr.f_mm, intr.cx_mm, intr.cy_mm, intr.skew if skew else 0.0, intr.fy,
+                     dist.k1, dist.k2, dist.k3, dist.p1, dist.p2, dist.l1, dist.l2,
+                     *np.asarray(gains, dtype=float).tolist()), dtype=float)
+
+
 class Evaluator:
     """Residuals and Jacobian of a :class:`Problem` at a state vector (cached per state)."""
 
@@ -246,10 +255,7 @@ class Evaluator:
                 self._blocks = gram_block_normal  # (the compiled LM loop's: long runs in chunks)
                 self._gmap, self._no_warm, self._gain_basis = prob.kernel_constants
                 self._separate_fy = prob.spec.aspect
-                skew = base_intr.skew if prob.spec.skew else 0.0
-                d = base_dist
-                self._theta0 = np.array((base_intr.f_mm, base_intr.cx_mm, base_intr.cy_mm, skew, base_intr.fy,
-                                         d.k1, d.k2, d.k3, d.p1, d.p2, d.l1, d.l2, *self.base[2].tolist()), dtype=float)
+                self._theta0 = kernel_theta(base_intr, base_dist, self.base[2], prob.spec.skew)
 
     def unpack(self, z):
         return self.prob.unpack(z, *self.base)

@@ -98,12 +98,11 @@ def _compiled(prob, res, gains, order, P, img, d_meas):
     :class:`~psdcal.calibration._refine.Evaluator` gives it from a cold start (the same numbers)."""
     from psdcal.calibration._image_kernel import global_map, image_model
 
-    intr, d = res.intrinsics, res.distortion
-    z = prob.pack(intr, d, gains, res.rvecs, res.tvecs_mm)
+    from psdcal.calibration._refine import kernel_theta
+
+    z = prob.pack(res.intrinsics, res.distortion, gains, res.rvecs, res.tvecs_mm)
     ng = prob.n_global
-    skew = intr.skew if prob.spec.skew else 0.0
-    theta = np.array((intr.f_mm, intr.cx_mm, intr.cy_mm, skew, intr.fy, d.k1, d.k2, d.k3, d.p1, d.p2, d.l1, d.l2,
-                      *gains.tolist()), dtype=float)
+    theta = kernel_theta(res.intrinsics, res.distortion, gains, prob.spec.skew)
     theta[global_map(prob.names)] = z[:ng]
     gain_basis = prob.kernel_constants[2] if prob.spec.fit_gains else _NO_GAINS
     # the Newton inverse from the fixed-point start, as the Evaluator's first evaluation: a start from the measured
