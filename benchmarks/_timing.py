@@ -23,7 +23,7 @@ def _median_time(fn, repeats: int, clock) -> float:
         t0 = clock()
         fn()
         ts.append(clock() - t0)
-    return float(np.median(ts))
+    return float(np.median(ts)) if ts else float("nan")
 
 
 def median_seconds(fn, repeats: int) -> float:
