@@ -339,6 +339,33 @@ def test_median_rows_equals_numpy_median():
         np.testing.assert_array_equal(_median_rows(c), np.median(c, axis=1))
 
 
+def test_median_of_long_rows_bracketed_exactly_or_not_at_all():
+    """Long rows (a pre-scan spectrum's 32,768 bins) are bracketed by a sample before the partition: the
+    same values as ``np.median`` when the bracket holds the middle (spectra, many ties, odd and even
+    counts); None, and the full partition's values, when the sample misleads (every 16th value the
+    smallest) or a NaN is there."""
+    from psdcal.signal import inspect as ins
+
+    rng = np.random.default_rng(11)
+    p = (np.abs(np.fft.rfft(rng.standard_normal((4, 1 << 16)), axis=1)) ** 2)[:, 1:]
+    cases = [p, p[:, :-1], rng.integers(0, 3, (4, 40_001)).astype(float), rng.integers(0, 3, (4, 40_000)).astype(float),
+             rng.random((3, 4096)), rng.random((2, 5001))]
+    for c in cases:
+        got = ins._median_bracketed(c)
+        assert got is not None
+        np.testing.assert_array_equal(got, np.median(c, axis=1))
+        np.testing.assert_array_equal(ins._median_rows(c), np.median(c, axis=1))
+    trap = np.ones((2, 8192))
+    trap[:, :: ins._BRACKET_STEP] = 0.0  # the sample sees only zeros: the bracket [0, 0] misses the middle
+    trap[1, 5] = 7.0
+    assert ins._median_bracketed(trap) is None
+    np.testing.assert_array_equal(ins._median_rows(trap), np.median(trap, axis=1))
+    p2 = p.copy()
+    p2[1, 100] = np.nan
+    assert ins._median_bracketed(p2) is None
+    np.testing.assert_array_equal(ins._median_rows(p2), np.median(p2, axis=1))
+
+
 def test_prescan_spectrum_equals_abs_squared_fft():
     """The pre-scan's power spectrum (re^2 + im^2 of the Hann-windowed, mean-removed channels) equals
     ``|rfft|^2`` written independently, to rounding (relative 1e-12 of the largest bin), rows layout too."""
@@ -399,32 +426,38 @@ def test_read_prefix_rows_view_has_the_same_samples(tmp_path):
             np.testing.assert_array_equal(u, v)
 
 
-def test_mapped_file_read_in_blocks_of_several_chunks_changes_nothing(tmp_path, monkeypatch):
-    """A memory-mapped ``.npy`` is read in blocks of ``MAPPED_READ_CHUNKS`` chunks: the same CSV bytes as one
-    chunk at a time, the same one-line error naming a bad sample late in the file, the same truncation
-    message; progress is still reported up to every sample."""
-    import psdcal.measure.locate as loc
-
+def test_npy_read_in_chunks_of_any_size_changes_nothing(tmp_path):
+    """A ``.npy`` is read chunk by chunk into one reused buffer (windows that straddle two chunks wait in the
+    lock-in): the same CSV bytes whatever the chunk size, the same one-line error naming a bad sample late in
+    the file; progress is still reported up to every sample; the buffer's reuse leaves no earlier chunk's
+    samples in a later window (the rows equal those of the channel-major reference path)."""
     m, x = _sig(120_000)
     rows = np.ascontiguousarray(x.T)
     np.save(tmp_path / "r.npy", rows)
-    cfg = LocateConfig(carriers_hz=(1000.0, 1300.0), window_s=0.01, distance_mm=5000.0, chunk_samples=10_000)
     texts, seen = [], []
-    for k in (1, 4, 100):
-        monkeypatch.setattr(loc, "MAPPED_READ_CHUNKS", k)
+    for chunk in (10_000, 37_501, 1 << 16):
+        cfg = LocateConfig(carriers_hz=(1000.0, 1300.0), window_s=0.01, distance_mm=5000.0, chunk_samples=chunk)
         progress = []
-        locate_to_csv(open_recording(tmp_path / "r.npy", RATE), m, tmp_path / f"o{k}.csv", cfg,
+        locate_to_csv(open_recording(tmp_path / "r.npy", RATE), m, tmp_path / f"o{chunk}.csv", cfg,
                       progress=progress.append)
-        texts.append((tmp_path / f"o{k}.csv").read_bytes())
+        texts.append((tmp_path / f"o{chunk}.csv").read_bytes())
         seen.append(progress)
     assert texts[0] == texts[1] == texts[2]
-    assert all(p[-1] == 120_000 and p == sorted(p) for p in seen) and len(seen[1]) < len(seen[0])
+    assert all(p[-1] == 120_000 and p == sorted(p) for p in seen) and len(seen[2]) < len(seen[0])
+    np.savetxt(tmp_path / "r.csv", rows, delimiter=",", header="vx1,vx2,vy1,vy2", comments="")
+    cfg = LocateConfig(carriers_hz=(1000.0, 1300.0), window_s=0.01, distance_mm=5000.0, chunk_samples=10_000)
+    locate_to_csv(open_recording(tmp_path / "r.csv", RATE), m, tmp_path / "ref.csv", cfg)
+    a, b = (np.genfromtxt(tmp_path / f, delimiter=",", names=True, dtype=None, encoding="utf-8")
+            for f in ("o10000.csv", "ref.csv"))
+    assert len(a) == len(b) > 0
+    for name in ("alpha_x_deg", "alpha_y_deg", "X_mm", "Y_mm", "sigma_X_mm"):
+        np.testing.assert_allclose(a[name], b[name], rtol=1e-9, atol=1e-12)
     bad = rows.copy()
     bad[97_531, 2] = np.nan
     np.save(tmp_path / "bad.npy", bad)
     msgs = []
-    for k in (1, 4):
-        monkeypatch.setattr(loc, "MAPPED_READ_CHUNKS", k)
+    for chunk in (10_000, 1 << 16):
+        cfg = LocateConfig(carriers_hz=(1000.0, 1300.0), window_s=0.01, distance_mm=5000.0, chunk_samples=chunk)
         with pytest.raises(InputError) as ei:
             locate_to_csv(open_recording(tmp_path / "bad.npy", RATE), m, tmp_path / "b.csv", cfg)
         msgs.append(str(ei.value))

@@ -171,11 +171,15 @@ def spectrum(x, rate_hz: float):
 def _median_rows(q: np.ndarray) -> np.ndarray:
     """``np.median(q, axis=1)``, the same values, by one partition with a single pivot (numpy's median asks
     for two, which costs several times more on a spectrum's 32,769 bins): the lower middle value of an even
-    count is the largest of the lower half."""
+    count is the largest of the lower half.  Long rows are first bracketed (:func:`_median_bracketed`)."""
     m = q.shape[1]
     h = m // 2
     if m < 2:
         return np.median(q, axis=1)
+    if m >= _BRACKET_MIN_COUNT:
+        out = _median_bracketed(q)
+        if out is not None:
+            return out
     part = np.partition(q, h, axis=1)
     if np.isnan(part[:, -1]).any():  # (numpy's NaN rule: NaN)
         return np.median(q, axis=1)
@@ -183,6 +187,49 @@ def _median_rows(q: np.ndarray) -> np.ndarray:
     if m % 2:
         return hi.copy()
     return (part[:, :h].max(axis=1) + hi) / 2
+
+
+#: Rows at least this long are bracketed before the partition (:func:`_median_bracketed`).
+_BRACKET_MIN_COUNT = 4096
+#: Every this many values of a row form the sample that brackets its median.
+_BRACKET_STEP = 16
+
+
+def _median_bracketed(q: np.ndarray) -> np.ndarray | None:
+    """``np.median(q, axis=1)`` of long rows from the few values around it, or None (then partition all).
+
+    A sample (every :data:`_BRACKET_STEP`-th value) gives bounds ``lo <= hi`` four binomial sigmas
+    either side of its middle; the values below ``lo`` are only counted, the values in ``[lo, hi]`` (about
+    a tenth) partitioned.  When the middle rank(s) of the row fall among them, the value at a rank is the
+    one at that rank less the count below ``lo`` in the bracketed values: exactly numpy's (the same two
+    values, the same mean for an even count).  Otherwise (a sample far off its expectation: about 6e-5 of
+    the rows), or with a NaN in the rows, None.
+    """
+    c, m = q.shape
+    h = m // 2
+    if np.isnan(q).any():
+        return None
+    sample = q[:, ::_BRACKET_STEP]
+    ns = sample.shape[1]
+    d = int(2.0 * math.sqrt(ns)) + 2  # four sigmas of the sample's middle rank (sigma = sqrt(ns) / 2)
+    k_lo, k_hi = max(0, ns // 2 - d), min(ns - 1, ns // 2 + d)
+    sample = np.partition(sample, (k_lo, k_hi), axis=1)
+    lo, hi = sample[:, k_lo], sample[:, k_hi]
+    out = np.empty(c)
+    for i in range(c):
+        row = q[i]
+        below = int(np.count_nonzero(row < lo[i]))
+        inside = row[(row >= lo[i]) & (row <= hi[i])]
+        r = h - below
+        need = r - 1 if m % 2 == 0 else r  # the lowest rank asked
+        if need < 0 or r >= inside.shape[0]:
+            return None
+        if m % 2:
+            out[i] = np.partition(inside, r)[r]
+        else:
+            part = np.partition(inside, (r - 1, r))
+            out[i] = (part[r - 1] + part[r]) / 2
+    return out
 
 
 def _spectrum_and_floor(x, rate_hz: float):

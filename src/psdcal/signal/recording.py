@@ -130,8 +130,10 @@ class Recording:
         mapped : bool
             ``rows`` blocks of a ``(n, 4)`` float64 ``.npy`` file (native byte
             order, C order): read-only views of a memory map of the file, no
-            copy at all (``psdcal locate``: mapping the page cache costs less
-            than copying it, 10 ms of 40 for 60 s of 4 x 125 kS/s).  The
+            copy at all (the carrier pre-scan of ``psdcal locate`` reads its
+            prefix so; the demodulation itself copies chunks into one buffer
+            with ``reuse_buffer``: its compiled sums read a cached buffer
+            faster than a map's scattered pages).  The
             file's size is checked before each block (a file truncated after
             opening is named as such); a block is valid until the next one is
             asked for.  Other layouts: as without it.
