@@ -25,10 +25,7 @@ Sources (``open_stream``):
 """
 from __future__ import annotations
 
-import io
 import math
-import os
-import stat
 import sys
 import time
 from dataclasses import dataclass, field
@@ -106,9 +103,6 @@ class RawStream:
     _readinto: object = field(default=None, repr=False)
     #: ``rows`` blocks: whether the last block filled the read buffer (a backlog: more may be waiting)
     backlog: bool = field(default=False, repr=False)
-    #: standard input when it is a regular file (``psdcal locate - < frames.bin``): its ``rows`` blocks are
-    #: then views of a memory map of it (no copy out of the page cache), or None
-    _file: object = field(default=None, repr=False)
 
     def chunks(self, chunk_samples: int = 0, *, rows: bool = False, check_finite: bool = True,
                read_bytes: int | None = None) -> Iterator[tuple[float, np.ndarray]]:
@@ -179,10 +173,6 @@ class RawStream:
         most = ROWS_READ_BYTES if read_bytes is None else int(read_bytes)
         cap = max(frame, (max(int(self.read_bytes), most) // frame) * frame)
         direct = dt == np.dtype(np.float64) and self.order is None and self.scale == 1.0
-        start = _regular_file_position(self._file) if direct else None
-        if start is not None:
-            yield from self._rows_mapped(check, cap, start)
-            return
         ring = bytearray(cap + frame)
         mv = memoryview(ring)
         readinto = self._readinto
@@ -229,81 +219,6 @@ class RawStream:
                   file=sys.stderr)
 
 
-    def _rows_mapped(self, check: bool, cap: int, start: int) -> Iterator[tuple[float, np.ndarray]]:
-        """The ``rows`` blocks of a regular file given as standard input (float64 frames in the documented
-        order, no scale): read-only views of a memory map of the file from ``start`` (its position), in
-        pieces of ``cap`` bytes as the reads would give them (what the file holds at each piece; the end of
-        the file is the end of the stream, as for a read); the file is left where the reads would leave it
-        (at its end, or after the last frame taken when the caller stops early)."""
-        import mmap
-
-        fh = self._file
-        fd = fh.fileno()
-        frame = 32
-        gran = mmap.ALLOCATIONGRANULARITY
-        pos, n, tail = start, 0, 0
-        mm, base, mapped_end = None, 0, 0  # one map of what the file holds, made again only when it grows
-        try:
-            while True:
-                size = os.fstat(fd).st_size  # the file as it is now (a map past its end is a crash)
-                m = min(cap, max(0, size - pos)) // frame
-                if m == 0:  # the end of the stream (a partial frame there is taken and dropped, as by the reads)
-                    tail, pos = max(0, size - pos), max(pos, size)
-                    break
-                if pos + m * frame > mapped_end:
-                    if mm is not None:
-                        _close_map(mm)
-                    base = pos - pos % gran
-                    mapped_end = pos + ((size - pos) // frame) * frame
-                    mm = mmap.mmap(fd, mapped_end - base, access=mmap.ACCESS_READ, offset=base)
-                now = time.perf_counter()
-                block = np.frombuffer(mm, dtype=np.float64, count=4 * m, offset=pos - base).reshape(m, 4)
-                if check:
-                    self.check_rows(block, n)
-                self.arrivals.append((n + m, now))
-                self.backlog = m * frame == cap
-                yield self.t0_s + n / self.rate_hz, block
-                del block
-                n += m
-                pos += m * frame
-        finally:
-            if mm is not None:
-                _close_map(mm)
-            fh.seek(pos)
-            if self._close is not None:
-                self._close()
-        if tail:
-            print(f"psdcal: warning: {self.path}: the stream ended inside a frame ({tail} bytes dropped)",
-                  file=sys.stderr)
-
-
-def _close_map(mm) -> None:
-    """Close a memory map (one whose views a caller still holds closes when they are dropped)."""
-    try:
-        mm.close()
-    except BufferError:
-        pass
-
-
-def _regular_file_position(fh) -> int | None:
-    """The position of ``fh`` when it is a seekable regular file (standard input redirected from a file), else
-    None (a pipe, a terminal, a socket: read as they come)."""
-    if fh is None:
-        return None
-    try:
-        st = os.fstat(fh.fileno())
-        if not stat.S_ISREG(st.st_mode) or not fh.seekable() or not fh.readable():
-            return None
-        if st.st_size:  # the file can be mapped (not only read): a page of it, or it is read as it comes
-            import mmap
-
-            mmap.mmap(fh.fileno(), min(st.st_size, mmap.ALLOCATIONGRANULARITY), access=mmap.ACCESS_READ).close()
-        return int(fh.tell())
-    except (OSError, ValueError, AttributeError, io.UnsupportedOperation):
-        return None
-
-
-#: Bytes a ``rows`` read of a live stream asks for at most (8 MB: 262144 frames of float64).
 ROWS_READ_BYTES = 1 << 23
 
 
@@ -338,7 +253,7 @@ def _open_source(source, rate_hz, dtype, scale, timeout_s, stdin) -> RawStream:
         fh = stdin if stdin is not None else sys.stdin.buffer
         reader = getattr(fh, "read1", None) or fh.read
         return RawStream(source, float(rate_hz), dtype, float(scale), _reader=reader,
-                         _readinto=getattr(fh, "readinto1", None), _file=fh)
+                         _readinto=getattr(fh, "readinto1", None))
     if source.startswith("tcp://"):
         import socket
 

@@ -80,8 +80,8 @@ def _measure_kernels() -> None:
 
     model = SensorModel.from_dict({"intrinsics": {"f_mm": 8.0, "cx_mm": 0.0, "cy_mm": 0.0}})
     angles_from_points(np.zeros((4, 2)), model, np.zeros((4, 2, 2)))
-    # locate's lock-in (window sums on writable rows, as from a live stream, and on read-only ones, as from a
-    # memory-mapped .npy; the per-window arithmetic) and its impact points
+    # locate's lock-in (window sums on writable rows, as read from a file or a stream, and on read-only ones, as
+    # a view of a memory map gives them; the per-window arithmetic) and its impact points
     from psdcal.measure._impact_kernel import impact_compiled
     from psdcal.signal.stream import MultiCarrierLockin
 
