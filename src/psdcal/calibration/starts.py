@@ -23,6 +23,7 @@ from psdcal.calibration._closed_form import intrinsics_from_homographies, poses_
 from psdcal.calibration._homography import homographies
 from psdcal.calibration._refine import Problem, SolverOptions, refine
 from psdcal.calibration._straightness import estimate_radial, find_lines
+from psdcal.calibration.result import _ALL_INTR, MISFIT_FRACTION  # noqa: F401 (their names here: core's)
 from psdcal.model.distortion import undistort
 from psdcal.errors import DegenerateViewsError, InputError
 from psdcal.model.params import DISTORTION_NAMES, Distortion, Intrinsics, ModelSpec
@@ -37,7 +38,6 @@ MAX_STRAIGHTNESS_LINES = 40
 #: ... and at most this many points of each line (spread along it, both ends kept): the curvature of a
 #: line is fixed by a few of its points, and a 16-point chessboard row costs twice 8 for no better start.
 MAX_LINE_POINTS = 8
-_ALL_INTR = ("f_mm", "cx_mm", "cy_mm", "skew")
 
 
 @dataclass(frozen=True)
@@ -607,10 +607,6 @@ def implausible(result: CalibrationResult) -> str:
     return ""
 
 
-#: A converged fit whose residual RMS exceeds this fraction of the measured
-#: points' spread is flagged by :meth:`CalibrationResult.warnings` (1 % of a
-#: 9 mm PSD is 90 um, some 30 times the noise at the paper's lowest SNR).
-MISFIT_FRACTION = 0.01
 
 #: Offsets (in units of the sensor's size) of the optical-centre starts tried
 #: when PSD terms are estimated (see :func:`_psd_multistart`).
