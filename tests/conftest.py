@@ -23,3 +23,14 @@ def _restore_jit_mode():
     mode = _jit._MODE
     yield
     _jit._MODE = mode
+
+
+@pytest.fixture(scope="session")
+def lens2_radial1_fit():
+    """Lens 2 (8 simulated views, 1 um noise) fitted with radial 1, no verdict: a fit with a systematic effect
+    (the structure and terms checks find the missing terms). Shared by the verdict's kernel tests."""
+    from psdcal.calibration.core import calibrate
+    from psdcal.study.simulate import simulate_set
+
+    s = simulate_set("lens2", n_images=8, noise_mm=1e-3, seed=4)
+    return calibrate(s.template_mm, s.points_mm, radial=1, tangential=False, verdict=False)

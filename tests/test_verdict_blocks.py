@@ -18,18 +18,15 @@ from psdcal import _stats
 from psdcal.calibration import _verdict_blocks as VB
 from psdcal.calibration import _verdict_fields as VF
 from psdcal.calibration import _verdict_linear as L
-from psdcal.calibration.core import calibrate
-from psdcal.study.simulate import simulate_set
 
 needs_numba = pytest.mark.skipif(not __import__("psdcal._jit", fromlist=["x"]).enabled(),
                                  reason="numba not available")
 
 
-@pytest.fixture(scope="module")
-def fit():
-    """A fit with a systematic effect (Lens 2 with radial 1: the structure and terms checks find it)."""
-    s = simulate_set("lens2", n_images=8, noise_mm=1e-3, seed=4)
-    return calibrate(s.template_mm, s.points_mm, radial=1, tangential=False, verdict=False)
+@pytest.fixture
+def fit(lens2_radial1_fit):
+    """Lens 2 fitted with radial 1 (conftest): the structure check finds the missing terms."""
+    return lens2_radial1_fit
 
 
 def _pair(fit, monkeypatch):
