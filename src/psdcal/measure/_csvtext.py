@@ -42,6 +42,13 @@ _U10000, _U1000000, _U100000000 = (np.uint64(10**k) for k in (4, 6, 8))
 
 
 @njit_inline
+def _ix(i):  # pragma: no cover - compiled
+    """An index known to be >= 0 as unsigned: numba then writes ``out[i]`` without the check that wraps a
+    negative index around (a compare and a select at every byte of the text)."""
+    return np.uint64(i)
+
+
+@njit_inline
 def _scaled(ax, k):  # pragma: no cover - compiled
     """|x| 10^k with exact powers of ten (at most two roundings); -1.0 when |k| > 44."""
     if 0 <= k <= 22:
@@ -62,7 +69,7 @@ def _fmt_int(v, out, b):  # pragma: no cover - compiled
         return -1
     p = 0
     if v < 0:
-        out[b + 0] = 45
+        out[_ix(b + 0)] = 45
         p = 1
         v = -v
     nd = 1
@@ -71,7 +78,7 @@ def _fmt_int(v, out, b):  # pragma: no cover - compiled
         t //= 10
         nd += 1
     for i in range(nd - 1, -1, -1):
-        out[b + p + i] = 48 + v % 10
+        out[_ix(b + p + i)] = 48 + v % 10
         v //= 10
     return p + nd
 
@@ -141,20 +148,20 @@ def _put_float(state, neg, u, e, nd, out, b):  # pragma: no cover - compiled
     ``out[b:]`` (``out`` has SLOT bytes of room after ``b``; bytes after the text may be overwritten); its
     length, or -1 (``state`` -1: left to Python)."""
     if state == 1:
-        out[b + 0], out[b + 1], out[b + 2] = 110, 97, 110  # nan
+        out[_ix(b + 0)], out[_ix(b + 1)], out[_ix(b + 2)] = 110, 97, 110  # nan
         return 3
     if state < 0:
         return -1
     # branch-free where the data decide (a sign, an exponent that changes from row to row: mispredicted
     # branches cost more than the few operations they save): the '-' is written always, the text starts
     # after it or on it
-    out[b] = 45  # '-'
+    out[_ix(b)] = 45  # '-'
     p = 1 if neg else 0
     if state == 2:
-        out[b + p], out[b + p + 1], out[b + p + 2] = 105, 110, 102  # inf
+        out[_ix(b + p)], out[_ix(b + p + 1)], out[_ix(b + p + 2)] = 105, 110, 102  # inf
         return p + 3
     if state == 3:
-        out[b + p] = 48
+        out[_ix(b + p)] = 48
         return p + 1
     # the ten digits as five pairs, each from u alone (no chain of divisions; unsigned: a division by a
     # constant is a multiply), written where the text wants them: digit i at q + s + i, one byte further
@@ -166,36 +173,36 @@ def _put_float(state, neg, u, e, nd, out, b):  # pragma: no cover - compiled
     s = max(-e, 0) if fixed else 0
     dot = (max(e, 0) if fixed else 0) + 1
     if s:
-        out[q], out[q + 1], out[q + 2], out[q + 3], out[q + 4] = 48, 46, 48, 48, 48
+        out[_ix(q)], out[_ix(q + 1)], out[_ix(q + 2)], out[_ix(q + 3)], out[_ix(q + 4)] = 48, 46, 48, 48, 48
     i2 = (u // _U100000000) * _U2
-    out[q + s + (s >= dot)] = _LUT[i2]
-    out[q + s + 1 + (s + 1 >= dot)] = _LUT[i2 + _U1]
+    out[_ix(q + s + (s >= dot))] = _LUT[i2]
+    out[_ix(q + s + 1 + (s + 1 >= dot))] = _LUT[i2 + _U1]
     i2 = ((u // _U1000000) % _U100) * _U2
-    out[q + s + 2 + (s + 2 >= dot)] = _LUT[i2]
-    out[q + s + 3 + (s + 3 >= dot)] = _LUT[i2 + _U1]
+    out[_ix(q + s + 2 + (s + 2 >= dot))] = _LUT[i2]
+    out[_ix(q + s + 3 + (s + 3 >= dot))] = _LUT[i2 + _U1]
     i2 = ((u // _U10000) % _U100) * _U2
-    out[q + s + 4 + (s + 4 >= dot)] = _LUT[i2]
-    out[q + s + 5 + (s + 5 >= dot)] = _LUT[i2 + _U1]
+    out[_ix(q + s + 4 + (s + 4 >= dot))] = _LUT[i2]
+    out[_ix(q + s + 5 + (s + 5 >= dot))] = _LUT[i2 + _U1]
     i2 = ((u // _U100) % _U100) * _U2
-    out[q + s + 6 + (s + 6 >= dot)] = _LUT[i2]
-    out[q + s + 7 + (s + 7 >= dot)] = _LUT[i2 + _U1]
+    out[_ix(q + s + 6 + (s + 6 >= dot))] = _LUT[i2]
+    out[_ix(q + s + 7 + (s + 7 >= dot))] = _LUT[i2 + _U1]
     i2 = (u % _U100) * _U2
-    out[q + s + 8 + (s + 8 >= dot)] = _LUT[i2]
-    out[q + s + 9 + (s + 9 >= dot)] = _LUT[i2 + _U1]
-    out[q + dot] = 46
+    out[_ix(q + s + 8 + (s + 8 >= dot))] = _LUT[i2]
+    out[_ix(q + s + 9 + (s + 9 >= dot))] = _LUT[i2 + _U1]
+    out[_ix(q + dot)] = 46
     # the digits and their '.' (s + nd + 1), or an integer (fixed notation, s + nd <= dot): no '.'
     p += max(s + nd + (s + nd > dot), dot)
     if fixed:
         return p
-    out[b + p] = 101  # 'e'
-    out[b + p + 1] = 45 if e < 0 else 43
+    out[_ix(b + p)] = 101  # 'e'
+    out[_ix(b + p + 1)] = 45 if e < 0 else 43
     p += 2
     ae = -e if e < 0 else e
     if ae >= 100:
-        out[b + p] = 48 + ae // 100
+        out[_ix(b + p)] = 48 + ae // 100
         p += 1
-    out[b + p] = 48 + (ae // 10) % 10
-    out[b + p + 1] = 48 + ae % 10
+    out[_ix(b + p)] = 48 + (ae // 10) % 10
+    out[_ix(b + p + 1)] = 48 + ae % 10
     return p + 2
 
 
@@ -239,26 +246,28 @@ def format_rows(F, I, kind, src, codes, table, offsets, out, fb_pos, fb_cell):  
         r1 = min(n, r0 + _BLOCK_ROWS)
         for r in range(r0, r1):
             for j in range(ncol):
-                if kind[j] == 0:
-                    c = (r - r0) * ncol + j
-                    st[c], du[c], de[c], dn[c] = _digits(F[src[j], r], FB[src[j], r])
+                if kind[_ix(j)] == 0:
+                    c = _ix((r - r0) * ncol + j)
+                    sj, rr = _ix(src[_ix(j)]), _ix(r)
+                    st[c], du[c], de[c], dn[c] = _digits(F[sj, rr], FB[sj, rr])
         for r in range(r0, r1):
             for j in range(ncol):
                 if j > 0:
-                    out[p] = 44
+                    out[_ix(p)] = 44
                     p += 1
-                kd = kind[j]
+                kd = kind[_ix(j)]
                 if kd == 2:
                     c = codes[r, src[j]]
                     for i in range(offsets[c], offsets[c + 1]):
-                        out[p] = table[i]
+                        out[_ix(p)] = table[_ix(i)]
                         p += 1
                     continue
                 if kd == 1:
                     ln = _fmt_int(I[r, src[j]], out, p)
                 else:
-                    c = (r - r0) * ncol + j
-                    ln = _put_float(st[c], FB[src[j], r] < 0, du[c], de[c], dn[c], out, p)
+                    c = _ix((r - r0) * ncol + j)
+                    sj, rr = _ix(src[_ix(j)]), _ix(r)
+                    ln = _put_float(st[c], FB[sj, rr] < 0, du[c], de[c], dn[c], out, p)
                 if ln < 0:
                     if nfb < fb_pos.shape[0]:
                         fb_pos[nfb] = p
@@ -268,7 +277,7 @@ def format_rows(F, I, kind, src, codes, table, offsets, out, fb_pos, fb_cell):  
                         return p, -1
                 else:
                     p += ln
-            out[p] = 10
+            out[_ix(p)] = 10
             p += 1
     return p, nfb
 
