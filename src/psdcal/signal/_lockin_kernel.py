@@ -92,11 +92,11 @@ def _window_sums(P, y, n, coef, xx, xt):  # pragma: no cover - compiled
             a30 = a31 = a32 = a33 = 0.0
             a40 = a41 = a42 = a43 = 0.0
             for t in range(n):
-                r = b + four * t
-                v0 = y[r]
-                v1 = y[r + np.uint64(1)]
-                v2 = y[r + np.uint64(2)]
-                v3 = y[r + np.uint64(3)]
+                i = b + four * t  # (unsigned: see above)
+                v0 = y[i]
+                v1 = y[i + np.uint64(1)]
+                v2 = y[i + np.uint64(2)]
+                v3 = y[i + np.uint64(3)]
                 p = q0[t]
                 a00 += p * v0
                 a01 += p * v1
@@ -144,11 +144,11 @@ def _window_sums(P, y, n, coef, xx, xt):  # pragma: no cover - compiled
             a10 = a11 = a12 = a13 = 0.0
             a20 = a21 = a22 = a23 = 0.0
             for t in range(n):
-                r = b + four * t
-                v0 = y[r]
-                v1 = y[r + np.uint64(1)]
-                v2 = y[r + np.uint64(2)]
-                v3 = y[r + np.uint64(3)]
+                i = b + four * t  # (unsigned: see above)
+                v0 = y[i]
+                v1 = y[i + np.uint64(1)]
+                v2 = y[i + np.uint64(2)]
+                v3 = y[i + np.uint64(3)]
                 p = q0[t]
                 a00 += p * v0
                 a01 += p * v1
@@ -189,7 +189,7 @@ def window_sums(P, x, n, coef, xx, xt) -> None:
         from psdcal import _jit
 
         # error_model "python": the kernel divides nothing, and numpy's error model (the project's
-        # default) keeps LLVM from vectorising its loops across the four channels (3x slower)
+        # default) keeps LLVM from vectorising its loops (3x slower)
         _compiled = _jit._compile(_window_sums, fastmath=set(FASTMATH), error_model="python")
     _compiled(P, np.ascontiguousarray(x).reshape(-1), np.uint64(n), coef, xx, xt)
 
