@@ -430,7 +430,8 @@ def test_npy_read_in_chunks_of_any_size_changes_nothing(tmp_path):
     """A ``.npy`` is read chunk by chunk into one reused buffer (windows that straddle two chunks wait in the
     lock-in): the same CSV bytes whatever the chunk size, the same one-line error naming a bad sample late in
     the file; progress is still reported up to every sample; the buffer's reuse leaves no earlier chunk's
-    samples in a later window (the rows equal those of the channel-major reference path)."""
+    samples in a later window (the rows equal those of the same samples read from a CSV, whose (4, m) blocks
+    take the lock-in's other path)."""
     m, x = _sig(120_000)
     rows = np.ascontiguousarray(x.T)
     np.save(tmp_path / "r.npy", rows)

@@ -607,7 +607,6 @@ def implausible(result: CalibrationResult) -> str:
     return ""
 
 
-
 #: Offsets (in units of the sensor's size) of the optical-centre starts tried
 #: when PSD terms are estimated (see :func:`_psd_multistart`).
 PSD_CENTRE_STARTS = ((0.0, 0.0), (1, 1), (1, -1), (-1, 1), (-1, -1))

@@ -48,15 +48,14 @@ def _groups(J: int) -> tuple[int, int]:
     return n5, (0 if r == 0 else (2 if r == 4 else 1))
 
 
-def _window_sums(P, y, n, coef, xx, xt):  # pragma: no cover - compiled
+def _window_sums(P, y, n, coef, xx):  # pragma: no cover - compiled
     """``coef[w] = P[:J] @ x[w n:(w + 1) n]`` (J, 4) and ``xx[w] = sum x^2`` (4,) for each window ``w``.
 
     ``P`` (5 n5 + 3 n3, n): the table padded by :func:`padded_table`; ``y`` (4 nw n,) the windows'
     rows ``x`` (nw n, 4) flattened (C order: sample ``t``'s channel ``c`` at ``4 t + c``); ``n``
-    the window's samples as ``np.uint64``; ``coef`` (nw, J, 4), ``xx`` (nw, 4) written; ``xt``
-    unused (kept for the signature).  One pass over a window's rows per group of five (or three)
-    table rows: each sample row's four channels are multiplied by one table value; the sums of
-    squares are those of the first pass.
+    the window's samples as ``np.uint64``; ``coef`` (nw, J, 4), ``xx`` (nw, 4) written.  One pass
+    over a window's rows per group of five (or three) table rows: each sample row's four channels
+    are multiplied by one table value; the sums of squares are those of the first pass.
 
     The indices are unsigned and the rows flat on purpose: numba wraps a negative signed index
     (``x[i]`` is ``x[i + len]`` for ``i < 0``), and that select hides from LLVM that channel ``c``
@@ -181,7 +180,7 @@ def _window_sums(P, y, n, coef, xx, xt):  # pragma: no cover - compiled
 _compiled = None
 
 
-def window_sums(P, x, n, coef, xx, xt) -> None:
+def window_sums(P, x, n, coef, xx) -> None:
     """:func:`_window_sums` of the rows ``x`` (nw n, 4) (any strides: copied when not C-contiguous),
     compiled at the first call (numba imported then)."""
     global _compiled
@@ -191,7 +190,7 @@ def window_sums(P, x, n, coef, xx, xt) -> None:
         # error_model "python": the kernel divides nothing, and numpy's error model (the project's
         # default) keeps LLVM from vectorising its loops (3x slower)
         _compiled = _jit._compile(_window_sums, fastmath=set(FASTMATH), error_model="python")
-    _compiled(P, np.ascontiguousarray(x).reshape(-1), np.uint64(n), coef, xx, xt)
+    _compiled(P, np.ascontiguousarray(x).reshape(-1), np.uint64(n), coef, xx)
 
 
 def _window_stats(coef, xx, gram, gi, n, dof, floor2, var, amp, var_amp, zr, zi):  # pragma: no cover - compiled

@@ -219,6 +219,7 @@ class RawStream:
                   file=sys.stderr)
 
 
+#: Bytes a ``rows`` read of a live stream asks for at most (8 MB: 262144 frames of float64).
 ROWS_READ_BYTES = 1 << 23
 
 

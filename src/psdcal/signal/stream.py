@@ -299,11 +299,10 @@ class MultiCarrierLockin:
 
         if getattr(self, "_kern_table", None) is None:
             self._kern_table = kern.padded_table(self._proj_t)
-            self._kern_scratch = np.empty((4, self.n_window))
         nw, n = xr.shape[0], self.n_window
         coef = np.empty((nw, self._proj_t.shape[0], 4))
         xx = np.empty((nw, 4))
-        kern.window_sums(self._kern_table, xr.reshape(nw * n, 4), n, coef, xx, self._kern_scratch)
+        kern.window_sums(self._kern_table, xr.reshape(nw * n, 4), n, coef, xx)
         return coef, xx
 
     def _demodulate_rows(self, xr: np.ndarray) -> WindowBlock:
