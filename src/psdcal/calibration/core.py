@@ -19,6 +19,16 @@ from dataclasses import replace
 import numpy as np
 
 from psdcal.calibration._refine import Problem, SolverOptions, refine
+# the result and its record's helpers (result.py); the names users and tests import from core stay reachable here
+from psdcal.calibration.result import (
+    CalibrationResult,
+    _frozen,
+    _jsonable,
+    _plain,
+    _plain_ids,
+    inputs_from_record,
+    points_from_record,
+)
 from psdcal.model.distortion import distort
 from psdcal.errors import ConvergenceError, DegenerateViewsError, InputError
 from psdcal.model.params import DISTORTION_NAMES, Distortion
@@ -47,19 +57,6 @@ from psdcal.calibration.starts import (
     SUBSAMPLE_POINTS,
     subsample_views,
     template_hint,
-)
-
-
-# the result and its record's helpers (result.py); the names users and tests import from core stay reachable here
-from psdcal.calibration.result import (  # noqa: E402
-    CalibrationResult,
-    _frozen,
-    _jsonable,
-    _plain,
-    _plain_ids,
-    _software_version,
-    inputs_from_record,
-    points_from_record,
 )
 
 
